@@ -1,0 +1,326 @@
+"""The UNIMAL Gymnasium environment: a robot, an arena and a task, composed."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import mujoco
+import numpy as np
+
+from unimal_envs import contract as C
+from unimal_envs.instructions import DEFAULT_ENCODER, embed_instruction
+from unimal_envs.morphology.loader import Morphology, MorphologyError, load_morphologies
+from unimal_envs.robot import Robot
+from unimal_envs.tasks import CONTROL_DT, Task, make_task
+
+_FAULT_WARNINGS = (
+    int(mujoco.mjtWarning.mjWARN_BADQPOS),
+    int(mujoco.mjtWarning.mjWARN_BADQVEL),
+    int(mujoco.mjtWarning.mjWARN_BADQACC),
+)
+
+
+@dataclass
+class _World:
+    """One compiled world (robot + arena + task props) and its simulation state."""
+
+    model: mujoco.MjModel
+    data: mujoco.MjData
+    robot: Robot
+    renderer: mujoco.Renderer | None = None
+
+
+class UnimalEnv(gym.Env):
+    """A UNIMAL robot doing a task; one morphology is drawn per episode.
+
+    Registered as ``Unimal-<task>-v0`` (e.g. ``gym.make("Unimal-FT-v0")``). Every task and every
+    morphology shares the same observation and action spaces (:mod:`unimal_envs.contract`), so a
+    single policy and a single vectorised env can mix them.
+
+    **Observation** — ``spaces.Dict`` (float32, fresh arrays every step):
+
+    ====================  =========  ==========================================================
+    key                   shape      content
+    ====================  =========  ==========================================================
+    ``proprioceptive``    (12, 52)   per token (torso, then limbs in MuJoCo body order): body
+                                     position (x relative to the torso), linear and angular
+                                     velocity, orientation quaternion, 17 static body features,
+                                     and for the "x" and "y" hinge slots: normalised angle,
+                                     angular velocity, anchor, range, axis, gear; zero rows for
+                                     padding
+    ``context``           (12, 35)   static morphology features rescaled to [-1, 1]
+    ``obs_padding_mask``  (12,)      1.0 = padded token
+    ``act_padding_mask``  (24,)      1.0 = no hinge behind this action slot
+    ``hfield``            (1410,)    egocentric height map (terrain tasks), else zeros
+    ``goal``              (3,)       goal in the torso frame (goal tasks), else zeros
+    ``object``            (12,)      object state in the torso frame (box tasks), else zeros
+    ``task_embedding``    (384,)     all-MiniLM-L6-v2 embedding of the instruction
+    ``task_index``        (1,)       index of the task in ``contract.TASK_NAMES``
+    ====================  =========  ==========================================================
+
+    Positions and velocities all describe the state after the step (see :mod:`unimal_envs.robot`
+    for the velocity convention).
+
+    **Action** — ``Box(-1, 1, (24,))``: two slots per token, slot 0 drives the limb's "x" hinge,
+    slot 1 its "y" hinge; a torque of ``gear x action`` is applied. Slots flagged in
+    ``act_padding_mask`` are ignored. An action of the wrong shape, or with NaN/inf in a real
+    slot, raises ``ValueError`` *before* the simulation is touched (the episode can continue
+    with a valid action); non-finite values in padded slots are ignored.
+
+    **Reward** — the task's terms (``info["reward_<term>"]``) minus
+    ``ctrl_cost_weight x sum(action_real**2)`` (``reward_ctrl``).
+
+    **Episode end** — ``terminated`` when the robot falls (torso height above the ground
+    <= ``task.fall_height_ratio`` x standing height), on a task-specific event, or on a physics
+    fault (MuJoCo reported a diverging state and reset it; ``info["physics_fault"]`` is True and
+    the step's reward is 0). ``truncated`` after ``max_episode_steps`` (1000 = 20 s at 50 Hz;
+    a ``gym.make`` argument).
+
+    **Simulation** — timestep 0.005 s, 4 substeps per control step (50 Hz). Reset noise
+    U(-0.005, 0.005) on every robot qpos and qvel entry.
+
+    :param task: task name (``"FT"``, ...) or a :class:`~unimal_envs.tasks.Task` instance.
+    :param morphologies: ``"train"`` / ``"novel"`` (shipped generated sets, 100 each), a directory
+        in the unimals_100 layout (``DIR/xml/*.xml``), or a list of MJCF paths.
+    :param instruction: replaces the task's instruction; embedded with ``text_encoder``.
+    :param text_encoder: encoder for a custom ``instruction`` (``"minilm"`` or ``"hash"``).
+    :param ctrl_cost_weight: weight of the control cost (0.0 as in MetaMorph; DERL used 1e-3).
+    :param reset_noise_scale: half-width of the uniform reset noise.
+    :param render_mode: ``"rgb_array"`` (headless with ``MUJOCO_GL=egl``) or ``"human"``.
+    :param width: rendered image width in pixels.
+    :param height: rendered image height in pixels.
+    """
+
+    metadata = {"render_modes": ["rgb_array", "human"], "render_fps": round(1.0 / CONTROL_DT)}
+
+    def __init__(
+        self,
+        task: str | Task = "FT",
+        morphologies: str | Path | Iterable[str | Path] = "train",
+        instruction: str | None = None,
+        text_encoder: str = DEFAULT_ENCODER,
+        ctrl_cost_weight: float = 0.0,
+        reset_noise_scale: float = 0.005,
+        render_mode: str | None = None,
+        width: int = 480,
+        height: int = 480,
+    ):
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
+        self.task = make_task(task)
+        self.morphologies: list[Morphology] = load_morphologies(morphologies)
+        self.arena = self.task.make_arena()
+        self.instruction = instruction if instruction is not None else self.task.instruction
+        self._task_embedding = embed_instruction(self.instruction, text_encoder)
+        self._task_index = np.array([C.TASK_NAMES.index(self.task.name)], dtype=np.float32)
+        self.ctrl_cost_weight = float(ctrl_cost_weight)
+        self.reset_noise_scale = float(reset_noise_scale)
+        self.render_mode = render_mode
+        self.width, self.height = int(width), int(height)
+        self.observation_space = C.observation_space()
+        self.action_space = C.action_space()
+        self._worlds: dict[int, _World] = {}  # static worlds are compiled once per morphology
+        self._world: _World | None = None
+        self._viewer = None
+
+    # ------------------------------------------------------------------ world
+    def _build_world(self, index: int) -> _World:
+        robot = Robot(self.morphologies[index])
+        pos, quat = self.task.spawn_pose(robot)
+        spec = robot.build_spec(pos, quat)
+        self.arena.build(spec, self.np_random)
+        self.task.build(spec, self.np_random)
+        spec.visual.global_.offwidth = max(spec.visual.global_.offwidth, self.width)
+        spec.visual.global_.offheight = max(spec.visual.global_.offheight, self.height)
+        try:
+            model = spec.compile()
+        except ValueError as err:
+            raise MorphologyError(f"{robot.morphology.name}: the world does not compile ({err})") from None
+        data = mujoco.MjData(model)
+        robot.bind(model, data)
+        return _World(model, data, robot)
+
+    @property
+    def robot(self) -> Robot:
+        """The robot of the current episode."""
+        return self._world.robot
+
+    @property
+    def morphology(self) -> Morphology:
+        """The morphology of the current episode."""
+        return self._world.robot.morphology
+
+    @property
+    def model(self) -> mujoco.MjModel:
+        return self._world.model
+
+    @property
+    def data(self) -> mujoco.MjData:
+        return self._world.data
+
+    # ------------------------------------------------------------------ gym API
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        """Start an episode with a randomly drawn morphology.
+
+        :param seed: seeds the env's generator (morphology draw, terrain, noise).
+        :param options: ``{"morphology": name or index}`` to choose the robot instead of drawing it.
+        """
+        super().reset(seed=seed)
+        index = self._choose_morphology((options or {}).get("morphology"))
+        if self.arena.randomised or self.task.randomised or index not in self._worlds:
+            if self._world is not None and self._world is not self._worlds.get(index):
+                self._release(self._world)
+            self._world = self._build_world(index)
+            if not (self.arena.randomised or self.task.randomised):
+                self._worlds[index] = self._world
+        else:
+            self._world = self._worlds[index]
+        world = self._world
+        mujoco.mj_resetData(world.model, world.data)
+        world.robot.reset(self.np_random, self.reset_noise_scale)
+        mujoco.mj_forward(world.model, world.data)
+        self.arena.bind(world.model, world.data)
+        self.task.bind(world.model, world.data)
+        self.task.reset(world.robot, self.np_random)
+        self._fall_height = self.task.fall_height_ratio * world.robot.morphology.standing_height
+        self._fault_count = self._faults()
+        return self._observation(), {"morphology": world.robot.morphology.name, "task": self.task.name}
+
+    def step(self, action: np.ndarray):
+        world = self._world
+        if world is None:
+            raise RuntimeError("call reset() before step()")
+        robot = world.robot
+        action = self._checked_action(action)
+        torso_before = robot.torso_position
+        robot.apply_action(action)
+        mujoco.mj_step(world.model, world.data, nstep=4)
+        robot.sync()
+
+        info: dict[str, Any] = {"morphology": robot.morphology.name, "task": self.task.name, "physics_fault": False}
+        faults = self._faults()
+        if faults != self._fault_count:
+            # MuJoCo found a non-finite or exploding state and reset the data itself: end the episode.
+            self._fault_count = faults
+            info["physics_fault"] = True
+            info["termination"] = "physics_fault"
+            return self._observation(), 0.0, True, False, info
+
+        terms = self.task.reward_terms(robot, torso_before)
+        if self.ctrl_cost_weight:
+            real = action[robot.real_slots]
+            terms["ctrl"] = -self.ctrl_cost_weight * float(real @ real)
+        reward = 0.0
+        for term, value in terms.items():
+            info["reward_" + term] = value
+            reward += value
+
+        reason = self.task.termination(robot)
+        x, y, z = robot.torso_qpos
+        if z - self.arena.ground_height(x, y) <= self._fall_height:
+            reason = "fall"
+        if reason is not None:
+            info["termination"] = reason
+        if self.render_mode == "human":
+            self.render()
+        return self._observation(), reward, reason is not None, False, info
+
+    def _observation(self) -> dict[str, np.ndarray]:
+        robot = self._world.robot
+        morphology = robot.morphology
+        obs = {
+            "proprioceptive": robot.proprioception(),
+            "context": morphology.context.copy(),
+            "obs_padding_mask": morphology.obs_padding_mask.copy(),
+            "act_padding_mask": morphology.act_padding_mask.copy(),
+            "hfield": None,
+            "goal": None,
+            "object": None,
+            "task_embedding": self._task_embedding.copy(),
+            "task_index": self._task_index.copy(),
+        }
+        obs.update(self.task.observations(robot))
+        for key, size in (("hfield", C.HFIELD_DIM), ("goal", C.GOAL_DIM), ("object", C.OBJECT_DIM)):
+            if obs[key] is None:
+                obs[key] = np.zeros(size, dtype=np.float32)
+        return obs
+
+    def _checked_action(self, action: np.ndarray) -> np.ndarray:
+        action = np.asarray(action)
+        if action.shape != (C.ACTION_DIM,):
+            raise ValueError(
+                f"action has shape {action.shape}; Unimal envs take shape ({C.ACTION_DIM},) "
+                f"({C.SLOTS_PER_TOKEN} hinge slots x {C.MAX_TOKENS} tokens, padded slots ignored)"
+            )
+        if not np.isfinite(action).all():
+            real = self._world.robot.real_slots
+            bad = real[~np.isfinite(action[real])]
+            if bad.size:
+                raise ValueError(
+                    f"action has non-finite values {action[bad].tolist()} in real hinge slots {bad.tolist()} "
+                    f"(morphology {self.morphology.name}); the simulation was not stepped"
+                )
+        return action
+
+    def _choose_morphology(self, choice: int | str | None) -> int:
+        if choice is None:
+            return int(self.np_random.integers(len(self.morphologies)))
+        if isinstance(choice, (int, np.integer)):
+            if not 0 <= choice < len(self.morphologies):
+                raise ValueError(f"morphology index {choice} out of range [0, {len(self.morphologies)})")
+            return int(choice)
+        names = [m.name for m in self.morphologies]
+        if choice not in names:
+            raise ValueError(f"unknown morphology '{choice}'; this env has {len(names)}: {names[:5]}...")
+        return names.index(choice)
+
+    def _faults(self) -> int:
+        warnings = self._world.data.warning
+        return sum(warnings[w].number for w in _FAULT_WARNINGS)
+
+    # ------------------------------------------------------------------ rendering
+    def render(self) -> np.ndarray | None:
+        """An RGB frame (``rgb_array``) from a camera tracking the torso, or update the viewer (``human``)."""
+        if self.render_mode is None:
+            gym.logger.warn("render() called without a render_mode; pass render_mode='rgb_array' to gym.make")
+            return None
+        world = self._world
+        if self.render_mode == "human":
+            return self._render_human(world)
+        if world.renderer is None:
+            world.renderer = mujoco.Renderer(world.model, self.height, self.width)
+        world.renderer.update_scene(world.data, camera=self._camera(world))
+        return world.renderer.render()
+
+    def _camera(self, world: _World) -> mujoco.MjvCamera:
+        camera = mujoco.MjvCamera()
+        camera.type = mujoco.mjtCamera.mjCAMERA_TRACKING
+        camera.trackbodyid = world.robot.torso_id
+        camera.distance = 2.5 + 3.0 * world.robot.morphology.standing_height
+        camera.azimuth, camera.elevation = 135.0, -20.0
+        return camera
+
+    def _render_human(self, world: _World) -> None:
+        import mujoco.viewer
+
+        if self._viewer is None or self._viewer.m is not world.model:
+            if self._viewer is not None:
+                self._viewer.close()
+            self._viewer = mujoco.viewer.launch_passive(world.model, world.data)
+        self._viewer.sync()
+
+    def _release(self, world: _World) -> None:
+        if world.renderer is not None:
+            world.renderer.close()
+            world.renderer = None
+
+    def close(self) -> None:
+        for world in {id(w): w for w in [*self._worlds.values(), self._world] if w is not None}.values():
+            self._release(world)
+        if self._viewer is not None:
+            self._viewer.close()
+            self._viewer = None

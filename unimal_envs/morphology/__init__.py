@@ -1,0 +1,12 @@
+"""UNIMAL morphologies: loading MJCF robots and generating new ones."""
+
+from unimal_envs.morphology.loader import (
+    Morphology,
+    MorphologyError,
+    load_morphologies,
+    load_morphology,
+    morphology_files,
+    parse_morphology,
+)
+
+__all__ = ["Morphology", "MorphologyError", "load_morphologies", "load_morphology", "morphology_files", "parse_morphology"]
