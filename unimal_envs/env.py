@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,6 +23,12 @@ _FAULT_WARNINGS = (
     int(mujoco.mjtWarning.mjWARN_BADQVEL),
     int(mujoco.mjtWarning.mjWARN_BADQACC),
 )
+#: Physics timestep; a control step is 4 of them (CONTROL_DT).
+_SUBSTEPS = 4
+_SUBSTEP = CONTROL_DT / _SUBSTEPS
+_ZEROS_HFIELD = np.zeros(C.HFIELD_DIM, dtype=np.float32)
+_ZEROS_GOAL = np.zeros(C.GOAL_DIM, dtype=np.float32)
+_ZEROS_OBJECT = np.zeros(C.OBJECT_DIM, dtype=np.float32)
 
 
 @dataclass
@@ -187,40 +194,40 @@ class UnimalEnv(gym.Env):
         self.task.bind(world.model, world.data)
         self.task.reset(world.robot, self.np_random)
         self._fall_height = self.task.fall_height_ratio * world.robot.morphology.standing_height
-        self._fault_count = self._faults()
         return self._observation(), {"morphology": world.robot.morphology.name, "task": self.task.name}
 
     def step(self, action: np.ndarray):
         world = self._world
         if world is None:
             raise RuntimeError("call reset() before step()")
-        robot = world.robot
+        robot, data = world.robot, world.data
         action = self._checked_action(action)
         torso_before = robot.torso_position
         robot.apply_action(action)
-        mujoco.mj_step(world.model, world.data, nstep=4)
+        time_before = data.time
+        mujoco.mj_step(world.model, data, nstep=_SUBSTEPS)
         robot.sync()
 
         info: dict[str, Any] = {"morphology": robot.morphology.name, "task": self.task.name, "physics_fault": False}
-        faults = self._faults()
-        if faults != self._fault_count:
-            # MuJoCo found a non-finite or exploding state and reset the data itself: end the episode.
-            self._fault_count = faults
+        # MuJoCo resets the data (time = 0) when the state diverges (non-finite or huge qpos,
+        # qvel, qacc), so a step that ends earlier than 4 substeps later had a physics fault.
+        if data.time < time_before + 3.5 * _SUBSTEP:
             info["physics_fault"] = True
             info["termination"] = "physics_fault"
+            info["mujoco_warnings"] = self._fault_warnings()
             return self._observation(), 0.0, True, False, info
 
-        terms = self.task.reward_terms(robot, torso_before)
-        if self.ctrl_cost_weight:
-            real = action[robot.real_slots]
-            terms["ctrl"] = -self.ctrl_cost_weight * float(real @ real)
         reward = 0.0
-        for term, value in terms.items():
+        for term, value in self.task.reward_terms(robot, torso_before).items():
             info["reward_" + term] = value
             reward += value
+        if self.ctrl_cost_weight:
+            real = action[robot.real_slots]
+            info["reward_ctrl"] = ctrl = -self.ctrl_cost_weight * float(real @ real)
+            reward += ctrl
 
         reason = self.task.termination(robot)
-        x, y, z = robot.torso_qpos
+        x, y, z = robot.torso_qpos.tolist()
         if z - self.arena.ground_height(x, y) <= self._fall_height:
             reason = "fall"
         if reason is not None:
@@ -237,16 +244,13 @@ class UnimalEnv(gym.Env):
             "context": morphology.context.copy(),
             "obs_padding_mask": morphology.obs_padding_mask.copy(),
             "act_padding_mask": morphology.act_padding_mask.copy(),
-            "hfield": None,
-            "goal": None,
-            "object": None,
+            "hfield": _ZEROS_HFIELD.copy(),
+            "goal": _ZEROS_GOAL.copy(),
+            "object": _ZEROS_OBJECT.copy(),
             "task_embedding": self._task_embedding.copy(),
             "task_index": self._task_index.copy(),
         }
         obs.update(self.task.observations(robot))
-        for key, size in (("hfield", C.HFIELD_DIM), ("goal", C.GOAL_DIM), ("object", C.OBJECT_DIM)):
-            if obs[key] is None:
-                obs[key] = np.zeros(size, dtype=np.float32)
         return obs
 
     def _checked_action(self, action: np.ndarray) -> np.ndarray:
@@ -256,7 +260,8 @@ class UnimalEnv(gym.Env):
                 f"action has shape {action.shape}; Unimal envs take shape ({C.ACTION_DIM},) "
                 f"({C.SLOTS_PER_TOKEN} hinge slots x {C.MAX_TOKENS} tokens, padded slots ignored)"
             )
-        if not np.isfinite(action).all():
+        # One dot product is the cheapest finiteness test on the hot path; inspect only on failure.
+        if not math.isfinite(action @ action):
             real = self._world.robot.real_slots
             bad = real[~np.isfinite(action[real])]
             if bad.size:
@@ -278,9 +283,9 @@ class UnimalEnv(gym.Env):
             raise ValueError(f"unknown morphology '{choice}'; this env has {len(names)}: {names[:5]}...")
         return names.index(choice)
 
-    def _faults(self) -> int:
+    def _fault_warnings(self) -> dict[str, int]:
         warnings = self._world.data.warning
-        return sum(warnings[w].number for w in _FAULT_WARNINGS)
+        return {mujoco.mjtWarning(w).name: int(warnings[w].number) for w in _FAULT_WARNINGS if warnings[w].number}
 
     # ------------------------------------------------------------------ rendering
     def render(self) -> np.ndarray | None:

@@ -10,9 +10,10 @@ Velocity convention
 ``mj_step`` leaves position-derived quantities (``xpos``, ``cvel``, ...) from the *start* of the
 last substep while ``qpos``/``qvel`` are already integrated (mujoco_py observed this mixed state).
 After stepping, :meth:`Robot.sync` runs ``mj_kinematics``, ``mj_comPos`` and ``mj_comVel`` so every
-feature describes the same instant, the current state. Body velocities are those of
-``mj_objectVelocity(mjOBJ_BODY, flg_local=0)``: the world-frame linear velocity of the body-frame
-origin and the world-frame angular velocity.
+feature describes the same instant, the current state. Body velocities are the
+world-frame linear velocity of the body-frame
+origin and the world-frame angular velocity, i.e. ``mj_objectVelocity(mjOBJ_XBODY, flg_local=0)``
+(= ``mj_jacBody @ qvel`` on fresh kinematics, what mujoco_py's ``body_xvelp/xvelr`` meant).
 """
 
 from __future__ import annotations
@@ -23,7 +24,11 @@ import numpy as np
 from unimal_envs import contract as C
 from unimal_envs.morphology.loader import TORSO, Morphology
 
+#: Physics timestep in seconds (4 substeps per control step).
+TIMESTEP = 0.005
 _FILTERPARENT = int(mujoco.mjtDisableBit.mjDSBL_FILTERPARENT)
+# Body-frame origin (mjOBJ_BODY would give the centre of mass); a plain int is faster to pass.
+_XBODY = int(mujoco.mjtObj.mjOBJ_XBODY)
 
 
 class Robot:
@@ -59,7 +64,7 @@ class Robot:
         :param quat: torso spawn orientation (w, x, y, z); default identity.
         """
         spec = self.morphology.spec()
-        spec.option.timestep = 0.005
+        spec.option.timestep = TIMESTEP
         spec.option.disableflags &= ~_FILTERPARENT
         spec.njmax, spec.nconmax = 1000, 200
         for exclude in list(spec.excludes):
@@ -101,17 +106,37 @@ class Robot:
             [hinge_slots[hinge_ids.index(actuated[a])] for a in self._robot_actuators], dtype=np.intp
         )
         self._ctrl_all = len(self._robot_actuators) == model.nu
-        # Flat indices of the dynamic hinge features inside the (12, 52) observation.
         token, slot = np.divmod(hinge_slots, C.SLOTS_PER_TOKEN)
-        col = np.array([C.HINGE_SLOT_COLUMNS[s].start for s in slot])
-        self._qpos_flat = token * C.PROPRIO_DIM + col + C.HINGE_QPOS
-        self._qvel_flat = token * C.PROPRIO_DIM + col + C.HINGE_QVEL
+        col = np.array([C.HINGE_SLOT_COLUMNS[s].start for s in slot], dtype=np.intp)
+        # Every dynamic feature is gathered into one state vector laid out as
+        # [xpos (n,3) | angular, linear velocity (n,6) | xquat (n,4) | hinge qpos | hinge qvel],
+        # then scaled (qpos normalisation) and scattered into the observation with one assignment.
+        n, dof = self.num_tokens, self.dof
+        state = np.zeros(13 * n + 2 * dof)
+        self._state = state
+        self._state_xpos = state[: 3 * n].reshape(n, 3)
+        self._state_velocity_rows = list(state[3 * n : 9 * n].reshape(n, 6))  # filled in place by MuJoCo
+        self._state_xquat = state[9 * n : 13 * n].reshape(n, 4)
+        self._state_qpos = state[13 * n : 13 * n + dof]
+        self._state_qvel = state[13 * n + dof :]
+        rows = np.arange(n)[:, None] * C.PROPRIO_DIM
+        velocity_columns = np.r_[np.arange(C.XVELR.start, C.XVELR.stop), np.arange(C.XVELP.start, C.XVELP.stop)]
+        self._state_targets = np.concatenate(
+            [
+                (rows + np.arange(C.XPOS.start, C.XPOS.stop)).ravel(),
+                (rows + velocity_columns).ravel(),
+                (rows + np.arange(C.XQUAT.start, C.XQUAT.stop)).ravel(),
+                token * C.PROPRIO_DIM + col + C.HINGE_QPOS,
+                token * C.PROPRIO_DIM + col + C.HINGE_QVEL,
+            ]
+        )
         lo, hi = model.jnt_range[hinge_ids].T
-        self._range_lo = lo
-        self._range_inv = 1.0 / np.maximum(hi - lo, 1e-8)
-        self._velocity = np.zeros((self.num_tokens, 6))
-        self._velocity_rows = list(self._velocity)  # contiguous row views filled in place
-        self._body_ids = list(range(first, first + self.num_tokens))
+        self._state_scale = np.ones_like(state)
+        self._state_offset = np.zeros_like(state)
+        self._state_scale[13 * n : 13 * n + dof] = 1.0 / np.maximum(hi - lo, 1e-8)
+        self._state_offset[13 * n : 13 * n + dof] = -lo * self._state_scale[13 * n : 13 * n + dof]
+        self._body_ids = list(range(first, first + n))
+        self._static = self.morphology.proprio_static.astype(np.float32)
 
     # ------------------------------------------------------------------ state
     @property
@@ -152,17 +177,15 @@ class Robot:
 
     def proprioception(self) -> np.ndarray:
         """The (12, 52) float32 ``proprioceptive`` observation of the current (synced) state."""
-        model, data, n = self.model, self.data, self.num_tokens
-        obs = self.morphology.proprio_static.copy()
-        xpos = data.xpos[self._bodies]
-        obs[:n, C.XPOS] = xpos
-        obs[:n, 0] -= xpos[0, 0]  # x relative to the torso; y and z stay absolute (MetaMorph)
-        for body, row in zip(self._body_ids, self._velocity_rows):
-            mujoco.mj_objectVelocity(model, data, mujoco.mjtObj.mjOBJ_BODY, body, row, 0)
-        obs[:n, C.XVELP] = self._velocity[:, 3:]
-        obs[:n, C.XVELR] = self._velocity[:, :3]
-        obs[:n, C.XQUAT] = data.xquat[self._bodies]
-        flat = obs.reshape(-1)
-        flat[self._qpos_flat] = (data.qpos[self._qpos_hinges] - self._range_lo) * self._range_inv
-        flat[self._qvel_flat] = data.qvel[self._qvel_hinges]
-        return obs.astype(np.float32)
+        model, data = self.model, self.data
+        self._state_xpos[:] = data.xpos[self._bodies]
+        self._state_xpos[:, 0] -= self._state_xpos[0, 0]  # x relative to the torso; y, z absolute (MetaMorph)
+        object_velocity = mujoco.mj_objectVelocity
+        for body, row in zip(self._body_ids, self._state_velocity_rows):
+            object_velocity(model, data, _XBODY, body, row, 0)
+        self._state_xquat[:] = data.xquat[self._bodies]
+        self._state_qpos[:] = data.qpos[self._qpos_hinges]
+        self._state_qvel[:] = data.qvel[self._qvel_hinges]
+        obs = self._static.copy()
+        obs.reshape(-1)[self._state_targets] = self._state * self._state_scale + self._state_offset
+        return obs

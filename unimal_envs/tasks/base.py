@@ -9,7 +9,7 @@ from unimal_envs.arenas import Arena
 from unimal_envs.instructions import INSTRUCTIONS
 from unimal_envs.robot import Robot
 
-#: Control period: 4 substeps of 0.005 s.
+#: Control period: 4 physics substeps (robot.TIMESTEP) per action.
 CONTROL_DT = 0.02
 
 

@@ -1,0 +1,108 @@
+"""``unimal-morphologies``: regenerate the shipped morphology sets and compare their statistics.
+
+Examples::
+
+    unimal-morphologies generate                      # rewrite the shipped train and novel sets
+    unimal-morphologies generate --set train --out /tmp/sets
+    unimal-morphologies generate --check              # verify the shipped files, write nothing
+    unimal-morphologies stats --compare /path/to/unimals_100/train
+
+Also runnable as ``python -m unimal_envs.morphology``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+from unimal_envs.morphology import sets as S
+from unimal_envs.morphology.loader import MorphologyError, morphology_files
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="unimal-morphologies", description="Generate the shipped UNIMAL morphology sets and show their statistics."
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+    gen = sub.add_parser("generate", help="regenerate the shipped sets from their fixed seeds")
+    gen.add_argument("--out", type=Path, default=None, help="root directory (default: the package data directory)")
+    gen.add_argument("--set", dest="which", choices=[*S.SETS, "all"], default="all", help="which set (default all)")
+    gen.add_argument("--check", action="store_true", help="compare with the files under --out instead of writing")
+    gen.add_argument("--quiet", action="store_true", help="no progress bar")
+    stats = sub.add_parser("stats", help="statistics of the shipped sets, optionally beside other robot directories")
+    stats.add_argument("--set", dest="which", choices=[*S.SETS, "all"], default="all", help="which set (default all)")
+    stats.add_argument("--root", type=Path, default=None, help="read the sets from ROOT/<set> instead of the package")
+    stats.add_argument(
+        "--compare", type=Path, action="append", default=[], metavar="DIR",
+        help="also show a robot directory (e.g. unimals_100/train with xml/ inside); repeatable",
+    )  # fmt: skip
+    return parser
+
+
+def _generate(args: argparse.Namespace) -> int:
+    root = args.out if args.out is not None else S.DATA_DIR
+    status = 0
+    for name in S.set_names(args.which):
+        start = time.perf_counter()
+        robots = S.generate_set(name, progress=not args.quiet)
+        elapsed = time.perf_counter() - start
+        if args.check:
+            bad = S.compare_set(robots, root / name)
+            verdict = "identical" if not bad else f"{len(bad)} differ: {', '.join(bad[:8])}{' ...' if len(bad) > 8 else ''}"
+            print(f"{name}: {len(robots)} robots generated in {elapsed:.1f} s; files under {root / name}: {verdict}")
+            status = status or (1 if bad else 0)
+        else:
+            S.write_set(robots, root / name, name)
+            print(f"{name}: {len(robots)} robots generated in {elapsed:.1f} s -> {root / name}")
+    return status
+
+
+def _print_table(rows: list[list[str]]) -> None:
+    try:
+        from rich.console import Console
+        from rich.table import Table
+    except ImportError:  # plain aligned text without rich
+        table = [S.STATS_HEADER, *rows]
+        widths = [max(len(r[i]) for r in table) for i in range(len(S.STATS_HEADER))]
+        for r in table:
+            print("  ".join(cell.ljust(w) for cell, w in zip(r, widths)).rstrip())
+        return
+    table = Table(title="UNIMAL morphology statistics")
+    for column in S.STATS_HEADER:
+        table.add_column(column, justify="right" if column in ("n", "min", "mean", "max") else "left")
+    previous = None
+    for row in rows:
+        if previous is not None and row[0] != previous:
+            table.add_section()
+        table.add_row(*row)
+        previous = row[0]
+    Console(width=max(160, Console().width)).print(table)
+
+
+def _stats(args: argparse.Namespace) -> int:
+    sets = [S.set_stats(name, args.root) for name in S.set_names(args.which)]
+    for directory in args.compare:
+        sets.append(S.collect_stats(f"{directory.name} ({directory.parent.name})", morphology_files(directory)))
+    _print_table(S.stats_rows(sets))
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``unimal-morphologies``.
+
+    :param argv: command-line arguments (default ``sys.argv[1:]``).
+    :returns: the exit status (1 when ``generate --check`` finds differences or input is bad).
+    """
+    args = _parser().parse_args(argv)
+    try:
+        return _generate(args) if args.command == "generate" else _stats(args)
+    except MorphologyError as err:
+        print(f"unimal-morphologies: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
