@@ -194,6 +194,7 @@ class UnimalEnv(gym.Env):
         self.task.bind(world.model, world.data)
         self.task.reset(world.robot, self.np_random)
         self._fall_height = self.task.fall_height_ratio * world.robot.morphology.standing_height
+        self._fault_count_at_reset = self._fault_count()
         return self._observation(), {"morphology": world.robot.morphology.name, "task": self.task.name}
 
     def step(self, action: np.ndarray):
@@ -210,8 +211,12 @@ class UnimalEnv(gym.Env):
 
         info: dict[str, Any] = {"morphology": robot.morphology.name, "task": self.task.name, "physics_fault": False}
         # MuJoCo resets the data (time = 0) when the state diverges (non-finite or huge qpos,
-        # qvel, qacc), so a step that ends earlier than 4 substeps later had a physics fault.
-        if data.time < time_before + 3.5 * _SUBSTEP:
+        # qvel, qacc), so a step that ends earlier than 4 substeps later had a physics fault. A
+        # reset during the first step of an episode keeps the time, so there count the warnings.
+        faulted = data.time < time_before + 3.5 * _SUBSTEP
+        if time_before == 0.0:
+            faulted = faulted or self._fault_count() != self._fault_count_at_reset
+        if faulted:
             info["physics_fault"] = True
             info["termination"] = "physics_fault"
             info["mujoco_warnings"] = self._fault_warnings()
@@ -282,6 +287,10 @@ class UnimalEnv(gym.Env):
         if choice not in names:
             raise ValueError(f"unknown morphology '{choice}'; this env has {len(names)}: {names[:5]}...")
         return names.index(choice)
+
+    def _fault_count(self) -> int:
+        warnings = self._world.data.warning
+        return sum(int(warnings[w].number) for w in _FAULT_WARNINGS)
 
     def _fault_warnings(self) -> dict[str, int]:
         warnings = self._world.data.warning
