@@ -13,6 +13,7 @@ Also runnable as ``python -m unimal_envs.morphology``.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from collections.abc import Sequence
@@ -32,6 +33,11 @@ def _parser() -> argparse.ArgumentParser:
     gen.add_argument("--set", dest="which", choices=[*S.SETS, "all"], default="all", help="which set (default all)")
     gen.add_argument("--check", action="store_true", help="compare with the files under --out instead of writing")
     gen.add_argument("--quiet", action="store_true", help="no progress bar")
+    gen.add_argument("--count", type=int, default=None, help="only the first COUNT robots of each set (quick checks)")
+    gen.add_argument(
+        "--jobs", type=int, default=min(os.cpu_count() or 1, 8),
+        help="worker processes (default: CPU count, at most 8); the output does not depend on it",
+    )  # fmt: skip
     stats = sub.add_parser("stats", help="statistics of the shipped sets, optionally beside other robot directories")
     stats.add_argument("--set", dest="which", choices=[*S.SETS, "all"], default="all", help="which set (default all)")
     stats.add_argument("--root", type=Path, default=None, help="read the sets from ROOT/<set> instead of the package")
@@ -45,19 +51,39 @@ def _parser() -> argparse.ArgumentParser:
 def _generate(args: argparse.Namespace) -> int:
     root = args.out if args.out is not None else S.DATA_DIR
     status = 0
+    made: dict[str, list] = {}
     for name in S.set_names(args.which):
         start = time.perf_counter()
-        robots = S.generate_set(name, progress=not args.quiet)
+        exclude = _exclusions(name, made, partial=args.count is not None)
+        robots = S.generate_set(name, progress=not args.quiet, count=args.count, jobs=args.jobs, exclude=exclude)
+        if args.count is None:
+            made[name] = robots
         elapsed = time.perf_counter() - start
         if args.check:
             bad = S.compare_set(robots, root / name)
-            verdict = "identical" if not bad else f"{len(bad)} differ: {', '.join(bad[:8])}{' ...' if len(bad) > 8 else ''}"
+            shown = ", ".join(bad[:8]) + (" ..." if len(bad) > 8 else "")
+            verdict = "identical" if not bad else f"{len(bad)} differ: {shown}"
             print(f"{name}: {len(robots)} robots generated in {elapsed:.1f} s; files under {root / name}: {verdict}")
             status = status or (1 if bad else 0)
+        elif args.count is not None and args.out is None:
+            raise MorphologyError(
+                "--count writes a partial set; give --out (or use --check) to keep the shipped set whole"
+            )
         else:
             S.write_set(robots, root / name, name)
             print(f"{name}: {len(robots)} robots generated in {elapsed:.1f} s -> {root / name}")
     return status
+
+
+def _exclusions(name: str, made: dict[str, list], partial: bool) -> list[str] | None:
+    """Body plans a set must avoid: from sets generated in this run, else (quick ``--count`` runs)
+    from the shipped files, else ``None`` (generate_set then regenerates them in memory)."""
+    others = S.SETS[name].disjoint_from
+    if all(o in made for o in others):
+        return [S.plan_signature(r.xml) for o in others for r in made[o]]
+    if partial:
+        return [S.plan_signature(p.read_text()) for o in others for p in morphology_files(S.DATA_DIR / o)]
+    return None
 
 
 def _print_table(rows: list[list[str]]) -> None:

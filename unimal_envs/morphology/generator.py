@@ -45,8 +45,12 @@ Decisions on the spec's quirks and gaps
   depends on the mutation history.
 * **Symmetry test: tolerance, not equality.** DERL accepts only ``com_y == 0.0`` exactly; we accept
   ``|com_y| < 1e-6``. Coordinates are rounded to 2 decimals and mirrored exactly, so a symmetric
-  robot gives ~1e-17 and an asymmetric one at least ~1e-3; the tolerance only removes the
-  dependence on floating-point summation order.
+  robot gives 0 (up to summation order) and an asymmetric one is off by at least ~1e-4 m
+  (measured); the tolerance only removes the dependence on floating-point summation order.
+* **Touching means within 1e-6 m.** The acceptance test and the exclude list use a contact margin
+  of 1e-6 m. On the 2-decimal grid many capsules are exactly tangent (e.g. a mirrored pair grown
+  side by side), where MuJoCo's signed distance is ~±1e-17; the margin decides those cases the same
+  way on every platform (tangent = touching).
 * **Mirror-site canonicalisation:** growing on either member of a mirror pair of sites always
   starts from the member of the lower-numbered limb (DERL compares site names as strings). The
   first member of every limb pair is therefore on the +y side.
@@ -62,6 +66,9 @@ Decisions on the spec's quirks and gaps
   least the target, so a final pair can end one above it (never above 10). The official
   (evolved) train set spans 4-10 limbs with mode 8; DERL's initial populations (target 2-8) are
   smaller than what the benchmark trains on.
+
+The generator itself never filters finished robots; the shipped sets add set-level filters
+(duplicates, height, depth, standing), see :mod:`unimal_envs.morphology.sets`.
 """
 
 from __future__ import annotations
@@ -70,6 +77,7 @@ import json
 import math
 import xml.etree.ElementTree as ET
 from collections.abc import Iterator, Sequence
+from collections.abc import Set as AbstractSet
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from pathlib import Path
@@ -101,8 +109,10 @@ MAX_LIMBS = 10
 TARGET_LIMBS = tuple(range(5, 11))
 GROW_ATTEMPTS = 50
 SYMMETRY_TOLERANCE = 1e-6
+#: Geoms closer than this count as touching in the acceptance test (see module docstring).
+CONTACT_MARGIN = 1e-6
 MUTATION_OPS = ("grow_limb", "joint_angle", "gear", "dof", "limb_params", "density", "delete_limb")
-#: Safety nets of the growth loop; a random walk of grow/delete reaches 10 limbs in ~100 ops.
+#: Safety nets of the growth loop (reaching the target takes ~50 mutations, rarely a few hundred).
 MAX_MUTATIONS = 2000
 MAX_RESTARTS = 20
 
@@ -116,6 +126,7 @@ def _clean(x: float, decimals: int) -> float:
     return round(x, decimals) + 0.0
 
 
+@lru_cache(maxsize=4096)
 def sph2cart(rho: float, theta: float, phi: float) -> Vec3:
     """Point at distance ``rho`` in direction (θ, φ) (degrees), rounded to 2 decimals (DERL's grid).
 
@@ -289,19 +300,6 @@ class UnimalGenome:
 
         return max((level(limb) for limb in self.limbs.values()), default=0)
 
-    def signature(self) -> str:
-        """Canonical shape of the tree (sites, lengths, directions; not joints or densities).
-
-        Two genomes with the same signature are the same body plan; the shipped sets hold no
-        duplicates, like DERL's deduplicated initial population.
-        """
-
-        def node(limb: Limb) -> str:
-            kids = sorted(node(child) for child in self.children(limb.idx))
-            return f"{limb.site}:{limb.h}:{limb.direction}[{','.join(kids)}]"
-
-        return "[" + ",".join(sorted(node(limb) for limb in self.children(None))) + "]"
-
 
 # --------------------------------------------------------------------------------------- layout
 @dataclass(frozen=True)
@@ -351,6 +349,11 @@ def limb_layout(genome: UnimalGenome, limb: Limb) -> LimbLayout:
     )
 
 
+def _unused_torso_site(genome: UnimalGenome) -> Vec3:
+    """DERL's site for extra torsos (never used: UNIMALs have one torso), kept for the file layout."""
+    return (-TORSO_RADIUS, 0.0, 0.0) if genome.torso_mode == "horizontal_y" else (0.0, 0.0, -TORSO_RADIUS)
+
+
 # ------------------------------------------------------------------------------------ MjSpec side
 @lru_cache(maxsize=1)
 def _template_text() -> str:
@@ -366,21 +369,30 @@ def _physics_template() -> str:
             root.remove(elem)
     for elem in root.iter():
         elem.attrib.pop("material", None)
+    root.find("default/geom").set("margin", repr(CONTACT_MARGIN))
     return ET.tostring(root, encoding="unicode")
+
+
+@lru_cache(maxsize=1)
+def _physics_base() -> mujoco.MjSpec:
+    """Parsed once; every probe starts from a copy (10x cheaper than parsing)."""
+    return mujoco.MjSpec.from_string(_physics_template())
 
 
 def build_spec(genome: UnimalGenome, axes: dict[str, Vec3] | None = None, torso_z: float = 0.0) -> mujoco.MjSpec:
     """The robot's body tree as an :class:`mujoco.MjSpec` on the physics part of the template.
 
-    Holds bodies, joints, geoms and sites exactly as :func:`write_xml` writes them; no motors,
-    sensors, camera or looks (use :meth:`GeneratedUnimal.spec` for the complete robot).
+    Holds bodies, joints, geoms and sites exactly as :func:`write_xml` writes them, plus the
+    acceptance test's contact margin on every geom; no motors, sensors, camera or looks (use
+    :meth:`GeneratedUnimal.spec` for the complete robot).
 
     :param genome: the robot.
     :param axes: hinge axes by joint name; default (1,0,0)/(0,1,0) (irrelevant at ``qpos0``).
     :param torso_z: torso height.
     """
-    spec = mujoco.MjSpec.from_string(_physics_template())
-    defaults = {name: spec.find_default(name) for name in ("free", "normal_joint", "imu_vel", "touch_site", "btm_pos_site")}
+    spec = _physics_base().copy()
+    classes = ("free", "normal_joint", "imu_vel", "touch_site", "btm_pos_site", "torso_growth_site")
+    defaults = {name: spec.find_default(name) for name in classes}
     growth = {False: spec.find_default("growth_site"), True: spec.find_default("mirror_growth_site")}
     torso = spec.worldbody.add_body(name=TORSO, pos=[0.0, 0.0, torso_z])
     torso.add_joint(defaults["free"], name="root", type=mujoco.mjtJoint.mjJNT_FREE)
@@ -391,6 +403,9 @@ def build_spec(genome: UnimalGenome, axes: dict[str, Vec3] | None = None, torso_
     torso.add_site(growth[False], name=TORSO, pos=[0, 0, 0])
     torso.add_site(defaults["btm_pos_site"], name="torso/btm_pos/0", pos=[0, 0, -TORSO_RADIUS])
     torso.add_site(defaults["touch_site"], name="torso/touch/0", size=[TORSO_RADIUS + 0.01, 0, 0])
+    torso.add_site(
+        defaults["torso_growth_site"], name=f"torso/{genome.torso_mode}/0", pos=list(_unused_torso_site(genome))
+    )
     bodies = {None: torso}
     for limb in genome.walk():
         lay = limb_layout(genome, limb)
@@ -460,7 +475,7 @@ def _pair(a: str, b: str) -> tuple[str, str]:
     return (min(a, b), max(a, b))
 
 
-def is_valid(genome: UnimalGenome, extra_allowed: set[tuple[str, str]] = frozenset()) -> bool:
+def is_valid(genome: UnimalGenome, extra_allowed: AbstractSet[tuple[str, str]] = frozenset()) -> bool:
     """The acceptance test: symmetric, and no self-contact outside the allowed pairs.
 
     :param genome: the candidate robot.
@@ -629,7 +644,7 @@ def mutate_genome(genome: UnimalGenome, rng: np.random.Generator, op: str | None
     """Apply one mutation operator; returns the new genome and the operator used.
 
     The input is never modified. An operator that finds no valid change (``grow_limb`` or
-    ``limb_params`` after 50 rejected attempts) returns an unchanged copy.
+    ``limb_params`` after 50 rejected attempts) returns the input genome itself.
 
     :param genome: the robot.
     :param rng: the random generator.
@@ -736,12 +751,16 @@ def write_xml(genome: UnimalGenome, finish: _Finish, comment: str) -> str:
     torso = _elem(root.find("worldbody"), "body", name=TORSO, pos=_vec((0, 0, finish.torso_z)))
     _elem(torso, "joint", name="root", type="free", class_="free")
     _elem(torso, "site", name="root", class_="imu_vel")
-    _elem(torso, "geom", name=TORSO, type="sphere", size=_fmt(TORSO_RADIUS, 2), density=str(genome.torso_density))
-    _elem(torso, "camera", name="side", pos="0 -5 1.2", xyaxes="1 0 0 0 0.25 1", mode="trackcom")
+    _elem(
+        torso, "geom", name=TORSO, type="sphere", size=_fmt(TORSO_RADIUS, 2), condim="3",
+        density=str(genome.torso_density),
+    )  # fmt: skip
+    # Side view that follows the robot from 4 m, looking slightly down.
+    _elem(torso, "camera", name="side", pos="0 -4 1.2", xyaxes="1 0 0 0 0.3 1", mode="trackcom")
     _elem(torso, "site", name=TORSO, class_="growth_site", pos="0 0 0")
     _elem(torso, "site", name="torso/btm_pos/0", class_="btm_pos_site", pos=_vec((0, 0, -TORSO_RADIUS)))
     _elem(torso, "site", name="torso/touch/0", class_="touch_site", size=_fmt(TORSO_RADIUS + 0.01, 2))
-    unused = (-TORSO_RADIUS, 0, 0) if genome.torso_mode == "horizontal_y" else (0, 0, -TORSO_RADIUS)
+    unused = _unused_torso_site(genome)
     _elem(torso, "site", name=f"torso/{genome.torso_mode}/0", class_="torso_growth_site", pos=_vec(unused))
     bodies = {None: torso}
     for limb in genome.walk():
@@ -755,7 +774,10 @@ def write_xml(genome: UnimalGenome, finish: _Finish, comment: str) -> str:
             )  # fmt: skip
         fromto = _vec((0, 0, 0, *lay.tip))
         site_class = "mirror_growth_site" if limb.mirrored else "growth_site"
-        _elem(body, "geom", name=limb.name, type="capsule", fromto=fromto, size=_fmt(LIMB_RADIUS, 2), density=str(genome.limb_density))
+        _elem(
+            body, "geom", name=limb.name, type="capsule", fromto=fromto, size=_fmt(LIMB_RADIUS, 2),
+            density=str(genome.limb_density),
+        )  # fmt: skip
         _elem(body, "site", name=f"limb/mid/{limb.idx}", class_=site_class, pos=_vec(lay.mid))
         _elem(body, "site", name=f"limb/btm/{limb.idx}", class_=site_class, pos=_vec(lay.btm))
         _elem(body, "site", name=f"limb/btm_pos/{limb.idx}", class_="btm_pos_site", pos=_vec(lay.btm_pos))
@@ -803,6 +825,7 @@ class GeneratedUnimal:
     :param metadata: the unimals_100 metadata dict.
     :param genome: the parameters, for further mutation.
     :param provenance: how it was made (also written as a comment in the file).
+    :param torso_height: spawn height of the torso written in the file (lowest point 0.2 above z=0).
     """
 
     name: str
@@ -810,6 +833,7 @@ class GeneratedUnimal:
     metadata: dict
     genome: UnimalGenome = field(repr=False)
     provenance: str = ""
+    torso_height: float = 0.0
 
     @property
     def metadata_json(self) -> str:
@@ -848,8 +872,16 @@ def finalize(genome: UnimalGenome, name: str, provenance: str) -> GeneratedUnima
     """
     if genome.num_limbs == 0:
         raise ValueError("a UNIMAL robot needs at least one limb")
-    xml = write_xml(genome, _measure(genome), f"{name}: {provenance}")
-    return GeneratedUnimal(name=name, xml=xml, metadata=unimal_metadata(genome), genome=genome, provenance=provenance)
+    finish = _measure(genome)
+    xml = write_xml(genome, finish, f"{name}: {provenance}")
+    return GeneratedUnimal(
+        name=name,
+        xml=xml,
+        metadata=unimal_metadata(genome),
+        genome=genome,
+        provenance=provenance,
+        torso_height=finish.torso_z,
+    )
 
 
 PROVENANCE_PREFIX = "divmorph UNIMAL generator"
@@ -862,9 +894,17 @@ def generate_unimal(seed: int, num_limbs: int | None = None, name: str | None = 
     :param num_limbs: limb target (see :func:`generate_genome`); default uniform over 5-10.
     :param name: robot name; default ``unimal-<seed>``.
     """
-    genome = generate_genome(seed, num_limbs)
+    return finalize(generate_genome(seed, num_limbs), name or f"unimal-{seed}", seed_provenance(seed, num_limbs))
+
+
+def seed_provenance(seed: int, num_limbs: int | None = None) -> str:
+    """The provenance line of :func:`generate_unimal` (also parsed back by the sets module).
+
+    :param seed: generator seed.
+    :param num_limbs: limb target, if one was given.
+    """
     target = "" if num_limbs is None else f", num_limbs={num_limbs}"
-    return finalize(genome, name or f"unimal-{seed}", f"{PROVENANCE_PREFIX}, seed={seed}{target}")
+    return f"{PROVENANCE_PREFIX}, seed={seed}{target}"
 
 
 def mutate(unimal: GeneratedUnimal, seed: int, op: str | None = None, name: str | None = None) -> GeneratedUnimal:

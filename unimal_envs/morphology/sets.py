@@ -6,25 +6,65 @@ Two sets ship with the package, 100 robots each, in the unimals_100 layout
 * ``train`` (``train-000`` ... ``train-099``): seeds 1_000_000, 1_000_001, ...
 * ``novel`` (``novel-000`` ... ``novel-099``): seeds 2_000_000, 2_000_001, ... (held-out robots)
 
-Robot ``i`` of a set is the ``i``-th seed of its range whose body plan
-(:meth:`~unimal_envs.morphology.generator.UnimalGenome.signature`) is new to the set; seeds giving
-a duplicate are skipped. Each file records its seed in its first comment, so any shipped robot can
-be regenerated on its own (:func:`regenerate`).
+Robot ``i`` of a set is made by the ``i``-th seed of its range that passes three set-level
+filters; the other seeds are skipped:
+
+* **No duplicates:** its body plan (:func:`plan_signature`: the body tree with every limb's
+  position and capsule, ignoring joints and densities) is new to the set, and for ``novel`` also
+  absent from ``train``, in the spirit of DERL's deduplicated initial population.
+* **Inside the official envelope:** spawn height <= 1.05 m and at most 5 limb levels, the range of
+  the official unimals_100 train set (0.30-1.04 m, depth 2-5). The raw design space also yields
+  stilt-like robots up to ~2.5 m tall and 7 levels deep (about half of all seeds); the official
+  robots, selected by evolution for locomotion, contain none.
+* **Stands on its own:** dropped on flat ground with the environments' contact settings
+  (``filterparent`` on, no excludes) and zero control, the torso stays above half its standing
+  height (the FT fall threshold) for 2 s. Two thirds of the official train robots pass this test,
+  but fewer than a third of generated robots inside the envelope; the others would end most
+  episodes at once.
+
+The filters play the part of DERL's selection: they keep the sets comparable to the official one
+(see ``unimal-morphologies stats --compare``). Only the standing test depends on simulated dynamics;
+a different MuJoCo version could flip a borderline robot, which ``generate --check`` reports. Every
+shipped file is still exactly ``generate_unimal(seed)`` for the seed recorded in it.
+
+Each file records its seed in its first comment, so any shipped robot can be regenerated on its own
+(:func:`regenerate`).
 """
 
 from __future__ import annotations
 
+import collections
+import itertools
+import math
 import re
+import xml.etree.ElementTree as ET
 from collections import Counter
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import mujoco
 from tqdm.auto import tqdm
 
 from unimal_envs import contract as C
-from unimal_envs.morphology.generator import LIMB_RADIUS, PROVENANCE_PREFIX, GeneratedUnimal, generate_unimal
-from unimal_envs.morphology.loader import SHIPPED_SETS, _DATA_DIR, MorphologyError, load_morphology, morphology_files
+from unimal_envs.morphology.generator import (
+    LIMB_RADIUS,
+    PROVENANCE_PREFIX,
+    GeneratedUnimal,
+    finalize,
+    generate_unimal,
+    seed_provenance,
+)
+from unimal_envs.morphology.loader import (
+    FLOOR_OFFSET,
+    SHIPPED_SETS,
+    TORSO,
+    MorphologyError,
+    load_morphology,
+    morphology_files,
+    shipped_set_dir,
+)
 
 
 @dataclass(frozen=True)
@@ -34,11 +74,26 @@ class SetSpec:
     :param name: set name, also the robots' name prefix.
     :param first_seed: seed of the first candidate robot; later candidates use the next integers.
     :param size: number of robots.
+    :param max_torso_height: robots spawning higher are skipped.
+    :param max_depth: robots with more limb levels are skipped.
+    :param min_standing_ratio: robots whose torso sinks below this fraction of their standing height
+        in :func:`passive_standing_ratio` are skipped (``0`` disables the test).
+    :param disjoint_from: sets whose body plans this set must not repeat.
     """
 
     name: str
     first_seed: int
     size: int = 100
+    max_torso_height: float = 1.05
+    max_depth: int = 5
+    min_standing_ratio: float = 0.5
+    disjoint_from: tuple[str, ...] = ()
+
+    def admits(self, robot: GeneratedUnimal) -> bool:
+        """Whether a robot passes the set-level filters (height, depth, standing; cheapest first)."""
+        if robot.torso_height > self.max_torso_height or robot.genome.depth() > self.max_depth:
+            return False
+        return self.min_standing_ratio <= 0 or passive_standing_ratio(robot.xml) > self.min_standing_ratio
 
     def robot_name(self, index: int) -> str:
         """``<set>-<index:03d>``, e.g. ``train-007``."""
@@ -46,13 +101,57 @@ class SetSpec:
 
 
 #: The shipped sets; the seed ranges are far apart so the sets never share a seed.
-SETS = {"train": SetSpec("train", 1_000_000), "novel": SetSpec("novel", 2_000_000)}
+SETS = {"train": SetSpec("train", 1_000_000), "novel": SetSpec("novel", 2_000_000, disjoint_from=("train",))}
 assert tuple(SETS) == SHIPPED_SETS
 
 #: Where the shipped sets live inside the package.
-DATA_DIR = _DATA_DIR
+DATA_DIR = shipped_set_dir("train").parent
 
 _SEED_RE = re.compile(re.escape(PROVENANCE_PREFIX) + r", seed=(\d+)(?:, num_limbs=(\d+))? -->")
+
+
+def plan_signature(xml: str) -> str:
+    """Canonical text of a robot's body plan: the body tree with each body's position and geom.
+
+    Joints, gears and densities are ignored and siblings are sorted, so two files share a
+    signature exactly when they hold the same rigid shape.
+
+    :param xml: robot MJCF text.
+    """
+
+    def node(body: ET.Element) -> str:
+        geom = body.find("geom")
+        label = f"{body.get('pos')}|{geom.get('fromto') or geom.get('size')}" if geom is not None else body.get("pos")
+        return label + "[" + ",".join(sorted(node(kid) for kid in body.findall("body"))) + "]"
+
+    torso = ET.fromstring(xml).find(f".//body[@name='{TORSO}']")
+    if torso is None:
+        raise MorphologyError(f"no body named '{TORSO}'")
+    return "[" + ",".join(sorted(node(kid) for kid in torso.findall("body"))) + "]"
+
+
+def passive_standing_ratio(xml: str, seconds: float = 2.0) -> float:
+    """Lowest torso height over ``seconds`` without control on flat ground, over the standing height.
+
+    Uses the environments' contact settings: ``filterparent`` enabled and the file's excludes
+    dropped; the ground is a plane at z = 0 and the standing height is ``torso z - 0.2``.
+
+    :param xml: robot MJCF text.
+    :param seconds: simulated time.
+    """
+    spec = mujoco.MjSpec.from_string(xml)
+    spec.option.disableflags &= ~int(mujoco.mjtDisableBit.mjDSBL_FILTERPARENT)
+    for exclude in list(spec.excludes):
+        spec.delete(exclude)
+    spec.worldbody.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[20, 20, 1])
+    model = spec.compile()
+    data = mujoco.MjData(model)
+    start = float(data.qpos[2])
+    lowest = start
+    for _ in range(round(seconds / model.opt.timestep)):
+        mujoco.mj_step(model, data)
+        lowest = min(lowest, float(data.qpos[2]))
+    return lowest / (start - FLOOR_OFFSET)
 
 
 def set_names(which: str) -> list[str]:
@@ -67,25 +166,74 @@ def set_names(which: str) -> list[str]:
     return [which]
 
 
-def generate_set(name: str, progress: bool = False) -> list[GeneratedUnimal]:
+@dataclass(frozen=True)
+class _Candidate:
+    """One seed's robot and whether it passed the order-independent filters."""
+
+    seed: int
+    robot: GeneratedUnimal
+    admitted: bool
+
+
+def _evaluate(seed: int, spec: SetSpec) -> _Candidate:
+    """Generate and filter one candidate (runs in worker processes; depends on the seed only)."""
+    robot = generate_unimal(seed, name=f"{spec.name}-candidate")
+    return _Candidate(seed, robot, spec.admits(robot))
+
+
+def _candidates(spec: SetSpec, jobs: int) -> Iterator[_Candidate]:
+    """Candidates of a set in seed order, evaluated by ``jobs`` processes ahead of consumption."""
+    seeds = itertools.count(spec.first_seed)
+    if jobs <= 1:
+        yield from (_evaluate(seed, spec) for seed in seeds)
+        return
+    batch = 8 * jobs
+    with ProcessPoolExecutor(max_workers=jobs) as pool:
+        pending: collections.deque = collections.deque()
+        try:
+            while True:
+                while len(pending) < 2 * batch:
+                    pending.append(pool.submit(_evaluate, next(seeds), spec))
+                yield pending.popleft().result()
+        finally:
+            for future in pending:
+                future.cancel()
+
+
+def generate_set(
+    name: str,
+    progress: bool = False,
+    count: int | None = None,
+    jobs: int = 1,
+    exclude: Iterable[str] | None = None,
+) -> list[GeneratedUnimal]:
     """Generate a shipped set from its seeds (deterministic, byte-identical to the shipped files).
 
     :param name: ``train`` or ``novel``.
     :param progress: show a tqdm progress bar.
+    :param count: generate only the first ``count`` robots (identical to the full set's first ones).
+    :param jobs: worker processes generating candidates; the result does not depend on it.
+    :param exclude: :func:`plan_signature` values of the sets this one must be disjoint from. Default:
+        computed by generating those sets first (for ``novel``: the whole ``train`` set).
     """
     spec = SETS[set_names(name)[0]]
+    size = spec.size if count is None else min(count, spec.size)
+    if exclude is None:
+        exclude = [plan_signature(r.xml) for other in spec.disjoint_from for r in generate_set(other, jobs=jobs)]
     robots: list[GeneratedUnimal] = []
-    seen: set[str] = set()
-    seed = spec.first_seed
-    with tqdm(total=spec.size, desc=f"generating {spec.name}", unit="robot", disable=not progress) as bar:
-        while len(robots) < spec.size:
-            robot = generate_unimal(seed, name=spec.robot_name(len(robots)))
-            signature = robot.genome.signature()
-            if signature not in seen:
+    seen: set[str] = set(exclude)
+    with tqdm(total=size, desc=f"generating {spec.name}", unit="robot", disable=not progress) as bar:
+        candidates = _candidates(spec, jobs)
+        while len(robots) < size:
+            candidate = next(candidates)
+            signature = plan_signature(candidate.robot.xml)
+            if candidate.admitted and signature not in seen:
                 seen.add(signature)
-                robots.append(robot)
+                # Rename: the file is then exactly generate_unimal(seed, name=...).
+                genome, index = candidate.robot.genome, len(robots)
+                robots.append(finalize(genome, spec.robot_name(index), seed_provenance(candidate.seed)))
                 bar.update()
-            seed += 1
+        candidates.close()
     return robots
 
 
@@ -152,9 +300,10 @@ def regenerate(path: str | Path) -> GeneratedUnimal:
 
 
 # ------------------------------------------------------------------------------------ statistics
-#: Statistics of :func:`collect_stats`; the last two are continuous (no histogram).
+#: Statistics of :func:`collect_stats`.
 STATISTICS = ("limbs", "dof", "depth", "hinges per limb", "limb length h", "torso height")
-_CONTINUOUS = {"torso height"}
+#: Continuous statistics are histogrammed in bins of this width (label = lower edge).
+_BIN_WIDTH = {"torso height": 0.1}
 # geom_size[1] (capsule half-length) inside the static body features: pos 3, ipos 3, iquat 4,
 # geom_quat 4, mass 1, then geom_size 2.
 _HALF_LENGTH_COLUMN = C.STATIC_BODY.start + 16
@@ -177,10 +326,12 @@ class SetStats:
         return min(vals), sum(vals) / len(vals), max(vals)
 
     def histogram(self, stat: str) -> str:
-        """``value:count`` pairs in increasing value order (``-`` for continuous statistics)."""
-        if stat in _CONTINUOUS:
-            return "-"
-        counts = Counter(self.values[stat])
+        """``value:count`` pairs in increasing value order (binned for continuous statistics)."""
+        width = _BIN_WIDTH.get(stat)
+        values = self.values[stat]
+        if width is not None:
+            values = [round(math.floor(v / width + 1e-9) * width, 6) for v in values]
+        counts = Counter(values)
         return " ".join(f"{_num(v)}:{n}" for v, n in sorted(counts.items()))
 
 
@@ -231,4 +382,4 @@ def stats_rows(sets: Sequence[SetStats]) -> list[list[str]]:
     return rows
 
 
-STATS_HEADER = ["statistic", "set", "n", "min", "mean", "max", "histogram (value:count)"]
+STATS_HEADER = ["statistic", "set", "n", "min", "mean", "max", "histogram (value:count; heights in 0.1 m bins)"]
