@@ -19,6 +19,7 @@ import gymnasium as gym  # noqa: E402
 
 from unimal_envs import contract  # noqa: E402
 from unimal_envs.env import UnimalEnv  # noqa: E402
+from unimal_envs.multitask import MultiTaskEnv  # noqa: E402
 from unimal_envs.morphology.loader import Morphology, MorphologyError, load_morphology, load_morphologies  # noqa: E402
 from unimal_envs.tasks import TASKS  # noqa: E402
 
@@ -38,9 +39,15 @@ for _task in TASKS:
         kwargs={"task": _task},
         max_episode_steps=MAX_EPISODE_STEPS,
     )
+gym.register(
+    id="Unimal-MultiTask-v0",
+    entry_point="unimal_envs.multitask:MultiTaskEnv",
+    max_episode_steps=MAX_EPISODE_STEPS,
+)
 
 __all__ = [
     "MAX_EPISODE_STEPS",
+    "MultiTaskEnv",
     "Morphology",
     "MorphologyError",
     "UnimalEnv",

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,6 +40,8 @@ class _World:
     data: mujoco.MjData
     robot: Robot
     renderer: mujoco.Renderer | None = None
+    #: The arena rewrote heightfield data since the renderer last uploaded it.
+    stale_heightfields: bool = True
 
 
 class UnimalEnv(gym.Env):
@@ -100,6 +103,8 @@ class UnimalEnv(gym.Env):
     :param render_mode: ``"rgb_array"`` (headless with ``MUJOCO_GL=egl``) or ``"human"``.
     :param width: rendered image width in pixels.
     :param height: rendered image height in pixels.
+    :param world_cache_size: compiled worlds (one per morphology) kept in memory; terrain and props
+        are re-randomised in place every episode, so a world is only compiled on a cache miss.
     """
 
     metadata = {"render_modes": ["rgb_array", "human"], "render_fps": round(1.0 / CONTROL_DT)}
@@ -115,12 +120,13 @@ class UnimalEnv(gym.Env):
         render_mode: str | None = None,
         width: int = 480,
         height: int = 480,
+        world_cache_size: int = 16,
     ):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
         self.task = make_task(task)
         self.morphologies: list[Morphology] = load_morphologies(morphologies)
-        self.arena = self.task.make_arena()
+        self.arena = self.task.arena
         self.instruction = instruction if instruction is not None else self.task.instruction
         self._task_embedding = embed_instruction(self.instruction, text_encoder)
         self._task_index = np.array([C.TASK_NAMES.index(self.task.name)], dtype=np.float32)
@@ -130,7 +136,8 @@ class UnimalEnv(gym.Env):
         self.width, self.height = int(width), int(height)
         self.observation_space = C.observation_space()
         self.action_space = C.action_space()
-        self._worlds: dict[int, _World] = {}  # static worlds are compiled once per morphology
+        self.world_cache_size = int(world_cache_size)
+        self._worlds: OrderedDict[int, _World] = OrderedDict()  # compiled worlds, least recently used first
         self._world: _World | None = None
         self._viewer = None
 
@@ -139,8 +146,8 @@ class UnimalEnv(gym.Env):
         robot = Robot(self.morphologies[index])
         pos, quat = self.task.spawn_pose(robot)
         spec = robot.build_spec(pos, quat)
-        self.arena.build(spec, self.np_random)
-        self.task.build(spec, self.np_random)
+        self.arena.build(spec)
+        self.task.build(spec)
         spec.visual.global_.offwidth = max(spec.visual.global_.offwidth, self.width)
         spec.visual.global_.offheight = max(spec.visual.global_.offheight, self.height)
         try:
@@ -150,6 +157,15 @@ class UnimalEnv(gym.Env):
         data = mujoco.MjData(model)
         robot.bind(model, data)
         return _World(model, data, robot)
+
+    def _get_world(self, index: int) -> _World:
+        """The compiled world of morphology ``index``, from the LRU cache or freshly built."""
+        world = self._worlds.pop(index, None) or self._build_world(index)
+        self._worlds[index] = world  # most recently used last
+        while len(self._worlds) > self.world_cache_size:
+            _, evicted = self._worlds.popitem(last=False)
+            self._release(evicted)
+        return world
 
     @property
     def robot(self) -> Robot:
@@ -178,21 +194,16 @@ class UnimalEnv(gym.Env):
         """
         super().reset(seed=seed)
         index = self._choose_morphology((options or {}).get("morphology"))
-        if self.arena.randomised or self.task.randomised or index not in self._worlds:
-            if self._world is not None and self._world is not self._worlds.get(index):
-                self._release(self._world)
-            self._world = self._build_world(index)
-            if not (self.arena.randomised or self.task.randomised):
-                self._worlds[index] = self._world
-        else:
-            self._world = self._worlds[index]
-        world = self._world
-        mujoco.mj_resetData(world.model, world.data)
+        world = self._world = self._get_world(index)
+        model, data = world.model, world.data
+        mujoco.mj_resetData(model, data)
+        self.arena.bind(model, data)
+        self.arena.reset(self.np_random)
         world.robot.reset(self.np_random, self.reset_noise_scale)
-        mujoco.mj_forward(world.model, world.data)
-        self.arena.bind(world.model, world.data)
-        self.task.bind(world.model, world.data)
+        mujoco.mj_forward(model, data)
+        self.task.bind(model, data)
         self.task.reset(world.robot, self.np_random)
+        world.stale_heightfields = True
         self._fall_height = self.task.fall_height_ratio * world.robot.morphology.standing_height
         self._fault_count_at_reset = self._fault_count()
         return self._observation(), {"morphology": world.robot.morphology.name, "task": self.task.name}
@@ -235,6 +246,7 @@ class UnimalEnv(gym.Env):
         x, y, z = robot.torso_qpos.tolist()
         if z - self.arena.ground_height(x, y) <= self._fall_height:
             reason = "fall"
+        info.update(self.task.metrics(robot))
         if reason is not None:
             info["termination"] = reason
         if self.render_mode == "human":
@@ -307,6 +319,12 @@ class UnimalEnv(gym.Env):
             return self._render_human(world)
         if world.renderer is None:
             world.renderer = mujoco.Renderer(world.model, self.height, self.width)
+        if world.stale_heightfields and world.model.nhfield:
+            # The renderer keeps its own GPU copy of each heightfield; refresh it after a reset.
+            world.renderer._gl_context.make_current()
+            for hfield in range(world.model.nhfield):
+                mujoco.mjr_uploadHField(world.model, world.renderer._mjr_context, hfield)
+            world.stale_heightfields = False
         world.renderer.update_scene(world.data, camera=self._camera(world))
         return world.renderer.render()
 
@@ -327,13 +345,14 @@ class UnimalEnv(gym.Env):
             self._viewer = mujoco.viewer.launch_passive(world.model, world.data)
         self._viewer.sync()
 
-    def _release(self, world: _World) -> None:
+    @staticmethod
+    def _release(world: _World) -> None:
         if world.renderer is not None:
             world.renderer.close()
             world.renderer = None
 
     def close(self) -> None:
-        for world in {id(w): w for w in [*self._worlds.values(), self._world] if w is not None}.values():
+        for world in self._worlds.values():
             self._release(world)
         if self._viewer is not None:
             self._viewer.close()

@@ -2,5 +2,7 @@
 
 from unimal_envs.arenas.base import Arena
 from unimal_envs.arenas.floor import Floor
+from unimal_envs.arenas.incline import Incline
+from unimal_envs.arenas.terrain import Bowl, ObstacleCourse, VariableTerrain
 
-__all__ = ["Arena", "Floor"]
+__all__ = ["Arena", "Bowl", "Floor", "Incline", "ObstacleCourse", "VariableTerrain"]

@@ -1,12 +1,15 @@
-"""The arena interface."""
+"""The arena interface and shared building blocks (ground material, boundary walls)."""
 
 from __future__ import annotations
 
 import mujoco
 import numpy as np
 
-# Our own look for the ground; added once per world spec.
 _GROUND_MATERIAL = "divmorph_ground"
+_WALL_MATERIAL = "divmorph_wall"
+#: Boundary walls: 0.5 m thick, 4 m tall (MetaMorph's half-thickness 0.5 and half-height 2 -> 1 m thick).
+WALL_HALF_THICKNESS = 0.5
+WALL_HEIGHT = 4.0
 
 
 def add_ground_material(spec: mujoco.MjSpec) -> str:
@@ -28,23 +31,48 @@ def add_ground_material(spec: mujoco.MjSpec) -> str:
     return _GROUND_MATERIAL
 
 
-class Arena:
-    """Terrain and static props. Subclasses add geoms to a world spec and answer height queries.
+def add_walls(spec: mujoco.MjSpec, x_min: float, x_max: float, y_min: float, y_max: float) -> None:
+    """Four static boundary walls just outside the rectangle [x_min, x_max] x [y_min, y_max]."""
+    if spec.material(_WALL_MATERIAL) is None:
+        spec.add_material(name=_WALL_MATERIAL, rgba=[0.55, 0.5, 0.42, 1.0])
+    t, h = WALL_HALF_THICKNESS, WALL_HEIGHT / 2
+    cx, cy = (x_min + x_max) / 2, (y_min + y_max) / 2
+    hx, hy = (x_max - x_min) / 2 + 2 * t, (y_max - y_min) / 2
+    for name, pos, size in (
+        ("wall/front", [x_max + t, cy, h], [t, hy, h]),
+        ("wall/back", [x_min - t, cy, h], [t, hy, h]),
+        ("wall/left", [cx, y_max + t, h], [hx, t, h]),
+        ("wall/right", [cx, y_min - t, h], [hx, t, h]),
+    ):
+        spec.worldbody.add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_BOX, pos=pos, size=size, material=_WALL_MATERIAL)
 
-    An arena instance belongs to one env; :meth:`build` is called whenever the world is rebuilt
-    (once per morphology for static arenas, every episode for randomised ones).
+
+class Arena:
+    """Terrain and static props.
+
+    The world is compiled once per morphology (:meth:`build`); every episode :meth:`reset`
+    re-randomises the arena *in place* in the compiled model (heightfield data, prop positions).
+    One arena instance belongs to one env and is re-bound to whichever world is current.
     """
 
-    #: True if :meth:`build` samples anything, i.e. the world must be rebuilt every episode.
-    randomised: bool = False
+    #: True if :meth:`height_map` gives a real height map (terrain tasks observe it as ``hfield``).
+    has_height_map: bool = False
 
-    def build(self, spec: mujoco.MjSpec, rng: np.random.Generator) -> None:
-        """Add the arena to ``spec``."""
+    def build(self, spec: mujoco.MjSpec) -> None:
+        """Add the arena's geoms and assets to ``spec``."""
         raise NotImplementedError
 
     def bind(self, model: mujoco.MjModel, data: mujoco.MjData) -> None:
-        """Called after compiling; write heightfield data or resolve ids here."""
+        """Resolve ids in the current compiled world (called every episode, before :meth:`reset`)."""
+        self.model, self.data = model, data
+
+    def reset(self, rng: np.random.Generator) -> None:
+        """Re-randomise the arena for a new episode. Default: static arena."""
 
     def ground_height(self, x: float, y: float) -> float:
         """Height of the ground surface under world point (x, y)."""
-        raise NotImplementedError
+        return 0.0
+
+    def height_map(self, x: float, y: float, yaw: float) -> np.ndarray | None:
+        """The (1410,) egocentric height map, or ``None`` for arenas without one."""
+        return None

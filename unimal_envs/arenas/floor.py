@@ -1,27 +1,27 @@
-"""Flat ground."""
+"""Flat ground, optionally walled."""
 
 from __future__ import annotations
 
 import mujoco
-import numpy as np
 
-from unimal_envs.arenas.base import Arena, add_ground_material
+from unimal_envs.arenas.base import Arena, add_ground_material, add_walls
 
 
 class Floor(Arena):
-    """An infinite flat floor whose surface is at z = 0.
+    """A flat floor whose surface is at z = 0, optionally enclosed by boundary walls.
 
-    MetaMorph uses a 200 x 200 m box with its top at z = 1; we put the surface at z = 0 instead, so
-    heights in observations are heights above the ground (a constant offset that normalisation
-    removes anyway). Physics are unaffected: a robot walking 100 m in 20 s stays far inside.
+    MetaMorph uses a box with its top at z = 1; we put the surface at z = 0, so heights in
+    observations are heights above the ground (a constant offset that normalisation removes).
 
-    :param half_size: visual half-extent of the plane in metres (collision is unbounded).
+    :param half_size: half-extent of the floor in x and y, in metres (collision is unbounded).
+    :param walls: ``(x_min, x_max, y_min, y_max)`` of a walled rectangle, or ``None``.
     """
 
-    def __init__(self, half_size: float = 100.0):
+    def __init__(self, half_size: float = 100.0, walls: tuple[float, float, float, float] | None = None):
         self.half_size = half_size
+        self.walls = walls
 
-    def build(self, spec: mujoco.MjSpec, rng: np.random.Generator) -> None:
+    def build(self, spec: mujoco.MjSpec) -> None:
         spec.worldbody.add_geom(
             name="floor",
             type=mujoco.mjtGeom.mjGEOM_PLANE,
@@ -30,6 +30,5 @@ class Floor(Arena):
             condim=3,
             friction=[0.7, 0.1, 0.1],
         )
-
-    def ground_height(self, x: float, y: float) -> float:
-        return 0.0
+        if self.walls is not None:
+            add_walls(spec, *self.walls)

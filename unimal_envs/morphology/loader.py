@@ -359,8 +359,13 @@ def morphology_files(morphologies: str | Path | Iterable[str | Path]) -> list[Pa
     return files
 
 
-def load_morphologies(morphologies: str | Path | Iterable[str | Path]) -> list[Morphology]:
-    """Load every robot named by ``morphologies`` (see :func:`morphology_files`)."""
+def load_morphologies(morphologies: str | Path | Iterable[str | Path | Morphology]) -> list[Morphology]:
+    """Load every robot named by ``morphologies`` (see :func:`morphology_files`); already loaded
+    :class:`Morphology` objects in a list are passed through."""
+    if not isinstance(morphologies, (str, Path)):
+        morphologies = list(morphologies)
+        if morphologies and all(isinstance(m, Morphology) for m in morphologies):
+            return morphologies
     return [load_morphology(p) for p in morphology_files(morphologies)]
 
 

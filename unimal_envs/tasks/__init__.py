@@ -6,9 +6,25 @@
 from __future__ import annotations
 
 from unimal_envs.tasks.base import CONTROL_DT, Task
-from unimal_envs.tasks.locomotion import FlatTerrain
+from unimal_envs.tasks.locomotion import FlatTerrain, InclineTask, ObstacleTask, VariableTerrainTask
+from unimal_envs.tasks.manipulation import ManipulateBox, PushBoxIncline
+from unimal_envs.tasks.navigation import Escape, Exploration, Patrol, PointNav
 
-TASKS: dict[str, type[Task]] = {cls.name: cls for cls in (FlatTerrain,)}
+TASKS: dict[str, type[Task]] = {
+    cls.name: cls
+    for cls in (
+        FlatTerrain,
+        VariableTerrainTask,
+        InclineTask,
+        ObstacleTask,
+        Patrol,
+        Exploration,
+        Escape,
+        PointNav,
+        PushBoxIncline,
+        ManipulateBox,
+    )
+}
 
 
 def make_task(name: str | Task) -> Task:
@@ -24,4 +40,4 @@ def make_task(name: str | Task) -> Task:
         raise ValueError(f"unknown task '{name}'; available tasks: {sorted(TASKS)}") from None
 
 
-__all__ = ["CONTROL_DT", "TASKS", "Task", "make_task", "FlatTerrain"]
+__all__ = ["CONTROL_DT", "TASKS", "Task", "make_task"]

@@ -16,11 +16,12 @@ CONTROL_DT = 0.02
 class Task:
     """What the robot should do.
 
-    A task chooses its arena, the spawn pose, adds its props (goals, objects) to the world, and
-    turns a step into reward terms, a termination reason and task observations. The env composes
-    it with a :class:`~unimal_envs.robot.Robot` and an :class:`~unimal_envs.arenas.Arena`.
+    A task owns its :attr:`arena`, chooses the spawn pose, adds its props (goals, objects) to the
+    world, and turns a step into reward terms, a termination reason and task observations. The env
+    composes it with a :class:`~unimal_envs.robot.Robot`.
 
-    Subclasses set :attr:`name` (a key of :data:`~unimal_envs.instructions.INSTRUCTIONS`) and implement :meth:`reward_terms`.
+    Subclasses set :attr:`name` (a key of :data:`~unimal_envs.instructions.INSTRUCTIONS`) and
+    implement :meth:`make_arena` and :meth:`reward_terms`.
     """
 
     #: Short name used in env ids (``Unimal-<name>-v0``) and ``info["task"]``.
@@ -28,32 +29,31 @@ class Task:
     #: Episode ends when torso height above ground <= ratio x standing height (MetaMorph 0.5).
     fall_height_ratio: float = 0.5
 
+    def __init__(self) -> None:
+        self.arena = self.make_arena()
+
     @property
     def instruction(self) -> str:
         """Natural-language instruction; its embedding is the ``task_embedding`` observation."""
         return INSTRUCTIONS[self.name]
 
     def make_arena(self) -> Arena:
-        """A fresh arena for one env."""
+        """The arena of this task (one per task instance)."""
         raise NotImplementedError
 
     def spawn_pose(self, robot: Robot) -> tuple[tuple[float, float, float], tuple[float, float, float, float] | None]:
         """Torso position and orientation (w, x, y, z; ``None`` = upright) at the start of an episode."""
         return (0.0, 0.0, robot.morphology.torso_height), None
 
-    def build(self, spec: mujoco.MjSpec, rng: np.random.Generator) -> None:
+    def build(self, spec: mujoco.MjSpec) -> None:
         """Add the task's props (goals, objects) to the world spec. Default: none."""
 
     def bind(self, model: mujoco.MjModel, data: mujoco.MjData) -> None:
-        """Resolve ids of the task's props in the compiled world."""
-
-    @property
-    def randomised(self) -> bool:
-        """True if :meth:`build` samples something, i.e. the world is rebuilt every episode."""
-        return False
+        """Resolve ids of the task's props in the current compiled world (every episode)."""
+        self.model, self.data = model, data
 
     def reset(self, robot: Robot, rng: np.random.Generator) -> None:
-        """Start a new episode (after the robot's state was reset and synced)."""
+        """Start an episode: sample goals and place props (call ``mj_forward`` after moving bodies)."""
 
     def reward_terms(self, robot: Robot, torso_before: np.ndarray) -> dict[str, float]:
         """Per-term rewards of the step that moved the torso from ``torso_before`` to now."""
@@ -66,3 +66,20 @@ class Task:
     def observations(self, robot: Robot) -> dict[str, np.ndarray]:
         """Task observations (``hfield``, ``goal``, ``object``); keys not returned are zeros."""
         return {}
+
+    def metrics(self, robot: Robot) -> dict[str, float]:
+        """Task-specific progress reported in ``info`` (e.g. distance travelled, cells visited)."""
+        return {}
+
+
+def to_torso_frame(robot: Robot, vector: np.ndarray) -> np.ndarray:
+    """A world-frame vector expressed in the torso frame, as float32."""
+    return (np.asarray(vector) @ robot.torso_xmat).astype(np.float32)
+
+
+def height_map(task: Task, robot: Robot) -> np.ndarray:
+    """The arena's height map around the torso, rotated by its heading."""
+    from unimal_envs.arenas.heightfield import torso_yaw
+
+    x, y, _ = robot.torso_qpos.tolist()
+    return task.arena.height_map(x, y, torso_yaw(robot.torso_xmat))

@@ -1,0 +1,138 @@
+"""Height grids: one array that is both the physical terrain and the source of ``hfield`` observations.
+
+The original code kept a height array for observations whose row 0 was +y while MuJoCo's
+heightfield row 0 is -y, so on y-varying terrain the observed map was the mirror image of the
+physical one (spec 4.2). Here a single :class:`HeightGrid` (row index grows with +y, MuJoCo's order)
+is written to the physics heightfield *and* sampled for observations, so the two always agree.
+
+Terrain is re-randomised every episode by rewriting ``model.hfield_data`` in place: the world is
+compiled once per morphology and never recompiled for new terrain.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+
+import mujoco
+import numpy as np
+
+from unimal_envs import contract as C
+
+#: Value of the height map outside the terrain (MetaMorph's "gap" marker).
+OUTSIDE = -10.0
+
+
+def log_offsets(n: int) -> np.ndarray:
+    """MetaMorph's non-uniform 1-D sampler: dense near 0, sparse far away, ending at ``n``.
+
+    ``p = k/n`` for ``k < n`` is mapped to ``-log(1-p)``, rescaled so the last value is ``n``,
+    truncated to integers and de-duplicated (``log_offsets(10) == [0, 1, 2, 3, 5, 6, 10]``).
+    """
+    p = np.arange(n) / n
+    values = -np.log(1.0 - p)
+    return np.unique(np.floor(values * n / values[-1] + 1e-9).astype(int))
+
+
+#: Forward offsets (0.1 m cells) of the 30 height-map columns: 1 m behind to 4 m ahead.
+FORWARD_CELLS = np.union1d(-log_offsets(10), log_offsets(40))
+#: Lateral offsets (0.1 m cells, + = the robot's left) of the 47 height-map rows, left to right.
+LATERAL_CELLS = np.union1d(-log_offsets(40), log_offsets(40))[::-1]
+assert (len(LATERAL_CELLS), len(FORWARD_CELLS)) == (C.HFIELD_ROWS, C.HFIELD_COLS)
+_FORWARD, _LATERAL = (a.astype(np.float64) * 0.1 for a in np.meshgrid(FORWARD_CELLS, LATERAL_CELLS))
+
+
+class HeightGrid:
+    """Heights on a regular grid: ``heights[row, col]`` covers the cell whose lower-left corner is
+    ``(x0 + col * resolution, y0 + row * resolution)``.
+
+    :param shape: (rows, cols); rows run along +y, columns along +x.
+    :param x0: world x of the grid's left edge.
+    :param y0: world y of the grid's lower edge.
+    :param resolution: cell size in metres.
+    :param max_height: heights are clipped to [0, max_height] for physics (the heightfield's z scale).
+    """
+
+    def __init__(self, shape: tuple[int, int], x0: float, y0: float, resolution: float = 0.1, max_height: float = 1.0):
+        self.heights = np.zeros(shape, dtype=np.float32)
+        self.x0, self.y0, self.resolution, self.max_height = float(x0), float(y0), float(resolution), float(max_height)
+        self._hfield_adr: int | None = None
+
+    @property
+    def size_x(self) -> float:
+        return self.heights.shape[1] * self.resolution
+
+    @property
+    def size_y(self) -> float:
+        return self.heights.shape[0] * self.resolution
+
+    def cell(self, x: float, y: float) -> tuple[int, int]:
+        """(row, col) of the cell containing world point (x, y); may lie outside the grid."""
+        return math.floor((y - self.y0) / self.resolution), math.floor((x - self.x0) / self.resolution)
+
+    def height(self, x: float, y: float) -> float:
+        """Terrain height at (x, y); 0 outside the grid."""
+        row, col = self.cell(x, y)
+        rows, cols = self.heights.shape
+        if 0 <= row < rows and 0 <= col < cols:
+            return float(self.heights[row, col])
+        return 0.0
+
+    def columns_at(self, x: np.ndarray) -> np.ndarray:
+        """Column indices of world x coordinates."""
+        return np.floor((np.asarray(x) - self.x0) / self.resolution).astype(int)
+
+    def rows_at(self, y: np.ndarray) -> np.ndarray:
+        """Row indices of world y coordinates."""
+        return np.floor((np.asarray(y) - self.y0) / self.resolution).astype(int)
+
+    # ------------------------------------------------------------------ physics
+    def add_to_spec(self, spec: mujoco.MjSpec, name: str, material: str | None = None) -> None:
+        """Add a MuJoCo heightfield covering the grid (surface = heights, base 0.5 m below z = 0)."""
+        rows, cols = self.heights.shape
+        # MuJoCo's binary hfield format through an in-memory asset: far faster than userdata lists.
+        blob = struct.pack("<ii", rows, cols) + np.zeros(rows * cols, dtype=np.float32).tobytes()
+        assets = dict(spec.assets)
+        assets[f"{name}.bin"] = blob
+        spec.assets = assets
+        spec.add_hfield(name=name, size=[self.size_x / 2, self.size_y / 2, self.max_height, 0.5], file=f"{name}.bin")
+        geom = spec.worldbody.add_geom(
+            name=name,
+            type=mujoco.mjtGeom.mjGEOM_HFIELD,
+            hfieldname=name,
+            pos=[self.x0 + self.size_x / 2, self.y0 + self.size_y / 2, 0.0],
+            condim=3,
+            friction=[0.7, 0.1, 0.1],
+        )
+        if material is not None:
+            geom.material = material
+
+    def bind(self, model: mujoco.MjModel, name: str) -> None:
+        """Remember where this grid's heightfield lives in a compiled model."""
+        self._hfield_adr = int(model.hfield_adr[model.hfield(name).id])
+
+    def upload(self, model: mujoco.MjModel) -> None:
+        """Write the current heights into the bound model's heightfield (call after changing them)."""
+        size = self.heights.size
+        np.clip(self.heights.reshape(-1) / self.max_height, 0.0, 1.0, out=model.hfield_data[self._hfield_adr : self._hfield_adr + size])
+
+    # ------------------------------------------------------------------ observation
+    def height_map(self, x: float, y: float, yaw: float) -> np.ndarray:
+        """The (1410,) egocentric height map around (x, y), rotated by the torso yaw.
+
+        Heights are sampled on MetaMorph's 47 x 30 non-uniform grid (1 m behind to 4 m ahead, 4 m
+        to each side) and given relative to the height under the torso; points outside the grid
+        read :data:`OUTSIDE` (relative to the ground at the torso).
+        """
+        c, s = math.cos(yaw), math.sin(yaw)
+        rows = np.floor((y - self.y0 + s * _FORWARD + c * _LATERAL) / self.resolution).astype(np.intp)
+        cols = np.floor((x - self.x0 + c * _FORWARD - s * _LATERAL) / self.resolution).astype(np.intp)
+        n_rows, n_cols = self.heights.shape
+        inside = (rows >= 0) & (rows < n_rows) & (cols >= 0) & (cols < n_cols)
+        sampled = np.where(inside, self.heights[np.clip(rows, 0, n_rows - 1), np.clip(cols, 0, n_cols - 1)], OUTSIDE)
+        return (sampled - self.height(x, y)).astype(np.float32).reshape(-1)
+
+
+def torso_yaw(xmat: np.ndarray) -> float:
+    """Heading of the torso: angle from world +x to the xy-projection of the torso's x-axis."""
+    return math.atan2(xmat[1, 0], xmat[0, 0])

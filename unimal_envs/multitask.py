@@ -1,0 +1,93 @@
+"""``Unimal-MultiTask-v0``: one env that draws a task per episode."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from unimal_envs import contract as C
+from unimal_envs.env import UnimalEnv
+from unimal_envs.morphology.loader import load_morphologies
+from unimal_envs.tasks import TASKS
+
+
+class MultiTaskEnv(gym.Env):
+    """A UNIMAL env that draws one task (and one morphology) per episode.
+
+    It exposes exactly the observation and action spaces of every single-task env, so one policy
+    can be trained on a mix of tasks; the episode's task is in ``info["task"]`` and in the
+    ``task_index`` / ``task_embedding`` observations. Each task keeps its own
+    :class:`~unimal_envs.env.UnimalEnv` (and compiled worlds); the morphologies are loaded once
+    and shared.
+
+    :param tasks: task names to draw from (default: the five training tasks).
+    :param morphologies: as for :class:`~unimal_envs.env.UnimalEnv`.
+    :param task_probabilities: sampling probability of each task (default: uniform).
+    :param render_mode: ``"rgb_array"`` or ``"human"``.
+    :param env_kwargs: passed to every task's :class:`~unimal_envs.env.UnimalEnv` (e.g. ``ctrl_cost_weight``).
+    """
+
+    metadata = UnimalEnv.metadata
+
+    def __init__(
+        self,
+        tasks: Sequence[str] = C.TRAIN_TASKS,
+        morphologies: str | Path | Iterable[str | Path] = "train",
+        task_probabilities: Sequence[float] | None = None,
+        render_mode: str | None = None,
+        **env_kwargs: Any,
+    ):
+        tasks = list(tasks)
+        unknown = [t for t in tasks if t not in TASKS]
+        if not tasks or unknown:
+            raise ValueError(f"tasks must be a non-empty list of {sorted(TASKS)}; unknown: {unknown}")
+        if "instruction" in env_kwargs:
+            raise ValueError("MultiTaskEnv uses each task's own instruction; 'instruction' is not accepted")
+        if task_probabilities is not None:
+            p = np.asarray(task_probabilities, dtype=float)
+            if p.shape != (len(tasks),) or (p < 0).any() or not np.isclose(p.sum(), 1.0):
+                raise ValueError(f"task_probabilities must be {len(tasks)} non-negative numbers summing to 1, got {task_probabilities}")
+        self.tasks = tasks
+        self.task_probabilities = task_probabilities
+        robots = load_morphologies(morphologies)
+        self.envs = {task: UnimalEnv(task, robots, render_mode=render_mode, **env_kwargs) for task in tasks}
+        self.render_mode = render_mode
+        self.observation_space = C.observation_space()
+        self.action_space = C.action_space()
+        self.current: UnimalEnv | None = None
+
+    @property
+    def task(self) -> str:
+        """Name of the current episode's task."""
+        return self.current.task.name
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        """Draw a task and a morphology and start an episode.
+
+        :param options: ``{"task": name}`` and/or ``{"morphology": name_or_index}`` to choose them.
+        """
+        super().reset(seed=seed)
+        options = dict(options or {})
+        task = options.pop("task", None)
+        if task is None:
+            task = self.tasks[int(self.np_random.choice(len(self.tasks), p=self.task_probabilities))]
+        elif task not in self.envs:
+            raise ValueError(f"task '{task}' is not one of this env's tasks {self.tasks}")
+        self.current = self.envs[task]
+        return self.current.reset(seed=int(self.np_random.integers(2**31)), options=options)
+
+    def step(self, action: np.ndarray):
+        if self.current is None:
+            raise RuntimeError("call reset() before step()")
+        return self.current.step(action)
+
+    def render(self):
+        return self.current.render() if self.current is not None else None
+
+    def close(self) -> None:
+        for env in self.envs.values():
+            env.close()
