@@ -101,12 +101,14 @@ def test_pushing_the_torso_forward_is_rewarded(train_files):
     assert _push(env, -weight) < -0.5
 
 
-def test_a_fallen_torso_terminates(train_files):
-    env = make_ft(train_files[:1])
+def test_a_fallen_torso_terminates(write_robot):
+    env = make_ft([write_robot(unimal_xml(legs=4, torso_z=0.6))])  # standing height 0.4, threshold 0.2
     env.reset(seed=0)
+    _, _, terminated, _, _ = env.step(np.zeros(C.ACTION_DIM, np.float32))
+    assert not terminated
+    # Turn the robot upside down, torso sphere resting on the floor (z = 0.1 < 0.2).
     unwrapped = env.unwrapped
-    # Drop the torso to 20% of its standing height (below the 50% threshold).
-    unwrapped.data.qpos[2] = 0.2 * unwrapped.morphology.standing_height
+    unwrapped.data.qpos[:7] = [0.0, 0.0, 0.1, 0.0, 1.0, 0.0, 0.0]
     _, _, terminated, truncated, info = env.step(np.zeros(C.ACTION_DIM, np.float32))
     assert terminated and not truncated and info["termination"] == "fall"
 

@@ -43,8 +43,12 @@ _FORWARD, _LATERAL = (a.astype(np.float64) * 0.1 for a in np.meshgrid(FORWARD_CE
 
 
 class HeightGrid:
-    """Heights on a regular grid: ``heights[row, col]`` covers the cell whose lower-left corner is
+    """Heights sampled on a regular grid: ``heights[row, col]`` is the terrain height at world point
     ``(x0 + col * resolution, y0 + row * resolution)``.
+
+    These are the vertices of MuJoCo's heightfield (which interpolates between them), so at every
+    sample point the physical surface and the observed height are the same number. Queries between
+    samples read the nearest sample.
 
     :param shape: (rows, cols); rows run along +y, columns along +x.
     :param x0: world x of the grid's left edge.
@@ -60,15 +64,17 @@ class HeightGrid:
 
     @property
     def size_x(self) -> float:
-        return self.heights.shape[1] * self.resolution
+        """Extent along x, from the first to the last sample."""
+        return (self.heights.shape[1] - 1) * self.resolution
 
     @property
     def size_y(self) -> float:
-        return self.heights.shape[0] * self.resolution
+        """Extent along y, from the first to the last sample."""
+        return (self.heights.shape[0] - 1) * self.resolution
 
     def cell(self, x: float, y: float) -> tuple[int, int]:
-        """(row, col) of the cell containing world point (x, y); may lie outside the grid."""
-        return math.floor((y - self.y0) / self.resolution), math.floor((x - self.x0) / self.resolution)
+        """(row, col) of the sample nearest to world point (x, y); may lie outside the grid."""
+        return math.floor((y - self.y0) / self.resolution + 0.5), math.floor((x - self.x0) / self.resolution + 0.5)
 
     def height(self, x: float, y: float) -> float:
         """Terrain height at (x, y); 0 outside the grid."""
@@ -79,16 +85,16 @@ class HeightGrid:
         return 0.0
 
     def columns_at(self, x: np.ndarray) -> np.ndarray:
-        """Column indices of world x coordinates."""
-        return np.floor((np.asarray(x) - self.x0) / self.resolution).astype(int)
+        """Column indices of the samples nearest to world x coordinates."""
+        return np.floor((np.asarray(x) - self.x0) / self.resolution + 0.5).astype(int)
 
     def rows_at(self, y: np.ndarray) -> np.ndarray:
-        """Row indices of world y coordinates."""
-        return np.floor((np.asarray(y) - self.y0) / self.resolution).astype(int)
+        """Row indices of the samples nearest to world y coordinates."""
+        return np.floor((np.asarray(y) - self.y0) / self.resolution + 0.5).astype(int)
 
     # ------------------------------------------------------------------ physics
     def add_to_spec(self, spec: mujoco.MjSpec, name: str, material: str | None = None) -> None:
-        """Add a MuJoCo heightfield covering the grid (surface = heights, base 0.5 m below z = 0)."""
+        """Add a MuJoCo heightfield whose vertices are the grid's samples (base 0.5 m below z = 0)."""
         rows, cols = self.heights.shape
         # MuJoCo's binary hfield format through an in-memory asset: far faster than userdata lists.
         blob = struct.pack("<ii", rows, cols) + np.zeros(rows * cols, dtype=np.float32).tobytes()
@@ -125,8 +131,8 @@ class HeightGrid:
         read :data:`OUTSIDE` (relative to the ground at the torso).
         """
         c, s = math.cos(yaw), math.sin(yaw)
-        rows = np.floor((y - self.y0 + s * _FORWARD + c * _LATERAL) / self.resolution).astype(np.intp)
-        cols = np.floor((x - self.x0 + c * _FORWARD - s * _LATERAL) / self.resolution).astype(np.intp)
+        rows = np.floor((y - self.y0 + s * _FORWARD + c * _LATERAL) / self.resolution + 0.5).astype(np.intp)
+        cols = np.floor((x - self.x0 + c * _FORWARD - s * _LATERAL) / self.resolution + 0.5).astype(np.intp)
         n_rows, n_cols = self.heights.shape
         inside = (rows >= 0) & (rows < n_rows) & (cols >= 0) & (cols < n_cols)
         sampled = np.where(inside, self.heights[np.clip(rows, 0, n_rows - 1), np.clip(cols, 0, n_cols - 1)], OUTSIDE)
