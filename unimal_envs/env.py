@@ -140,6 +140,9 @@ class UnimalEnv(gym.Env):
         self._worlds: OrderedDict[int, _World] = OrderedDict()  # compiled worlds, least recently used first
         self._world: _World | None = None
         self._viewer = None
+        #: Tracking camera: distance to the torso (``None`` = from the robot's size), azimuth, elevation.
+        self.camera_distance: float | None = None
+        self.camera_angles = (135.0, -20.0)
 
     # ------------------------------------------------------------------ world
     def _build_world(self, index: int) -> _World:
@@ -332,8 +335,8 @@ class UnimalEnv(gym.Env):
         camera = mujoco.MjvCamera()
         camera.type = mujoco.mjtCamera.mjCAMERA_TRACKING
         camera.trackbodyid = world.robot.torso_id
-        camera.distance = 2.5 + 3.0 * world.robot.morphology.standing_height
-        camera.azimuth, camera.elevation = 135.0, -20.0
+        camera.distance = self.camera_distance or 2.5 + 3.0 * world.robot.morphology.standing_height
+        camera.azimuth, camera.elevation = self.camera_angles
         return camera
 
     def _render_human(self, world: _World) -> None:

@@ -11,6 +11,7 @@ compiled once per morphology and never recompiled for new terrain.
 
 from __future__ import annotations
 
+import functools
 import math
 import struct
 
@@ -39,6 +40,8 @@ FORWARD_CELLS = np.union1d(-log_offsets(10), log_offsets(40))
 #: Lateral offsets (0.1 m cells, + = the robot's left) of the 47 height-map rows, left to right.
 LATERAL_CELLS = np.union1d(-log_offsets(40), log_offsets(40))[::-1]
 assert (len(LATERAL_CELLS), len(FORWARD_CELLS)) == (C.HFIELD_ROWS, C.HFIELD_COLS)
+#: Largest |offset| of the height-map grid along each axis, in 0.1 m cells.
+_MAX_OFFSET_CELLS = (int(np.abs(LATERAL_CELLS).max()), int(np.abs(FORWARD_CELLS).max()))
 _FORWARD, _LATERAL = (a.astype(np.float64) * 0.1 for a in np.meshgrid(FORWARD_CELLS, LATERAL_CELLS))
 
 
@@ -58,9 +61,16 @@ class HeightGrid:
     """
 
     def __init__(self, shape: tuple[int, int], x0: float, y0: float, resolution: float = 0.1, max_height: float = 1.0):
-        self.heights = np.zeros(shape, dtype=np.float32)
+        # The heights live inside a margin of OUTSIDE values wide enough for any rotated sample, so
+        # the height map is one gather with no bounds checks; ``heights`` is a view of the interior.
+        rows, cols = shape
+        self._margin = m = int(math.ceil(math.hypot(*_MAX_OFFSET_CELLS) * 0.1 / resolution)) + 2
+        self._padded = np.full((rows + 2 * m, cols + 2 * m), OUTSIDE, dtype=np.float32)
+        self._padded_flat = self._padded.reshape(-1)
+        self.heights = self._padded[m : m + rows, m : m + cols]
         self.x0, self.y0, self.resolution, self.max_height = float(x0), float(y0), float(resolution), float(max_height)
         self._hfield_adr: int | None = None
+        self._map_offsets = _rotated_offsets(resolution, self._padded.shape[1])
 
     @property
     def size_x(self) -> float:
@@ -119,24 +129,40 @@ class HeightGrid:
 
     def upload(self, model: mujoco.MjModel) -> None:
         """Write the current heights into the bound model's heightfield (call after changing them)."""
-        size = self.heights.size
-        np.clip(self.heights.reshape(-1) / self.max_height, 0.0, 1.0, out=model.hfield_data[self._hfield_adr : self._hfield_adr + size])
+        rows, cols = self.heights.shape
+        target = model.hfield_data[self._hfield_adr : self._hfield_adr + rows * cols].reshape(rows, cols)
+        np.clip(self.heights / self.max_height, 0.0, 1.0, out=target)
 
     # ------------------------------------------------------------------ observation
     def height_map(self, x: float, y: float, yaw: float) -> np.ndarray:
         """The (1410,) egocentric height map around (x, y), rotated by the torso yaw.
 
         Heights are sampled on MetaMorph's 47 x 30 non-uniform grid (1 m behind to 4 m ahead, 4 m
-        to each side) and given relative to the height under the torso; points outside the grid
-        read :data:`OUTSIDE` (relative to the ground at the torso).
+        to each side) at the torso's sample plus the rotated offsets rounded to whole samples (as in
+        the original; the yaw is taken to the nearest degree), relative to the height under the
+        torso. Points beyond the grid read :data:`OUTSIDE` (relative to the ground at the torso).
         """
-        c, s = math.cos(yaw), math.sin(yaw)
-        rows = np.floor((y - self.y0 + s * _FORWARD + c * _LATERAL) / self.resolution + 0.5).astype(np.intp)
-        cols = np.floor((x - self.x0 + c * _FORWARD - s * _LATERAL) / self.resolution + 0.5).astype(np.intp)
-        n_rows, n_cols = self.heights.shape
-        inside = (rows >= 0) & (rows < n_rows) & (cols >= 0) & (cols < n_cols)
-        sampled = np.where(inside, self.heights[np.clip(rows, 0, n_rows - 1), np.clip(cols, 0, n_cols - 1)], OUTSIDE)
-        return (sampled - self.height(x, y)).astype(np.float32).reshape(-1)
+        rows, cols = self.heights.shape
+        row, col = self.cell(x, y)
+        row, col = min(max(row, 0), rows - 1), min(max(col, 0), cols - 1)  # a robot off the grid sees its edge
+        width = self._padded.shape[1]
+        centre = (row + self._margin) * width + col + self._margin
+        degree = int(round(math.degrees(yaw))) % 360
+        sampled = self._padded_flat.take(self._map_offsets[degree] + centre)
+        sampled -= self._padded_flat[centre]
+        return sampled
+
+
+@functools.lru_cache(maxsize=8)
+def _rotated_offsets(resolution: float, row_stride: int) -> np.ndarray:
+    """(360, 1410) flat-index offsets of the height-map samples for every whole-degree heading."""
+    table = np.empty((360, C.HFIELD_DIM), dtype=np.intp)
+    for degree in range(360):
+        c, s = math.cos(math.radians(degree)), math.sin(math.radians(degree))
+        d_row = np.rint((s * _FORWARD + c * _LATERAL) / resolution).astype(np.intp)
+        d_col = np.rint((c * _FORWARD - s * _LATERAL) / resolution).astype(np.intp)
+        table[degree] = (d_row * row_stride + d_col).reshape(-1)
+    return table
 
 
 def torso_yaw(xmat: np.ndarray) -> float:
