@@ -194,7 +194,8 @@ def test_non_finite_actions_are_rejected_before_stepping(train_files, bad):
 
 
 @pytest.mark.parametrize("steps_before", [0, 5])
-def test_a_diverging_simulation_ends_the_episode_cleanly(train_files, steps_before):
+def test_a_diverging_simulation_ends_the_episode_cleanly(train_files, steps_before, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # MuJoCo appends its warning to ./MUJOCO_LOG.TXT
     env = make_ft(train_files[:1])
     env.reset(seed=0)
     for _ in range(steps_before):
