@@ -110,7 +110,7 @@ def main(argv: list[str] | None = None) -> None:
     table = Table(title=f"Unimal-FT-v0, {len(robots)} robots of '{args.morphologies}' (seed {args.seed}): random actions vs best of {args.gaits} sine gaits")
     headers = ["morphology", "limbs", "dof", "random return", "random dx (m)", "random steps", "gait return", "gait dx (m)", "gait steps"]
     for header in headers:
-        table.add_column(header, justify="right")
+        table.add_column(header, justify="right", no_wrap=header == "morphology")
     markdown = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
     for robot, rr, rd, rl, rf, gr, gd, gl, gf in rows:
         cells = [robot.name, str(robot.num_limbs), str(robot.dof), f"{rr:.1f}", f"{rd:+.2f}", f"{rl}{' (fell)' if rf else ''}",
