@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import os
 import platform
 import statistics
 import sys
@@ -26,7 +27,12 @@ from sb3_divmorph import DivMorphPolicy, MetaMorphPolicy
 from sb3_divmorph.testing import random_observations
 from unimal_envs import contract
 
-POLICIES = {"MetaMorph": MetaMorphPolicy, "DivMorph": DivMorphPolicy}
+#: name -> (class, extra policy kwargs); ratios are taken against the first entry.
+POLICIES = {
+    "MetaMorph": (MetaMorphPolicy, {}),
+    "DivMorph": (DivMorphPolicy, {}),
+    "DivMorph+critic": (DivMorphPolicy, {"factorize_critic": True}),
+}
 
 
 def _cpu_name() -> str:
@@ -72,22 +78,24 @@ def time_interleaved(policies: dict, step, repeats: int, warmup: int, device: th
     return times
 
 
-def benchmark_size(preset: str, batch: int, n_envs: int, repeats: int, warmup: int, device: th.device, seed: int):
+def benchmark_size(args: argparse.Namespace, preset: str, device: th.device):
+    batch, n_envs, repeats, warmup, seed = args.batch, args.n_envs, args.repeats, args.warmup, args.seed
     space, action_space = contract.observation_space(), contract.action_space()
     policies = {}
-    for name, cls in POLICIES.items():
+    for name, (cls, kwargs) in POLICIES.items():
         th.manual_seed(seed)
-        policies[name] = cls(space, action_space, lambda _: 3e-4, preset=preset).to(device)
+        policies[name] = cls(space, action_space, lambda _: 3e-4, preset=preset, **kwargs).to(device)
 
-    obs_np = random_observations(space, batch, seed=seed)
+    obs_np = random_observations(space, batch, seed=seed, n_morphologies=args.morphologies, n_tasks=args.tasks)
     some = next(iter(policies.values()))
     obs, _ = some.obs_to_tensor(obs_np)
-    actions = th.as_tensor(np.random.default_rng(seed).uniform(-1, 1, (batch, action_space.shape[0])), dtype=th.float32, device=device)
+    uniform = np.random.default_rng(seed).uniform(-1, 1, (batch, action_space.shape[0]))
+    actions = th.as_tensor(uniform, dtype=th.float32, device=device)
     for policy in policies.values():
         policy.set_training_mode(True)
     update = time_interleaved(policies, lambda p: update_step(p, obs, actions), repeats, warmup, device)
 
-    rollout_obs, _ = some.obs_to_tensor(random_observations(space, n_envs, seed=seed + 1))
+    rollout_obs, _ = some.obs_to_tensor(random_observations(space, n_envs, seed=seed + 1, n_tasks=1))
     for policy in policies.values():
         policy.set_training_mode(False)
     rollout = time_interleaved(policies, lambda p: rollout_step(p, rollout_obs), 5 * repeats, warmup, device)
@@ -100,52 +108,68 @@ def _ms(values: list[float]) -> float:
 
 
 def render(results: dict, args: argparse.Namespace, device: th.device) -> str:
+    names = list(POLICIES)
+    base = names[0]
     lines = [
         "# Policy cost: DivMorph vs MetaMorph at equal size",
         "",
         f"Command: `{' '.join(['python', *sys.argv])}`",
         "",
-        f"Machine: {_cpu_name()}, {platform.system()} {platform.machine()}, device `{device}`"
+        f"Machine: {_cpu_name()} ({os.cpu_count()} cores, load average {args.load:.2f} at start), "
+        f"{platform.system()} {platform.machine()}, device `{device}`"
         + (f" ({th.cuda.get_device_name(device)})" if device.type == "cuda" else "")
         + f", torch {th.__version__}, {th.get_num_threads()} torch thread(s); "
         f"{datetime.datetime.now().astimezone().strftime('%Y-%m-%d %H:%M %Z')}.",
         "",
         f"Update step = `evaluate_actions` + loss + backward on a minibatch of {args.batch} observations "
-        f"(train mode; actor and critic); rollout step = `forward` under `no_grad` in eval mode on "
-        f"{args.n_envs} observations. Both policies are timed in the same process, interleaved "
-        f"({args.repeats} update repeats, {5 * args.repeats} rollout repeats, {args.warmup} warm-up), "
-        "medians reported. Target: DivMorph <= 1.3x MetaMorph.",
+        f"of {args.morphologies} robots x {args.tasks} tasks (train mode; actor and critic). Rollout step = "
+        f"`forward` under `no_grad` in eval mode on {args.n_envs} observations. All policies are timed in "
+        f"the same process, interleaved in alternating order ({args.repeats} update repeats, "
+        f"{5 * args.repeats} rollout repeats, {args.warmup} warm-up); medians. "
+        "`DivMorph` is the default policy (diverted actor, MetaMorph critic); `DivMorph+critic` also "
+        "factorizes and gates the critic (`factorize_critic=True`). Target: DivMorph <= 1.3x MetaMorph.",
         "",
-        "## Time",
+        "## Time (ms, median; ratio to MetaMorph)",
         "",
-        "| size | MetaMorph update (ms) | DivMorph update (ms) | ratio | MetaMorph rollout (ms) | DivMorph rollout (ms) | ratio |",
-        "|---|---:|---:|---:|---:|---:|---:|",
+        "| size | " + " | ".join(f"{n} update" for n in names) + " | " + " | ".join(f"{n} rollout" for n in names) + " |",
+        "|---|" + "---:|" * (2 * len(names)),
     ]
     for size, (update, rollout, _, _) in results.items():
-        mu, du = _ms(update["MetaMorph"]), _ms(update["DivMorph"])
-        mr, dr = _ms(rollout["MetaMorph"]), _ms(rollout["DivMorph"])
-        lines.append(f"| {size} | {mu:.1f} | {du:.1f} | **{du / mu:.2f}x** | {mr:.2f} | {dr:.2f} | {dr / mr:.2f}x |")
+        cells = []
+        for timing in (update, rollout):
+            ref = _ms(timing[base])
+            for n in names:
+                value = _ms(timing[n])
+                cells.append(f"{value:.1f}" if n == base else f"{value:.1f} (**{value / ref:.2f}x**)")
+        lines.append(f"| {size} | " + " | ".join(cells) + " |")
     lines += ["", "## Parameters (stored elements per part)", ""]
     for size, (_, _, counts, config) in results.items():
-        keys = sorted(set(counts["MetaMorph"]) | set(counts["DivMorph"]), key=lambda k: (k == "total", k))
+        keys = sorted(set().union(*(counts[n] for n in names)), key=lambda k: (k == "total", k))
         lines += [
             f"### {size}",
             "",
             "DivMorph: "
-            + ", ".join(f"{k}={config[k]}" for k in ("d_model", "n_layers", "n_heads", "ff_dim", "n_morph_tailors", "n_task_tailors", "top_k_morph", "top_k_task")),
+            + ", ".join(
+                f"{k}={config[k]}"
+                for k in ("d_model", "n_layers", "n_heads", "ff_dim")
+                + ("n_morph_tailors", "n_task_tailors", "top_k_morph", "top_k_task")
+            ),
             "",
-            "| part | MetaMorph | DivMorph | ratio |",
-            "|---|---:|---:|---:|",
+            "| part | " + " | ".join(names) + " |",
+            "|---|" + "---:|" * len(names),
         ]
         for key in keys:
-            m, d = counts["MetaMorph"].get(key, 0), counts["DivMorph"].get(key, 0)
-            ratio = f"{d / m:.2f}x" if m else "-"
-            lines.append(f"| {key} | {m:,} | {d:,} | {ratio} |")
+            ref = counts[base].get(key, 0)
+            cells = []
+            for n in names:
+                value = counts[n].get(key, 0)
+                cells.append(f"{value:,}" if n == base or not ref else f"{value:,} ({value / ref:.2f}x)")
+            lines.append(f"| {key} | " + " | ".join(cells) + " |")
         lines.append("")
     lines += [
-        "Notes: a factorized `r x r` layer stores `U`, `V`, `s` (about twice a dense square matrix); the "
-        "Cayley-parametrized square factor is counted as its `r(r-1)/2` free skew entries (its SVD base "
-        "is a buffer). `router/*` exists only in DivMorph and is shared by actor and critic.",
+        "Notes: a factorized layer stores `U`, `V` and `s` (an `r x r` one about twice a dense square "
+        "matrix); the Cayley-parametrized square factor counts as its `r(r-1)/2` free skew entries (its "
+        "SVD base is a buffer). `router/*` (morphology encoder and both gates) exists only in DivMorph.",
         "",
     ]
     return "\n".join(lines)
@@ -156,7 +180,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--sizes", nargs="+", default=["small", "paper"], choices=sorted(MetaMorphPolicy.preset_table))
     parser.add_argument("--batch", type=int, default=512, help="minibatch size of the update step")
     parser.add_argument("--n-envs", type=int, default=4, help="batch of the rollout step")
-    parser.add_argument("--repeats", type=int, default=9)
+    parser.add_argument("--morphologies", type=int, default=32, help="distinct robots in the minibatch")
+    parser.add_argument("--tasks", type=int, default=5, help="distinct tasks in the minibatch")
+    parser.add_argument("--repeats", type=int, default=15)
     parser.add_argument("--warmup", type=int, default=2)
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     parser.add_argument("--device", default="cpu", help="cpu, cuda or auto")
@@ -164,17 +190,16 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--output", default="results/policy_cost.md")
     args = parser.parse_args(argv)
 
+    args.load = os.getloadavg()[0]
     th.set_num_threads(args.threads)
-    device = th.device("cuda" if args.device == "auto" and th.cuda.is_available() else ("cpu" if args.device == "auto" else args.device))
+    if args.device == "auto":
+        args.device = "cuda" if th.cuda.is_available() else "cpu"
+    device = th.device(args.device)
     results = {}
     for size in args.sizes:
-        results[size] = benchmark_size(size, args.batch, args.n_envs, args.repeats, args.warmup, device, args.seed)
+        results[size] = benchmark_size(args, size, device)
         update = results[size][0]
-        print(
-            f"{size}: update MetaMorph {_ms(update['MetaMorph']):.1f} ms, DivMorph {_ms(update['DivMorph']):.1f} ms, "
-            f"ratio {_ms(update['DivMorph']) / _ms(update['MetaMorph']):.2f}",
-            flush=True,
-        )
+        print(f"{size}: update " + ", ".join(f"{n} {_ms(t):.1f} ms" for n, t in update.items()), flush=True)
     text = render(results, args, device)
     Path(args.output).parent.mkdir(parents=True, exist_ok=True)
     Path(args.output).write_text(text)

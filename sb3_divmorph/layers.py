@@ -1,0 +1,385 @@
+"""Linear layers for the morphology-aware Transformer: dense, and factorized into rank-1 units.
+
+A :class:`FactorizedLinear` stores a weight ``W = U diag(s) V^T`` taken from the SVD of an ordinary
+random dense init, so that with every unit switched on it *is* that dense layer. Its ``r`` rank-1
+units ``(u_i, s_i, v_i)`` are split, in singular-value order (largest first), into
+
+* ``[0, N_G)``: learngenes, always on (gate 1),
+* ``[N_G, N_G + N_m)``: morphology tailors, scaled by the morphology gate,
+* ``[r - N_t, r)``: task tailors, scaled by the task gate,
+
+following DivMorph (the paper indexes the units the same way). Gates are per sample, so one batch
+may mix morphologies and tasks; no per-sample weight matrix is ever built.
+
+Both layer kinds share the call signature ``layer(x, tailor_gates=None)`` so that networks can be
+written once and built dense (MetaMorph) or factorized (DivMorph).
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch as th
+from torch import nn
+from torch.nn import functional as F
+
+#: Initialiser applied in place to a freshly built dense ``nn.Linear``.
+LinearInit = Callable[[nn.Linear], None]
+
+
+class DenseLinear(nn.Linear):
+    """``nn.Linear`` that accepts (and ignores) tailor gates, so it is interchangeable with
+    :class:`FactorizedLinear` inside a network."""
+
+    def forward(self, x: th.Tensor, tailor_gates: th.Tensor | None = None) -> th.Tensor:  # noqa: ARG002
+        return F.linear(x, self.weight, self.bias)
+
+
+@functools.lru_cache(maxsize=64)
+def _upper_indices(size: int, device: th.device) -> th.Tensor:
+    return th.triu_indices(size, size, offset=1, device=device)
+
+
+def cayley(skew_entries: th.Tensor, size: int) -> th.Tensor:
+    """Cayley map ``(I + A)^-1 (I - A)`` of a skew-symmetric ``A``.
+
+    ``A`` is assembled from its strict upper triangle, so it is skew-symmetric by construction and
+    the result is orthogonal for any parameter value (no projection step needed).
+
+    :param skew_entries: (size * (size - 1) / 2,) free entries of ``A`` above the diagonal.
+    :param size: ``r``.
+    :return: (r, r) orthogonal matrix; the identity when the entries are zero.
+    """
+    upper = skew_entries.new_zeros(size, size)
+    upper[tuple(_upper_indices(size, skew_entries.device))] = skew_entries
+    skew = upper - upper.T
+    eye = th.eye(size, dtype=skew.dtype, device=skew.device)
+    return th.linalg.solve(eye + skew, eye - skew)
+
+
+class _Factors(NamedTuple):
+    """Everything a forward pass needs, computed once per parameter version."""
+
+    U: th.Tensor  # (out, r)
+    V: th.Tensor  # (in, r)
+    #: dense weight of the always-on units: the learngenes, or every unit when nothing is gated
+    merged: th.Tensor  # (out, in)
+
+
+class FactorizedLinear(nn.Module):
+    """Linear layer ``y = x V diag(s * g) U^T + b`` made of rank-1 factor units.
+
+    ``r = min(in_features, out_features)``, so one of ``U`` (out x r) and ``V`` (in x r) is square.
+    That square factor is kept exactly orthogonal with a Cayley parametrization
+    ``Q = Q0 cayley(A)`` (``Q0`` is the SVD factor, a buffer; ``A`` starts at zero). The other,
+    tall factor and the singular values ``s`` are free parameters initialised from the SVD.
+
+    ``g`` is 1 for learngenes and the per-sample tailor gates for tailors. Learngene gates are the
+    same for every sample, so their rank-``N_G`` part is merged into one dense matrix shared by the
+    batch; the tailor part runs as the per-sample low-rank path ``((x V_T) * s_T g) U_T^T``. When
+    ``N_G`` is small that merge costs more than it saves, and the layer runs the whole low-rank path
+    ``((x V) * s g) U^T`` instead (``path="auto"`` picks the cheaper one; both are exact).
+
+    :param in_features: input size.
+    :param out_features: output size.
+    :param n_morph_tailors: number of morphology tailors ``N_m``.
+    :param n_task_tailors: number of task tailors ``N_t``; learngenes are the remaining
+        ``N_G = r - N_m - N_t`` units.
+    :param orthogonal: keep the square factor orthogonal (Cayley); ``False`` trains it freely
+        (ablation).
+    :param weight: (out, in) dense init to factorize; default: ``nn.Linear``'s own init.
+    :param bias: (out,) bias init, or ``None`` for no bias. Default: ``nn.Linear``'s own init.
+    :param path: ``"auto"``, ``"merged"`` (learngenes merged, tailors low-rank) or ``"lowrank"``.
+    """
+
+    def __init__(
+        self,
+        in_features: int,
+        out_features: int,
+        n_morph_tailors: int = 0,
+        n_task_tailors: int = 0,
+        orthogonal: bool = True,
+        weight: th.Tensor | None = None,
+        bias: th.Tensor | None | bool = True,
+        path: str = "auto",
+    ):
+        super().__init__()
+        rank = min(in_features, out_features)
+        n_tailors = n_morph_tailors + n_task_tailors
+        if n_morph_tailors < 0 or n_task_tailors < 0 or n_tailors > rank:
+            raise ValueError(
+                f"A {out_features}x{in_features} layer has {rank} units; cannot hold "
+                f"{n_morph_tailors} morphology + {n_task_tailors} task tailors."
+            )
+        if path not in ("auto", "merged", "lowrank"):
+            raise ValueError(f"Unknown path {path!r}")
+        if weight is None or bias is True:
+            reference = nn.Linear(in_features, out_features)
+            weight = reference.weight.detach() if weight is None else weight
+            bias = reference.bias.detach() if bias is True else bias
+        if tuple(weight.shape) != (out_features, in_features):
+            raise ValueError(f"weight has shape {tuple(weight.shape)}, expected {(out_features, in_features)}")
+
+        self.in_features = in_features
+        self.out_features = out_features
+        self.rank = rank
+        self.n_morph_tailors = n_morph_tailors
+        self.n_task_tailors = n_task_tailors
+        self.n_tailors = n_tailors
+        self.n_learngenes = rank - n_tailors
+        self.orthogonal = orthogonal
+        self.square_side = "U" if out_features <= in_features else "V"
+
+        # float64 SVD: the float32 factors then reproduce the init to ~1e-7 and the square factor
+        # starts orthogonal to float32 precision, which the Cayley map then preserves.
+        u, s, vh = th.linalg.svd(weight.detach().double(), full_matrices=False)
+        v = vh.transpose(0, 1)
+        square, tall = (u, v) if self.square_side == "U" else (v, u)
+        dtype = weight.dtype if weight.is_floating_point() else th.float32
+        self.singular_values = nn.Parameter(s.to(dtype))
+        self.tall = nn.Parameter(tall.to(dtype).contiguous())
+        if orthogonal:
+            self.register_buffer("square_base", square.to(dtype).contiguous())
+            self.square_skew = nn.Parameter(th.zeros(rank * (rank - 1) // 2, dtype=dtype))
+        else:
+            self.square = nn.Parameter(square.to(dtype).contiguous())
+        self.bias = None if bias is None or bias is False else nn.Parameter(bias.detach().to(dtype).clone())
+
+        # Per-row multiply-adds of both paths; the merged one also builds an (out x in) matrix
+        # once per batch, which is negligible for training minibatches and cached in rollouts.
+        merged_cost = in_features * out_features + n_tailors * (in_features + out_features)
+        lowrank_cost = rank * (in_features + out_features)
+        self.path = path if path != "auto" else ("merged" if merged_cost <= lowrank_cost else "lowrank")
+        self._cache: tuple[tuple, _Factors] | None = None
+
+    # ------------------------------------------------------------------------------------------
+    @property
+    def unit_slices(self) -> dict[str, slice]:
+        """Singular indices of each unit group."""
+        g, m = self.n_learngenes, self.n_morph_tailors
+        return {
+            "learngene": slice(0, g),
+            "morphology": slice(g, g + m),
+            "task": slice(g + m, self.rank),
+        }
+
+    def square_factor(self) -> th.Tensor:
+        """The square factor (``U`` or ``V`` as :attr:`square_side` says), orthogonal if requested."""
+        if self.orthogonal:
+            return self.square_base @ cayley(self.square_skew, self.rank)
+        return self.square
+
+    def orthogonality_error(self) -> float:
+        """``max |Q^T Q - I|`` of the square factor."""
+        with th.no_grad():
+            q = self.square_factor().double()
+            return (q.T @ q - th.eye(self.rank, dtype=q.dtype, device=q.device)).abs().max().item()
+
+    def _compute_factors(self) -> _Factors:
+        square = self.square_factor()
+        U, V = (square, self.tall) if self.square_side == "U" else (self.tall, square)
+        n_on = self.rank if self.n_tailors == 0 else self.n_learngenes
+        merged = (U[:, :n_on] * self.singular_values[:n_on]) @ V[:, :n_on].T
+        return _Factors(U, V, merged)
+
+    def factors(self) -> _Factors:
+        """``U``, ``V`` and the merged always-on weight.
+
+        In eval mode without autograd (SB3 rollouts, ``predict``) the result is cached until a
+        parameter changes, so the Cayley solve is not repeated at every environment step.
+        """
+        if self.training or th.is_grad_enabled():
+            self._cache = None
+            return self._compute_factors()
+        tensors = [self.singular_values, self.tall, *(
+            (self.square_base, self.square_skew) if self.orthogonal else (self.square,)
+        )]
+        key = tuple((t.data_ptr(), t._version, t.device) for t in tensors)
+        if self._cache is None or self._cache[0] != key:
+            self._cache = (key, self._compute_factors())
+        return self._cache[1]
+
+    def unit_scales(self, tailor_gates: th.Tensor | None) -> th.Tensor:
+        """Per-sample effective singular values ``s * g``: (r,) without gates, else (B, r)."""
+        s = self.singular_values
+        if tailor_gates is None or self.n_tailors == 0:
+            return s
+        learngenes = s[: self.n_learngenes].expand(tailor_gates.shape[0], -1)
+        return th.cat([learngenes, s[self.n_learngenes :] * tailor_gates], dim=-1)
+
+    def dense_weight(self, tailor_gates: th.Tensor | None = None) -> th.Tensor:
+        """The weight matrix for one gate vector (analysis and export; not used in forward).
+
+        :param tailor_gates: (N_m + N_t,) gates of one sample, or ``None`` for all units on.
+        """
+        U, V, _ = self.factors()
+        scales = self.unit_scales(None if tailor_gates is None else tailor_gates.reshape(1, -1)).reshape(-1)
+        return (U * scales) @ V.T
+
+    def selected_units(self, tailor_gates: th.Tensor | None = None) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
+        """Compact factors for one gate vector: learngenes plus the tailors with a non-zero gate.
+
+        Tailors the TopK gates did not select contribute exactly nothing, so dropping them gives
+        the same layer with fewer units (DivMorph's deployment pruning):
+        ``W = U_sel diag(s_sel) V_sel^T``.
+
+        :param tailor_gates: (N_m + N_t,) gates of one sample, or ``None`` for every unit.
+        :return: ``U_sel`` (out, k), ``s_sel`` (k,), ``V_sel`` (in, k), detached.
+        """
+        with th.no_grad():
+            U, V, _ = self.factors()
+            scales = self.unit_scales(None if tailor_gates is None else tailor_gates.reshape(1, -1)).reshape(-1)
+            keep = th.ones(self.rank, dtype=th.bool, device=scales.device)
+            if tailor_gates is not None and self.n_tailors:
+                keep[self.n_learngenes :] = tailor_gates.reshape(-1) != 0
+            return U[:, keep].clone(), scales[keep].clone(), V[:, keep].clone()
+
+    def forward(self, x: th.Tensor, tailor_gates: th.Tensor | None = None) -> th.Tensor:
+        """
+        :param x: (B, ..., in_features).
+        :param tailor_gates: (B, N_m + N_t) per-sample gates (morphology then task), or ``None``
+            to switch every unit on (the layer is then the dense init it was built from).
+        :return: (B, ..., out_features).
+        """
+        U, V, merged = self.factors()
+        if tailor_gates is None or self.n_tailors == 0:
+            if self.n_tailors == 0:
+                return F.linear(x, merged, self.bias)
+            return F.linear(x, (U * self.singular_values) @ V.T, self.bias)
+        if tailor_gates.shape[-1] != self.n_tailors:
+            raise ValueError(f"expected {self.n_tailors} tailor gates, got {tailor_gates.shape[-1]}")
+        # Work on (rows, features) so every product is one BLAS call and bias / partial sums are
+        # fused into addmm; per-sample scales broadcast over each sample's rows.
+        batch = tailor_gates.shape[0]
+        rows = x.reshape(-1, self.in_features)
+        if self.path == "merged":
+            g = self.n_learngenes
+            scales = (self.singular_values[g:] * tailor_gates)[:, None, :]
+            hidden = ((rows @ V[:, g:]).view(batch, -1, self.n_tailors) * scales).view(-1, self.n_tailors)
+            out = th.addmm(F.linear(rows, merged, self.bias), hidden, U[:, g:].T)
+        else:
+            scales = self.unit_scales(tailor_gates)[:, None, :]
+            hidden = ((rows @ V).view(batch, -1, self.rank) * scales).view(-1, self.rank)
+            out = F.linear(hidden, U, self.bias)
+        return out.view(*x.shape[:-1], self.out_features)
+
+    def extra_repr(self) -> str:
+        return (
+            f"in_features={self.in_features}, out_features={self.out_features}, "
+            f"learngenes={self.n_learngenes}, morph_tailors={self.n_morph_tailors}, "
+            f"task_tailors={self.n_task_tailors}, orthogonal={self.orthogonal}, "
+            f"square={self.square_side}, path={self.path}"
+        )
+
+
+@dataclass(frozen=True)
+class Factorization:
+    """How a network's projections are factorized (DivMorph) or left dense (``None``).
+
+    :param n_morph_tailors: morphology tailors per diverted layer.
+    :param n_task_tailors: task tailors per diverted layer.
+    :param orthogonal: Cayley-orthogonal square factors.
+    :param divert: gate the tailors; ``False`` factorizes without diversion (every unit is a
+        learngene), the ablation that keeps the parametrization but drops the routing.
+    """
+
+    n_morph_tailors: int
+    n_task_tailors: int
+    orthogonal: bool = True
+    divert: bool = True
+
+    @property
+    def n_tailors(self) -> int:
+        return self.n_morph_tailors + self.n_task_tailors
+
+
+class LinearBuilder:
+    """Builds every projection of a network the same way: dense, or factorized from the dense init.
+
+    A layer is diverted only if its rank leaves at least one learngene next to the tailors; smaller
+    layers (e.g. the 2-output action head) are factorized with every unit as a learngene, since a
+    rank-2 matrix has no room for tailors.
+
+    :param factorization: ``None`` for dense layers.
+    """
+
+    def __init__(self, factorization: Factorization | None = None):
+        self.factorization = factorization
+
+    @property
+    def tailor_gates_size(self) -> int:
+        f = self.factorization
+        return 0 if f is None or not f.divert else f.n_tailors
+
+    def __call__(self, in_features: int, out_features: int, init: LinearInit | None = None) -> nn.Module:
+        """
+        :param in_features: input size.
+        :param out_features: output size.
+        :param init: in-place initialiser of the dense init (default: ``nn.Linear``'s).
+        """
+        dense = DenseLinear(in_features, out_features)
+        if init is not None:
+            init(dense)
+        f = self.factorization
+        if f is None:
+            return dense
+        divert = f.divert and min(in_features, out_features) > f.n_tailors
+        return FactorizedLinear(
+            in_features,
+            out_features,
+            n_morph_tailors=f.n_morph_tailors if divert else 0,
+            n_task_tailors=f.n_task_tailors if divert else 0,
+            orthogonal=f.orthogonal,
+            weight=dense.weight.detach(),
+            bias=dense.bias.detach(),
+        )
+
+
+def is_diverted(module: nn.Module) -> bool:
+    """Whether a layer takes tailor gates."""
+    return isinstance(module, FactorizedLinear) and module.n_tailors > 0
+
+
+def project_many(layers: list[nn.Module], x: th.Tensor, tailor_gates: th.Tensor | None = None) -> list[th.Tensor]:
+    """Apply several projections of the same input (e.g. q, k, v) with as few BLAS calls as possible.
+
+    Dense layers become one matmul over their stacked weights (what ``nn.MultiheadAttention`` does
+    with its in-projection). Gated factorized layers on the merged path share one matmul for their
+    stacked learngene weights and one for their stacked tailor down-projections; only the tailor
+    up-projections stay separate. Anything else falls back to one call per layer. The results are
+    identical to ``[layer(x, tailor_gates) for layer in layers]`` up to float rounding.
+
+    :param layers: projections with the same ``in_features``.
+    :param x: (B, ..., in_features).
+    :param tailor_gates: (B, N_m + N_t) or ``None``.
+    :return: one (B, ..., out_features) tensor per layer.
+    """
+    if all(type(layer) is DenseLinear for layer in layers):
+        weight = th.cat([layer.weight for layer in layers])
+        bias = None if any(layer.bias is None for layer in layers) else th.cat([layer.bias for layer in layers])
+        if bias is None and any(layer.bias is not None for layer in layers):
+            return [layer(x, tailor_gates) for layer in layers]
+        return list(F.linear(x, weight, bias).split([layer.out_features for layer in layers], dim=-1))
+    gated = tailor_gates is not None and all(
+        isinstance(layer, FactorizedLinear) and layer.n_tailors > 0 and layer.path == "merged" and layer.bias is not None
+        for layer in layers
+    )
+    if not gated:
+        return [layer(x, tailor_gates) for layer in layers]
+    factors = [layer.factors() for layer in layers]
+    batch, n_tailors = tailor_gates.shape
+    rows = x.reshape(-1, x.shape[-1])
+    learngene_out = F.linear(
+        rows, th.cat([f.merged for f in factors]), th.cat([layer.bias for layer in layers])
+    ).split([layer.out_features for layer in layers], dim=-1)
+    down = th.cat([f.V[:, layer.n_learngenes :] for f, layer in zip(factors, layers)], dim=1)
+    scales = th.cat([layer.singular_values[layer.n_learngenes :] * tailor_gates for layer in layers], dim=-1)
+    hidden = ((rows @ down).view(batch, -1, scales.shape[-1]) * scales[:, None, :]).view(-1, scales.shape[-1])
+    outputs = []
+    for i, (f, layer) in enumerate(zip(factors, layers)):
+        out = th.addmm(learngene_out[i], hidden[:, i * n_tailors : (i + 1) * n_tailors], f.U[:, layer.n_learngenes :].T)
+        outputs.append(out.view(*x.shape[:-1], layer.out_features))
+    return outputs

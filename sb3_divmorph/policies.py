@@ -1,0 +1,552 @@
+"""MetaMorph and DivMorph policies for Stable-Baselines3 (``ActorCriticPolicy`` subclasses).
+
+Both read the UNIMAL observation dict (see ``unimal_envs.contract``): per-limb tokens with a
+key-padding mask, exteroception, and a padded action vector with its own mask.
+
+* :class:`MetaMorphPolicy`: MetaMorph's morphology-aware Transformer. Separate actor and critic
+  Transformers by default (``share_features_extractor=False``), per-token decoders, value = mean of
+  per-token values over real tokens, masked Gaussian with a fixed std of 0.9.
+* :class:`DivMorphPolicy`: the same network with every Transformer projection and decoder layer
+  factorized into rank-1 units, split into learngenes and morphology/task tailors that per-sample
+  ``softmax(TopK)`` gates switch on (knowledge diversion).
+
+Sizes come from a named preset (``"small"``: sized for a 2-core CPU; ``"paper"``: MetaMorph's
+5 layers x width 128, 2 heads, FFN 1024) and any keyword given explicitly overrides it.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.distributions import Distribution
+from stable_baselines3.common.policies import ActorCriticPolicy
+from stable_baselines3.common.preprocessing import preprocess_obs
+from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
+from torch import nn
+
+from sb3_divmorph.decoders import TokenDecoder, small_uniform_init
+from sb3_divmorph.distributions import MaskedDiagGaussianDistribution
+from sb3_divmorph.extractors import (
+    ACT_PADDING_MASK,
+    CONTEXT,
+    OBS_PADDING_MASK,
+    PROPRIOCEPTIVE,
+    TASK_EMBEDDING,
+    MorphologyTransformerExtractor,
+    token_padding,
+)
+from sb3_divmorph.gates import DiversionRouter, GateActivations, masked_mean
+from sb3_divmorph.layers import Factorization, LinearBuilder
+
+#: Network sizes shared by both policies.
+PRESETS: dict[str, dict[str, Any]] = {
+    # ~40x cheaper than "paper" per sample: trains at a few hundred steps/s on 2 CPU cores.
+    "small": dict(
+        d_model=64,
+        n_layers=2,
+        n_heads=2,
+        ff_dim=512,
+        net_arch=dict(pi=[64], vf=[64]),
+        exteroception=dict(hfield=[32, 32], goal=[16], object=[16]),
+    ),
+    # MetaMorph (unimal_spec.md 6.1); decoder hidden [64] is MetaMorph's VT decoder.
+    "paper": dict(
+        d_model=128,
+        n_layers=5,
+        n_heads=2,
+        ff_dim=1024,
+        net_arch=dict(pi=[64], vf=[64]),
+        exteroception=dict(hfield=[64, 64], goal=[32], object=[32]),
+    ),
+}
+
+#: DivMorph's diversion sizes per preset: a quarter of each d_model-rank layer is tailors, half
+#: of each tailor group active per sample.
+DIVMORPH_PRESETS: dict[str, dict[str, Any]] = {
+    "small": dict(
+        n_morph_tailors=8,
+        n_task_tailors=8,
+        top_k_morph=4,
+        top_k_task=4,
+        morph_embed_dim=32,
+        morph_encoder_layers=1,
+        gate_hidden_dim=64,
+    ),
+    "paper": dict(
+        n_morph_tailors=16,
+        n_task_tailors=16,
+        top_k_morph=8,
+        top_k_task=8,
+        morph_embed_dim=64,
+        morph_encoder_layers=1,
+        gate_hidden_dim=128,
+    ),
+}
+
+
+def _resolve(preset_table: Mapping[str, Mapping[str, Any]], preset: str, explicit: Mapping[str, Any]) -> dict[str, Any]:
+    if preset not in preset_table:
+        raise ValueError(f"Unknown preset {preset!r}; choose from {sorted(preset_table)}")
+    config = copy.deepcopy(dict(preset_table[preset]))
+    config.update({key: value for key, value in explicit.items() if value is not None})
+    return config
+
+
+class MorphologyTransformerPolicy(ActorCriticPolicy):
+    """Base class of :class:`MetaMorphPolicy` and :class:`DivMorphPolicy`.
+
+    :param observation_space: the UNIMAL ``spaces.Dict``.
+    :param action_space: ``Box(-1, 1, (L * slots,))``, two slots per token.
+    :param lr_schedule: learning-rate schedule.
+    :param preset: ``"small"`` (default) or ``"paper"``; explicit keywords override it.
+    :param d_model: token width.
+    :param n_layers: Transformer layers.
+    :param n_heads: attention heads.
+    :param ff_dim: Transformer FFN width.
+    :param dropout: Transformer dropout (default 0, see the extractor).
+    :param embedding_dropout: dropout after the position embedding (default 0).
+    :param transformer_activation: ``"relu"`` (MetaMorph) or ``"gelu"``.
+    :param use_context: feed ``context`` into each token next to ``proprioceptive``.
+    :param exteroception: ``{key: MLP widths}`` of the late-fused global encoders.
+    :param action_std: standard deviation of the Gaussian (MetaMorph: fixed 0.9); the initial value
+        if ``learn_std``.
+    :param learn_std: learn a state-independent log-std per action slot.
+    :param kwargs: ``ActorCriticPolicy`` arguments. ``net_arch`` gives the per-token decoder's
+        hidden widths, ``activation_fn`` its activation (default ``nn.ReLU``);
+        ``share_features_extractor`` defaults to False (separate actor and critic Transformers,
+        as in MetaMorph). ``ortho_init`` must stay False: it would overwrite the Transformer and
+        SVD initialisations.
+    """
+
+    preset_table: dict[str, dict[str, Any]] = PRESETS
+    #: observation keys the policy reads besides the per-token ones
+    required_keys: tuple[str, ...] = ()
+    _config_keys = (
+        "d_model",
+        "n_layers",
+        "n_heads",
+        "ff_dim",
+        "dropout",
+        "embedding_dropout",
+        "transformer_activation",
+        "use_context",
+        "exteroception",
+    )
+
+    def __init__(
+        self,
+        observation_space: spaces.Dict,
+        action_space: spaces.Box,
+        lr_schedule: Schedule,
+        preset: str = "small",
+        d_model: int | None = None,
+        n_layers: int | None = None,
+        n_heads: int | None = None,
+        ff_dim: int | None = None,
+        dropout: float = 0.0,
+        embedding_dropout: float = 0.0,
+        transformer_activation: str = "relu",
+        use_context: bool = True,
+        exteroception: Mapping[str, Sequence[int]] | None = None,
+        action_std: float = 0.9,
+        learn_std: bool = False,
+        **kwargs: Any,
+    ):
+        explicit = dict(
+            d_model=d_model,
+            n_layers=n_layers,
+            n_heads=n_heads,
+            ff_dim=ff_dim,
+            dropout=dropout,
+            embedding_dropout=embedding_dropout,
+            transformer_activation=transformer_activation,
+            use_context=use_context,
+            exteroception=exteroception,
+            net_arch=kwargs.get("net_arch"),
+        )
+        explicit.update(self._extra_explicit())
+        self.preset = preset
+        self.config = _resolve(self.preset_table, preset, explicit)
+        self.action_std = float(action_std)
+        self.learn_std = learn_std
+
+        if kwargs.get("use_sde"):
+            raise ValueError(f"{type(self).__name__} does not support gSDE")
+        if kwargs.setdefault("ortho_init", False):
+            raise ValueError("ortho_init=True would overwrite the Transformer/SVD initialisation")
+        expected_log_std = math.log(self.action_std)
+        if not math.isclose(kwargs.setdefault("log_std_init", expected_log_std), expected_log_std, abs_tol=1e-9):
+            raise ValueError("Set the Gaussian's std with action_std (and learn_std), not log_std_init")
+        kwargs["net_arch"] = self.config.pop("net_arch")
+        kwargs.setdefault("activation_fn", nn.ReLU)
+        kwargs.setdefault("share_features_extractor", False)
+        kwargs.setdefault("features_extractor_class", MorphologyTransformerExtractor)
+        kwargs["features_extractor_kwargs"] = {**self._extractor_kwargs(), **(kwargs.get("features_extractor_kwargs") or {})}
+
+        if not isinstance(observation_space, spaces.Dict) or PROPRIOCEPTIVE not in observation_space.spaces:
+            raise ValueError(f"{type(self).__name__} needs the UNIMAL Dict observation space")
+        needed = (OBS_PADDING_MASK, ACT_PADDING_MASK, *self.required_keys)
+        missing = [key for key in needed if key not in observation_space.spaces]
+        if missing:
+            raise ValueError(f"{type(self).__name__} needs the observation keys {missing}")
+        n_tokens = observation_space[PROPRIOCEPTIVE].shape[0]
+        if len(action_space.shape) != 1 or action_space.shape[0] % n_tokens:
+            raise ValueError(f"Action size {action_space.shape} is not a multiple of the {n_tokens} tokens")
+        self.n_tokens = n_tokens
+        self.slots_per_token = action_space.shape[0] // n_tokens
+        super().__init__(observation_space, action_space, lr_schedule, **kwargs)
+
+    # -- hooks for DivMorph --------------------------------------------------------------------
+    def _extra_explicit(self) -> dict[str, Any]:
+        """Subclass-specific keyword values (``None`` = take the preset's)."""
+        return {}
+
+    def _extractor_kwargs(self) -> dict[str, Any]:
+        c = self.config
+        return dict(
+            d_model=c["d_model"],
+            n_layers=c["n_layers"],
+            n_heads=c["n_heads"],
+            ff_dim=c["ff_dim"],
+            dropout=c["dropout"],
+            embedding_dropout=c["embedding_dropout"],
+            activation=c["transformer_activation"],
+            use_context=c["use_context"],
+            exteroception=c["exteroception"],
+        )
+
+    def _decoder_builder(self) -> LinearBuilder:
+        """Builder of the actor's per-token decoder layers and action head."""
+        return LinearBuilder()
+
+    def _critic_builder(self) -> LinearBuilder:
+        """Builder of the critic's per-token decoder layers and value head."""
+        return self._decoder_builder()
+
+    def _rebuild_critic_extractor(self) -> None:
+        """Replace the critic's extractor if it must differ from the actor's (DivMorph)."""
+
+    def _build_router(self) -> None:
+        """Build any module that conditions the network (none for MetaMorph)."""
+
+    def _tailor_gates(self, obs: Mapping[str, th.Tensor]) -> th.Tensor | None:
+        """(B, N_m + N_t) per-sample gates, or ``None`` for an ungated network."""
+        return None
+
+    # -- construction --------------------------------------------------------------------------
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        data.update({key: self.config[key] for key in self._config_keys})
+        data.update(
+            preset=self.preset,
+            action_std=self.action_std,
+            learn_std=self.learn_std,
+            share_features_extractor=self.share_features_extractor,
+        )
+        return data
+
+    def _build_mlp_extractor(self) -> None:
+        self.mlp_extractor = TokenDecoder(
+            self.features_dim, self.net_arch, self.activation_fn, self._decoder_builder(), self._critic_builder()
+        )
+
+    def _build(self, lr_schedule: Schedule) -> None:
+        # Replaces SB3's _build entirely: per-token heads, masked distribution, no orthogonal
+        # re-init, and the optimizer is created once, over the final set of modules.
+        self.action_dist = MaskedDiagGaussianDistribution(int(np.prod(self.action_space.shape)))
+        self._rebuild_critic_extractor()
+        self._build_mlp_extractor()
+        self.action_net = self._decoder_builder()(self.mlp_extractor.latent_dim_pi, self.slots_per_token, small_uniform_init)
+        self.value_net = self._critic_builder()(self.mlp_extractor.latent_dim_vf, 1, small_uniform_init)
+        log_std = th.full((self.action_dist.action_dim,), math.log(self.action_std))
+        if self.learn_std:
+            self.log_std = nn.Parameter(log_std)
+        else:
+            self.register_buffer("log_std", log_std)
+        self._build_router()
+        self.optimizer = self.optimizer_class(  # type: ignore[call-arg]
+            self.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs
+        )
+
+    # -- forward passes ------------------------------------------------------------------------
+    def _preprocess(self, obs: PyTorchObs) -> dict[str, th.Tensor]:
+        processed = preprocess_obs(obs, self.observation_space, normalize_images=self.normalize_images)
+        return processed  # type: ignore[return-value]
+
+    def _latents(
+        self, obs: Mapping[str, th.Tensor], actor: bool = True, critic: bool = True
+    ) -> tuple[th.Tensor | None, th.Tensor | None, th.Tensor | None]:
+        """Per-token actor and critic latents, and the tailor gates used by the actor."""
+        gates = self._tailor_gates(obs)
+        # The router is trained by the policy objective only: the critic's own modules see
+        # detached gates, so the value loss cannot re-route the actor.
+        critic_gates = None if gates is None else gates.detach()
+        latent_pi = latent_vf = None
+        if self.share_features_extractor:
+            features = self.features_extractor(obs, gates)
+            pi_features = vf_features = features
+        else:
+            pi_features = self.pi_features_extractor(obs, gates) if actor else None
+            vf_features = self.vf_features_extractor(obs, critic_gates) if critic else None
+        if actor:
+            latent_pi = self.mlp_extractor.forward_actor(pi_features, gates)
+        if critic:
+            latent_vf = self.mlp_extractor.forward_critic(vf_features, critic_gates)
+        return latent_pi, latent_vf, gates
+
+    def _distribution(
+        self, latent_pi: th.Tensor, obs: Mapping[str, th.Tensor], gates: th.Tensor | None
+    ) -> MaskedDiagGaussianDistribution:
+        mean_actions = self.action_net(latent_pi, gates).flatten(1)
+        return self.action_dist.proba_distribution(mean_actions, self.log_std, obs[ACT_PADDING_MASK])
+
+    def _value(self, latent_vf: th.Tensor, obs: Mapping[str, th.Tensor], gates: th.Tensor | None) -> th.Tensor:
+        per_token = self.value_net(latent_vf, None if gates is None else gates.detach())
+        return masked_mean(per_token, token_padding(obs))
+
+    def forward(self, obs: PyTorchObs, deterministic: bool = False) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
+        obs = self._preprocess(obs)
+        latent_pi, latent_vf, gates = self._latents(obs)
+        distribution = self._distribution(latent_pi, obs, gates)
+        actions = distribution.get_actions(deterministic=deterministic)
+        log_prob = distribution.log_prob(actions)
+        values = self._value(latent_vf, obs, gates)
+        return actions.reshape((-1, *self.action_space.shape)), values, log_prob
+
+    def evaluate_actions(self, obs: PyTorchObs, actions: th.Tensor) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
+        obs = self._preprocess(obs)
+        latent_pi, latent_vf, gates = self._latents(obs)
+        distribution = self._distribution(latent_pi, obs, gates)
+        return self._value(latent_vf, obs, gates), distribution.log_prob(actions), distribution.entropy()
+
+    def get_distribution(self, obs: PyTorchObs) -> Distribution:
+        obs = self._preprocess(obs)
+        latent_pi, _, gates = self._latents(obs, critic=False)
+        return self._distribution(latent_pi, obs, gates)
+
+    def predict_values(self, obs: PyTorchObs) -> th.Tensor:
+        obs = self._preprocess(obs)
+        _, latent_vf, gates = self._latents(obs, actor=False)
+        return self._value(latent_vf, obs, gates)
+
+    def extract_features(  # type: ignore[override]
+        self, obs: PyTorchObs, features_extractor: nn.Module | None = None
+    ) -> th.Tensor | tuple[th.Tensor, th.Tensor]:
+        """Token features (B, L, F); a (pi, vf) tuple when the extractor is not shared (SB3's API)."""
+        obs = self._preprocess(obs)
+        gates = self._tailor_gates(obs)
+        if self.share_features_extractor or features_extractor is not None:
+            return (features_extractor or self.features_extractor)(obs, gates)
+        return self.pi_features_extractor(obs, gates), self.vf_features_extractor(
+            obs, None if gates is None else gates.detach()
+        )
+
+    # -- analysis ------------------------------------------------------------------------------
+    def parameter_counts(self) -> dict[str, int]:
+        """Stored parameter elements per part (buffers such as fixed std or SVD bases excluded)."""
+
+        def count(*modules: nn.Module | None) -> int:
+            seen: set[int] = set()
+            total = 0
+            for module in modules:
+                if module is None:
+                    continue
+                for p in module.parameters():
+                    if id(p) not in seen:
+                        seen.add(id(p))
+                        total += p.numel()
+            return total
+
+        def extractor_parts(prefix: str, extractor: MorphologyTransformerExtractor) -> dict[str, int]:
+            return {
+                f"{prefix}/embedding": count(extractor.embedding),
+                f"{prefix}/transformer": count(extractor.encoder),
+                f"{prefix}/exteroception": count(extractor.exteroception),
+            }
+
+        parts: dict[str, int] = {}
+        if self.share_features_extractor:
+            parts.update(extractor_parts("shared", self.features_extractor))
+        else:
+            parts.update(extractor_parts("actor", self.pi_features_extractor))
+            parts.update(extractor_parts("critic", self.vf_features_extractor))
+        parts["actor/decoder"] = count(self.mlp_extractor.policy_net, self.action_net)
+        parts["critic/decoder"] = count(self.mlp_extractor.value_net, self.value_net)
+        parts["actor/log_std"] = self.log_std.numel() if isinstance(self.log_std, nn.Parameter) else 0
+        parts.update(self._router_counts(count))
+        parts["total"] = count(self)
+        return parts
+
+    def _router_counts(self, count) -> dict[str, int]:
+        return {}
+
+
+class MetaMorphPolicy(MorphologyTransformerPolicy):
+    """MetaMorph's morphology-aware Transformer policy (Gupta et al., ICLR 2022).
+
+    Per-limb tokens (``proprioceptive`` + ``context``) -> linear embedding x sqrt(d) + learnt
+    position embedding -> pre-LN Transformer with the key-padding mask -> exteroception (height
+    map, goal, object) encodings appended to every token -> per-token decoder: 2 action means per
+    token (actor) and 1 value per token averaged over real tokens (critic). Separate actor and
+    critic networks unless ``share_features_extractor=True``.
+
+    See :class:`MorphologyTransformerPolicy` for the arguments.
+    """
+
+
+class DivMorphPolicy(MorphologyTransformerPolicy):
+    """DivMorph: the MetaMorph network with knowledge diversion (Feng et al., 2025).
+
+    Every Transformer projection (q, k, v, o, FFN in/out) and every decoder layer is a
+    :class:`~sb3_divmorph.layers.FactorizedLinear` built from the SVD of its random dense init.
+    Per sample, a :class:`~sb3_divmorph.gates.DiversionRouter` encodes ``context`` (morphology) and
+    reads ``task_embedding`` (task), and its ``softmax(TopK)`` gates scale the morphology and task
+    tailors of every layer; learngenes are always on. Layers whose rank cannot hold the tailors
+    plus one learngene (the 2-output action head, the value head) keep every unit a learngene.
+
+    :param n_morph_tailors: ``N_m`` morphology tailors per diverted layer.
+    :param n_task_tailors: ``N_t`` task tailors per diverted layer (``N_G = rank - N_m - N_t``).
+    :param top_k_morph: tailors kept by the morphology gate.
+    :param top_k_task: tailors kept by the task gate.
+    :param morph_embed_dim: width of the morphology embedding.
+    :param morph_encoder_layers: Transformer layers of the morphology encoder (0 = DeepSets).
+    :param gate_hidden_dim: hidden width of the gate MLPs.
+    :param orthogonal: Cayley-orthogonal square factors (False: ablation).
+    :param divert_transformer: gate the Transformer's tailors (False: ablation; the Transformer
+        stays factorized, every unit a learngene).
+    :param divert_decoder: gate the decoder's tailors (False: ablation, likewise).
+    :param factorize_critic: factorize and gate the critic as well. Default False: the critic is
+        MetaMorph's. Distillation never trains a critic, so diverting it would carry no knowledge
+        to transfer or deploy, while it would cost as much again as the actor's factorization.
+        With ``share_features_extractor=True`` the shared Transformer is the actor's (factorized).
+
+    Other arguments: see :class:`MorphologyTransformerPolicy`.
+    """
+
+    preset_table = {name: {**PRESETS[name], **DIVMORPH_PRESETS[name]} for name in PRESETS}
+    required_keys = (CONTEXT, TASK_EMBEDDING)
+    _divmorph_keys = (
+        "n_morph_tailors",
+        "n_task_tailors",
+        "top_k_morph",
+        "top_k_task",
+        "morph_embed_dim",
+        "morph_encoder_layers",
+        "gate_hidden_dim",
+        "orthogonal",
+        "divert_transformer",
+        "divert_decoder",
+        "factorize_critic",
+    )
+    _config_keys = MorphologyTransformerPolicy._config_keys + _divmorph_keys
+
+    def __init__(
+        self,
+        observation_space: spaces.Dict,
+        action_space: spaces.Box,
+        lr_schedule: Schedule,
+        preset: str = "small",
+        n_morph_tailors: int | None = None,
+        n_task_tailors: int | None = None,
+        top_k_morph: int | None = None,
+        top_k_task: int | None = None,
+        morph_embed_dim: int | None = None,
+        morph_encoder_layers: int | None = None,
+        gate_hidden_dim: int | None = None,
+        orthogonal: bool = True,
+        divert_transformer: bool = True,
+        divert_decoder: bool = True,
+        factorize_critic: bool = False,
+        **kwargs: Any,
+    ):
+        self._divmorph_explicit = dict(
+            n_morph_tailors=n_morph_tailors,
+            n_task_tailors=n_task_tailors,
+            top_k_morph=top_k_morph,
+            top_k_task=top_k_task,
+            morph_embed_dim=morph_embed_dim,
+            morph_encoder_layers=morph_encoder_layers,
+            gate_hidden_dim=gate_hidden_dim,
+            orthogonal=orthogonal,
+            divert_transformer=divert_transformer,
+            divert_decoder=divert_decoder,
+            factorize_critic=factorize_critic,
+        )
+        super().__init__(observation_space, action_space, lr_schedule, preset=preset, **kwargs)
+
+    def _extra_explicit(self) -> dict[str, Any]:
+        return self._divmorph_explicit
+
+    def _factorization(self, divert: bool) -> Factorization:
+        c = self.config
+        return Factorization(c["n_morph_tailors"], c["n_task_tailors"], orthogonal=c["orthogonal"], divert=divert)
+
+    def _extractor_kwargs(self) -> dict[str, Any]:
+        f = self._factorization(self.config["divert_transformer"])
+        return {
+            **super()._extractor_kwargs(),
+            "factorization": dict(
+                n_morph_tailors=f.n_morph_tailors, n_task_tailors=f.n_task_tailors, orthogonal=f.orthogonal, divert=f.divert
+            ),
+        }
+
+    def _decoder_builder(self) -> LinearBuilder:
+        return LinearBuilder(self._factorization(self.config["divert_decoder"]))
+
+    def _critic_builder(self) -> LinearBuilder:
+        return self._decoder_builder() if self.config["factorize_critic"] else LinearBuilder()
+
+    def _rebuild_critic_extractor(self) -> None:
+        if self.share_features_extractor or self.config["factorize_critic"]:
+            return
+        kwargs = {**self.features_extractor_kwargs, "factorization": None}
+        self.vf_features_extractor = self.features_extractor_class(self.observation_space, **kwargs)
+
+    @property
+    def is_gated(self) -> bool:
+        """Whether any layer takes gates (False when both diversions are ablated)."""
+        return bool(self.config["divert_transformer"] or self.config["divert_decoder"])
+
+    def _build_router(self) -> None:
+        c = self.config
+        self.router = DiversionRouter(
+            context_dim=self.observation_space[CONTEXT].shape[-1],
+            max_tokens=self.n_tokens,
+            task_embedding_dim=int(np.prod(self.observation_space[TASK_EMBEDDING].shape)),
+            n_morph_tailors=c["n_morph_tailors"],
+            n_task_tailors=c["n_task_tailors"],
+            top_k_morph=c["top_k_morph"],
+            top_k_task=c["top_k_task"],
+            morph_embed_dim=c["morph_embed_dim"],
+            morph_encoder_layers=c["morph_encoder_layers"],
+            gate_hidden_dim=c["gate_hidden_dim"],
+        )
+
+    def _route(self, obs: Mapping[str, th.Tensor]) -> GateActivations:
+        return self.router(obs[CONTEXT], token_padding(obs), obs[TASK_EMBEDDING].flatten(1))
+
+    def _tailor_gates(self, obs: Mapping[str, th.Tensor]) -> th.Tensor | None:
+        return self._route(obs).tailor_gates() if self.is_gated else None
+
+    def get_gates(self, observation: PyTorchObs | dict[str, np.ndarray]) -> GateActivations:
+        """Morphology and task gate weights for a batch of observations (analysis, pruning).
+
+        :param observation: observation dict, as numpy arrays (one or a batch) or tensors.
+        :return: ``GateActivations(morphology=(B, N_m), task=(B, N_t))`` tensors, no grad.
+        """
+        if isinstance(next(iter(observation.values())), np.ndarray):
+            observation, _ = self.obs_to_tensor(observation)  # type: ignore[arg-type]
+        with th.no_grad():
+            return self._route(self._preprocess(observation))
+
+    def _router_counts(self, count) -> dict[str, int]:
+        return {
+            "router/morphology_encoder": count(self.router.morphology_encoder),
+            "router/gates": count(self.router.morphology_gate, self.router.task_gate),
+        }

@@ -1,0 +1,251 @@
+"""Unit tests of the building blocks of sb3_divmorph: factorized layers, gates, Transformer."""
+
+from __future__ import annotations
+
+import pytest
+import torch as th
+from torch.nn import functional as F
+
+from sb3_divmorph.gates import DiversionRouter, MorphologyEncoder, TopKSoftGate
+from sb3_divmorph.layers import DenseLinear, FactorizedLinear, Factorization, LinearBuilder, cayley, project_many
+from sb3_divmorph.transformer import TransformerEncoder
+
+th.set_num_threads(1)
+
+SHAPES = [(12, 12), (8, 20), (20, 8)]  # (in, out): square, wide-out (V square), narrow-out (U square)
+
+
+def _gates(batch: int, n: int, seed: int = 0) -> th.Tensor:
+    return th.softmax(th.randn(batch, n, generator=th.Generator().manual_seed(seed)), dim=-1)
+
+
+# -- FactorizedLinear -----------------------------------------------------------------------------
+@pytest.mark.parametrize("in_features,out_features", SHAPES)
+@pytest.mark.parametrize("orthogonal", [True, False])
+def test_factorized_layer_equals_its_dense_init(in_features, out_features, orthogonal):
+    th.manual_seed(0)
+    weight, bias = th.randn(out_features, in_features), th.randn(out_features)
+    layer = FactorizedLinear(in_features, out_features, 2, 2, orthogonal=orthogonal, weight=weight, bias=bias)
+    x = th.randn(5, 3, in_features)
+    expected = F.linear(x, weight, bias)
+    assert th.allclose(layer(x), expected, atol=1e-5)
+    # "all units on" is also gates of ones
+    assert th.allclose(layer(x, th.ones(5, layer.n_tailors)), expected, atol=1e-5)
+    assert th.allclose(layer.dense_weight(), weight, atol=1e-5)
+    # units are sorted by singular value, learngenes first
+    s = layer.singular_values.detach()
+    assert th.all(s[:-1] >= s[1:])
+
+
+def test_builder_factorizes_the_same_init_as_the_dense_network():
+    x = th.randn(4, 7, 16)
+    th.manual_seed(3)
+    dense = LinearBuilder()(16, 32)
+    th.manual_seed(3)
+    factorized = LinearBuilder(Factorization(4, 4))(16, 32)
+    assert isinstance(dense, DenseLinear) and isinstance(factorized, FactorizedLinear)
+    assert factorized.n_learngenes == 8
+    assert th.allclose(factorized(x), dense(x), atol=1e-5)
+
+
+def test_small_layers_keep_every_unit_a_learngene():
+    head = LinearBuilder(Factorization(4, 4))(16, 2)
+    assert isinstance(head, FactorizedLinear) and head.n_tailors == 0 and head.n_learngenes == 2
+    ablated = LinearBuilder(Factorization(4, 4, divert=False))(16, 16)
+    assert ablated.n_tailors == 0
+
+
+@pytest.mark.parametrize("in_features,out_features", SHAPES)
+def test_gates_scale_each_samples_tailors(in_features, out_features):
+    th.manual_seed(1)
+    x = th.randn(6, 4, in_features)
+    gates = _gates(6, 6)
+    outputs = {}
+    for path in ("merged", "lowrank"):
+        th.manual_seed(2)
+        layer = FactorizedLinear(in_features, out_features, 3, 3, path=path)
+        outputs[path] = layer(x, gates)
+        for i in range(6):  # a mixed batch equals each sample with its own effective weight
+            expected = F.linear(x[i], layer.dense_weight(gates[i]), layer.bias)
+            assert th.allclose(outputs[path][i], expected, atol=1e-5)
+    assert th.allclose(outputs["merged"], outputs["lowrank"], atol=1e-5)
+    # and the gates matter: tailors at 1/k-ish weight differ from all units on
+    assert not th.allclose(outputs["merged"], layer(x), atol=1e-3)
+
+
+def test_zero_gates_leave_only_learngenes():
+    layer = FactorizedLinear(10, 10, 2, 3)
+    x = th.randn(3, 10)
+    U, V, _ = layer.factors()
+    g = layer.n_learngenes
+    learngene_weight = (U[:, :g] * layer.singular_values[:g]) @ V[:, :g].T
+    assert th.allclose(layer(x, th.zeros(3, 5)), F.linear(x, learngene_weight, layer.bias), atol=1e-5)
+    assert layer.unit_slices == {"learngene": slice(0, 5), "morphology": slice(5, 7), "task": slice(7, 10)}
+
+
+def test_pruned_units_reproduce_the_gated_layer():
+    th.manual_seed(0)
+    layer = FactorizedLinear(16, 12, 4, 4)
+    gates = th.tensor([0.7, 0.0, 0.3, 0.0, 0.0, 0.0, 1.0, 0.0])  # 2 of 4 morphology, 1 of 4 task tailors
+    U, s, V = layer.selected_units(gates)
+    assert U.shape[1] == layer.n_learngenes + 3
+    x = th.randn(5, 16)
+    assert th.allclose(F.linear(x, (U * s) @ V.T, layer.bias), layer(x, gates.expand(5, -1)), atol=1e-5)
+
+
+def test_cayley_map_is_orthogonal_and_identity_at_zero():
+    assert th.allclose(cayley(th.zeros(6 * 5 // 2), 6), th.eye(6))
+    q = cayley(th.randn(6 * 5 // 2) * 3, 6).double()
+    assert th.allclose(q.T @ q, th.eye(6, dtype=q.dtype), atol=1e-5)
+
+
+@pytest.mark.parametrize("in_features,out_features", SHAPES)
+def test_square_factor_stays_orthogonal_under_training(in_features, out_features):
+    errors = {}
+    for orthogonal in (True, False):
+        th.manual_seed(0)
+        layer = FactorizedLinear(in_features, out_features, 2, 2, orthogonal=orthogonal)
+        target = th.randn(out_features, in_features) * 3
+        optimizer = th.optim.Adam(layer.parameters(), lr=0.05)
+        x = th.randn(64, in_features)
+        for _ in range(60):
+            loss = (layer(x, _gates(64, 4)) - x @ target.T).pow(2).mean()
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+        errors[orthogonal] = layer.orthogonality_error()
+        if orthogonal:
+            assert layer.square_skew.detach().abs().max() > 1e-2  # the square factor did move
+    assert errors[True] < 1e-5
+    # control: the unconstrained factor drifts away, so the check above can fail
+    assert errors[False] > 1e-3
+
+
+def test_inference_cache_follows_parameter_updates():
+    th.manual_seed(0)
+    layer = FactorizedLinear(8, 8, 2, 2)
+    x, gates = th.randn(3, 8), _gates(3, 4)
+    layer.eval()
+    with th.no_grad():
+        before = layer(x, gates)
+        assert th.equal(layer(x, gates), before)
+        # parameters replaced while staying in eval mode (e.g. set_parameters / load_state_dict)
+        state = {key: value + 0.1 * th.randn_like(value) for key, value in layer.state_dict().items()}
+        layer.load_state_dict(state)
+        cached = layer(x, gates)
+    fresh = FactorizedLinear(8, 8, 2, 2)
+    fresh.load_state_dict(state)
+    assert not th.allclose(cached, before)
+    assert th.allclose(cached, fresh(x, gates), atol=1e-6)
+    # and after an optimizer step in train mode
+    layer.train()
+    optimizer = th.optim.SGD(layer.parameters(), lr=0.5)
+    layer(x, gates).pow(2).sum().backward()
+    optimizer.step()
+    expected = layer(x, gates).detach()
+    layer.eval()
+    with th.no_grad():
+        assert th.allclose(layer(x, gates), expected, atol=1e-6)
+
+
+def test_router_inference_cache_follows_parameters_and_inputs():
+    th.manual_seed(0)
+    router = DiversionRouter(6, 5, 4, n_morph_tailors=6, n_task_tailors=4, top_k_morph=3, top_k_task=2, morph_embed_dim=8)
+    context, tasks = th.randn(2, 5, 6), th.randn(2, 4)
+    padding = th.zeros(2, 5, dtype=th.bool)
+    router.eval()
+    with th.no_grad():
+        first = router(context, padding, tasks)
+        assert th.equal(router(context.clone(), padding.clone(), tasks.clone()).morphology, first.morphology)
+        other = router(context, padding, tasks.flip(0))
+        assert th.equal(other.task, first.task.flip(0))
+        assert th.equal(router(context, padding, tasks).morphology, first.morphology)
+        router.load_state_dict({key: value + 0.3 * th.randn_like(value) for key, value in router.state_dict().items()})
+        changed = router(context, padding, tasks)
+    router.train()
+    assert th.allclose(changed.morphology, router(context, padding, tasks).morphology, atol=1e-6)
+    assert not th.allclose(changed.morphology, first.morphology)
+
+
+def test_project_many_equals_separate_projections():
+    x, gates = th.randn(4, 5, 16), _gates(4, 8)
+    for builder in (LinearBuilder(), LinearBuilder(Factorization(4, 4))):
+        th.manual_seed(0)
+        layers = [builder(16, 16) for _ in range(3)]
+        fused = project_many(layers, x, gates)
+        for layer, out in zip(layers, fused):
+            assert th.allclose(out, layer(x, gates), atol=1e-5)
+
+
+# -- gates ---------------------------------------------------------------------------------------
+@pytest.mark.parametrize("k", [1, 3, 8])
+def test_topk_gate_has_exactly_k_weights_summing_to_one(k):
+    th.manual_seed(0)
+    gate = TopKSoftGate(10, 8, k, hidden_dim=16)
+    embedding = th.randn(32, 10, requires_grad=True)
+    weights = gate(embedding)
+    assert weights.shape == (32, 8)
+    assert th.all((weights > 0).sum(-1) == k)
+    assert th.all(weights >= 0)
+    assert th.allclose(weights.sum(-1), th.ones(32), atol=1e-6)
+    # the kept weights are the k largest scores
+    scores = gate.score(embedding)
+    assert th.equal(weights.topk(k, dim=-1).indices.sort(-1).values, scores.topk(k, dim=-1).indices.sort(-1).values)
+    (weights * th.randn(32, 8)).sum().backward()
+    # softmax over a single kept score is constant: only k > 1 lets the task loss train the gate
+    assert (gate.score[0].weight.grad.abs().sum() > 0) == (k > 1)
+
+
+def test_topk_gate_rejects_bad_k():
+    with pytest.raises(ValueError):
+        TopKSoftGate(4, 8, 9)
+
+
+def test_morphology_encoder_ignores_padded_tokens():
+    th.manual_seed(0)
+    encoder = MorphologyEncoder(context_dim=6, max_tokens=5, embed_dim=8)
+    context = th.randn(3, 5, 6)
+    padding = th.tensor([[0, 0, 1, 1, 1], [0, 0, 0, 0, 1], [0, 0, 0, 0, 0]], dtype=th.bool)
+    changed = context.clone()
+    changed[padding] = th.randn(int(padding.sum()), 6) * 100
+    for train in (True, False):
+        encoder.train(train)
+        assert th.allclose(encoder(context, padding), encoder(changed, padding), atol=1e-5)
+    # control: a real token does change the embedding
+    changed[0, 0] += 1.0
+    assert not th.allclose(encoder(context, padding), encoder(changed, padding), atol=1e-3)
+
+
+def test_router_deduplicates_without_changing_results():
+    th.manual_seed(0)
+    router = DiversionRouter(6, 5, 4, n_morph_tailors=6, n_task_tailors=4, top_k_morph=2, top_k_task=2, morph_embed_dim=8)
+    robots = th.randn(3, 5, 6)
+    tasks = th.randn(2, 4)
+    index_r, index_t = th.arange(40) % 3, th.arange(40) % 2
+    padding = th.zeros(40, 5, dtype=th.bool)
+    padding[index_r == 1, 3:] = True
+    batched = router(robots[index_r], padding, tasks[index_t])  # 40 >= dedup threshold
+    for i in (0, 1, 2, 17):
+        single = router(robots[index_r[i : i + 1]], padding[i : i + 1], tasks[index_t[i : i + 1]])
+        assert th.allclose(batched.morphology[i], single.morphology[0], atol=1e-6)
+        assert th.allclose(batched.task[i], single.task[0], atol=1e-6)
+
+
+# -- Transformer ---------------------------------------------------------------------------------
+@pytest.mark.parametrize("factorization", [None, Factorization(2, 2)])
+def test_padded_tokens_never_affect_real_tokens(factorization):
+    th.manual_seed(0)
+    encoder = TransformerEncoder(16, n_layers=2, n_heads=2, ff_dim=32, builder=LinearBuilder(factorization))
+    x = th.randn(3, 6, 16)
+    padding = th.tensor([[0, 0, 0, 1, 1, 1], [0, 1, 1, 1, 1, 1], [0, 0, 0, 0, 0, 1]], dtype=th.bool)
+    gates = _gates(3, 4) if factorization else None
+    changed = x.clone()
+    changed[padding] = th.randn(int(padding.sum()), 16) * 50
+    for train in (True, False):
+        encoder.train(train)
+        with th.set_grad_enabled(train):
+            a, b = encoder(x, padding, gates), encoder(changed, padding, gates)
+        assert th.allclose(a[~padding], b[~padding], atol=1e-5)
+    # control: a real token does change the other real tokens
+    changed[0, 1] += th.randn(16)  # (a constant shift would vanish in the LayerNorm)
+    assert not th.allclose(encoder(x, padding, gates)[0, 0], encoder(changed, padding, gates)[0, 0], atol=1e-4)
