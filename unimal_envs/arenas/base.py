@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import abc
+
 import mujoco
 import numpy as np
 
@@ -47,7 +49,7 @@ def add_walls(spec: mujoco.MjSpec, x_min: float, x_max: float, y_min: float, y_m
         spec.worldbody.add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_BOX, pos=pos, size=size, material=_WALL_MATERIAL)
 
 
-class Arena:
+class Arena(abc.ABC):
     """Terrain and static props.
 
     The world is compiled once per morphology (:meth:`build`); every episode :meth:`reset`
@@ -58,9 +60,9 @@ class Arena:
     #: True if :meth:`height_map` gives a real height map (terrain tasks observe it as ``hfield``).
     has_height_map: bool = False
 
+    @abc.abstractmethod
     def build(self, spec: mujoco.MjSpec) -> None:
         """Add the arena's geoms and assets to ``spec``."""
-        raise NotImplementedError
 
     def bind(self, model: mujoco.MjModel, data: mujoco.MjData) -> None:
         """Resolve ids in the current compiled world (called every episode, before :meth:`reset`)."""

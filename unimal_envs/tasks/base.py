@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import abc
+
 import mujoco
 import numpy as np
 
@@ -13,7 +15,7 @@ from unimal_envs.robot import Robot
 CONTROL_DT = 0.02
 
 
-class Task:
+class Task(abc.ABC):
     """What the robot should do.
 
     A task owns its :attr:`arena`, chooses the spawn pose, adds its props (goals, objects) to the
@@ -37,9 +39,9 @@ class Task:
         """Natural-language instruction; its embedding is the ``task_embedding`` observation."""
         return INSTRUCTIONS[self.name]
 
+    @abc.abstractmethod
     def make_arena(self) -> Arena:
         """The arena of this task (one per task instance)."""
-        raise NotImplementedError
 
     def spawn_pose(self, robot: Robot) -> tuple[tuple[float, float, float], tuple[float, float, float, float] | None]:
         """Torso position and orientation (w, x, y, z; ``None`` = upright) at the start of an episode."""
@@ -55,9 +57,9 @@ class Task:
     def reset(self, robot: Robot, rng: np.random.Generator) -> None:
         """Start an episode: sample goals and place props (call ``mj_forward`` after moving bodies)."""
 
+    @abc.abstractmethod
     def reward_terms(self, robot: Robot, torso_before: np.ndarray) -> dict[str, float]:
         """Per-term rewards of the step that moved the torso from ``torso_before`` to now."""
-        raise NotImplementedError
 
     def termination(self, robot: Robot) -> str | None:
         """A task-specific reason to end the episode (``None`` = continue). Falls are checked by the env."""
