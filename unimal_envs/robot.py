@@ -137,6 +137,11 @@ class Robot:
         self._state_offset[13 * n : 13 * n + dof] = -lo * self._state_scale[13 * n : 13 * n + dof]
         self._body_ids = list(range(first, first + n))
         self._static = self.morphology.proprio_static.astype(np.float32)
+        # Views into MjData stay valid for its lifetime; reading through them skips a lookup per step.
+        self._xpos = data.xpos[self._bodies]
+        self._xquat = data.xquat[self._bodies]
+        self._hinge_qpos = data.qpos[self._qpos_hinges]
+        self._hinge_qvel = data.qvel[self._qvel_hinges]
 
     # ------------------------------------------------------------------ state
     @property
@@ -177,15 +182,17 @@ class Robot:
 
     def proprioception(self) -> np.ndarray:
         """The (12, 52) float32 ``proprioceptive`` observation of the current (synced) state."""
-        model, data = self.model, self.data
-        self._state_xpos[:] = data.xpos[self._bodies]
-        self._state_xpos[:, 0] -= self._state_xpos[0, 0]  # x relative to the torso; y, z absolute (MetaMorph)
+        model, data, state, xpos = self.model, self.data, self._state, self._state_xpos
+        np.copyto(xpos, self._xpos)
+        xpos[:, 0] -= xpos[0, 0]  # x relative to the torso; y, z absolute (MetaMorph)
         object_velocity = mujoco.mj_objectVelocity
         for body, row in zip(self._body_ids, self._state_velocity_rows):
             object_velocity(model, data, _XBODY, body, row, 0)
-        self._state_xquat[:] = data.xquat[self._bodies]
-        self._state_qpos[:] = data.qpos[self._qpos_hinges]
-        self._state_qvel[:] = data.qvel[self._qvel_hinges]
+        np.copyto(self._state_xquat, self._xquat)
+        np.copyto(self._state_qpos, self._hinge_qpos)
+        np.copyto(self._state_qvel, self._hinge_qvel)
+        np.multiply(state, self._state_scale, out=state)
+        state += self._state_offset
         obs = self._static.copy()
-        obs.reshape(-1)[self._state_targets] = self._state * self._state_scale + self._state_offset
+        obs.reshape(-1)[self._state_targets] = state
         return obs
