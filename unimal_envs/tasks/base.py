@@ -30,6 +30,9 @@ class Task(abc.ABC):
     name: str = ""
     #: Episode ends when torso height above ground <= ratio x standing height (MetaMorph 0.5).
     fall_height_ratio: float = 0.5
+    #: The task observations this task fills (the other keys stay zeros); e.g. an exported
+    #: single-task controller folds the encoders of the missing ones into constants.
+    observation_keys: tuple[str, ...] = ()
 
     def __init__(self) -> None:
         self.arena = self.make_arena()

@@ -71,6 +71,7 @@ class VariableTerrainTask(_Corridor):
     """
 
     name = "VT"
+    observation_keys = ("hfield",)
     fall_height_ratio = 0.3
 
     def make_arena(self) -> Arena:
@@ -97,6 +98,7 @@ class ObstacleTask(_Corridor):
     """
 
     name = "Obstacle"
+    observation_keys = ("hfield",)
 
     def make_arena(self) -> Arena:
         return ObstacleCourse(length=100.0, half_width=self.half_width, start_flat=3.0, count=50)

@@ -26,6 +26,8 @@ class _BoxTask(Task):
     ``box_at_goal`` = +10 on every step that ends with the box within the margin of the goal.
     """
 
+    observation_keys = ("object", "goal")
+
     box_half_side = 0.2
     box_mass = 1.0
     margin = 0.5

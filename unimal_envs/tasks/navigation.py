@@ -29,6 +29,8 @@ def add_goal_marker(spec: mujoco.MjSpec) -> None:
 class _ReachGoal(Task):
     """Shared by goal-reaching tasks: DERL's reach reward and the ``goal`` observation."""
 
+    observation_keys = ("goal",)
+
     def build(self, spec: mujoco.MjSpec) -> None:
         add_goal_marker(spec)
 
@@ -192,6 +194,7 @@ class Escape(Task):
     """
 
     name = "Escape"
+    observation_keys = ("hfield",)
     escape_radius = 42.0
     escape_bonus = 100.0
 

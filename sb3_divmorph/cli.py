@@ -1,0 +1,116 @@
+"""``divmorph``: the knowledge-diversion pipeline from the command line.
+
+    divmorph pipeline --profile demo                 # every stage, in order (runs/demo)
+    divmorph teachers --profile demo [--task FT]     # one MetaMorph teacher per training task
+    divmorph distill  --profile demo                 # DAgger into the DivMorph student
+    divmorph transfer --profile demo --task Escape [--no-scratch]
+    divmorph export   --profile demo --morphology train-000 --task FT
+    divmorph evaluate --profile demo
+    divmorph report   --profile demo
+
+Every command reads the profile (``zoo_configs/divmorph.yml``) and works in ``--out`` (default
+``runs/<profile>``); finished stages are skipped, interrupted ones resume.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shlex
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="divmorph", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    def command(name: str, help_text: str) -> argparse.ArgumentParser:
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        p.add_argument("--profile", default="demo", help="profile name in the profiles file (default: demo)")
+        p.add_argument("--profiles", default="zoo_configs/divmorph.yml", help="profiles file")
+        p.add_argument("--out", default=None, help="run folder (default: runs/<profile>)")
+        p.add_argument("--no-progress", action="store_true", help="no progress bars")
+        return p
+
+    command("pipeline", "run every stage in order")
+    p = command("teachers", "train one MetaMorph teacher per training task (PPO)")
+    p.add_argument("--task", action="append", help="only this training task (repeatable)")
+    command("distill", "DAgger distillation of the teachers into a DivMorph student")
+    p = command("transfer", "transfer the student to a novel task (and train MetaMorph from scratch)")
+    p.add_argument("--task", action="append", help="novel task (repeatable; default: the profile's)")
+    p.add_argument("--no-scratch", action="store_true", help="skip the from-scratch comparison")
+    p = command("export", "prune + merge the student into a compact TorchScript actor")
+    p.add_argument("--morphology", action="append", help="robot name in the train/novel sets, or an MJCF path")
+    p.add_argument("--task", action="append", help="task (default: the profile's)")
+    command("evaluate", "per-morphology returns on train and novel robots")
+    command("report", "plots and a markdown summary of the run")
+    return parser
+
+
+def _robot_path(name: str) -> Path:
+    from unimal_envs.morphology.loader import morphology_files
+
+    path = Path(name)
+    if path.suffix == ".xml":
+        if not path.is_file():
+            raise FileNotFoundError(f"MJCF file {path} does not exist")
+        return path
+    for split in ("train", "novel"):
+        for file in morphology_files(split):
+            if file.stem == name:
+                return file
+    raise ValueError(f"unknown morphology {name!r}: give a robot of the train/novel sets (e.g. train-000) or an MJCF path")
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    import torch as th
+
+    from sb3_divmorph import pipeline as P
+    from sb3_divmorph.pipeline.runs import seed_everything
+
+    try:
+        profile = P.load_profile(args.profile, args.profiles)
+    except P.ConfigError as error:
+        print(f"divmorph: {error}", file=sys.stderr)
+        return 2
+    out = Path(args.out or f"runs/{profile.name}")
+    out.mkdir(parents=True, exist_ok=True)
+    seed_everything(profile.seed, profile.torch_threads)
+    progress = not args.no_progress
+    command_line = "divmorph " + shlex.join(argv if argv is not None else sys.argv[1:])
+    start = time.perf_counter()
+    try:
+        if args.command == "pipeline":
+            print(P.run_pipeline(profile, out, progress, command_line))
+        elif args.command == "teachers":
+            P.train_teachers(profile, out, args.task, progress)
+        elif args.command == "distill":
+            P.distill(profile, out, progress)
+        elif args.command == "transfer":
+            P.transfer(profile, out, args.task, False if args.no_scratch else None, progress)
+        elif args.command == "export":
+            robots = [_robot_path(m) for m in args.morphology] if args.morphology else None
+            for r in P.export_all(profile, out, args.task, robots):
+                print(f"{r['robot']} x {r['task']}: {r['compact_weights']:,} weights "
+                      f"({r['reduction_vs_metamorph']:.1f}x smaller than MetaMorph's actor), max |diff| {r['max_abs_diff']:.1e}, "
+                      f"latency {r['latency_compact_ms']:.3f} ms vs {r['latency_student_ms']:.3f} ms -> {Path(out) / 'export'}")
+        elif args.command == "evaluate":
+            print(f"returns -> {P.evaluate(profile, out) / 'returns.csv'}")
+        elif args.command == "report":
+            print(P.report(profile, out, command_line))
+    except (P.ConfigError, FileNotFoundError, ValueError, KeyError) as error:
+        print(f"divmorph {args.command}: {error}", file=sys.stderr)
+        return 2
+    print(f"[divmorph] {args.command} finished in {time.perf_counter() - start:.0f} s (threads: {th.get_num_threads()}); outputs in {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,442 @@
+"""DAgger-style policy distillation: per-task teachers label the states a student visits.
+
+DivMorph trains its knowledge-diverted student by distillation from one MetaMorph teacher per
+training task. The pieces, usable with any SB3 on-policy algorithm:
+
+* :class:`Teacher`: a trained policy with the observation normalisation it was trained under.
+* :class:`DAggerCallback`: records the raw observations of every rollout, has each state labelled
+  by the teacher of its own task (``task_index`` observation), aggregates them in a bounded
+  dataset, and fits the student to the teachers' action distributions after each rollout.
+* :class:`TeacherMixingVecEnv`: executes the teacher's action instead of the student's with
+  probability ``beta`` (DAgger's beta-mixture), annealed by the callback.
+* :class:`ImitationPPO`: PPO with its own update switched off, for pure distillation; with plain
+  :class:`~stable_baselines3.PPO` the callback runs alongside the PPO loss.
+
+**Loss.** For each state, ``KL(pi_teacher || pi_student)`` between the two diagonal Gaussians,
+summed over the robot's real action slots (padded slots carry no action) and averaged over the
+batch. With MetaMorph's fixed, equal standard deviations this is the squared error of the means
+divided by ``2 sigma^2``; with a learnt student std it also matches the teacher's spread.
+"""
+
+from __future__ import annotations
+
+import pickle
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3 import PPO
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.policies import ActorCriticPolicy
+from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper, VecNormalize
+from torch.distributions import Normal, kl_divergence
+
+from sb3_divmorph.extractors import ACT_PADDING_MASK
+
+#: Observation key holding the index of the episode's task in ``unimal_envs.contract.TASK_NAMES``.
+TASK_INDEX = "task_index"
+
+ObsDict = dict[str, np.ndarray]
+
+
+class SpaceMismatchError(ValueError):
+    """A saved model or normaliser does not fit the observation/action space it is used with."""
+
+
+def check_spaces(what: str, saved: spaces.Space, expected: spaces.Space, kind: str = "observation") -> None:
+    """Raise :class:`SpaceMismatchError` naming ``what`` and the differing keys if the spaces differ."""
+    if saved == expected:
+        return
+    detail = ""
+    if isinstance(saved, spaces.Dict) and isinstance(expected, spaces.Dict):
+        differing = sorted(
+            key
+            for key in set(saved.spaces) | set(expected.spaces)
+            if key not in saved.spaces or key not in expected.spaces or saved[key] != expected[key]
+        )
+        shapes = {k: (getattr(saved.spaces.get(k), "shape", None), getattr(expected.spaces.get(k), "shape", None)) for k in differing}
+        detail = f"; differing keys (saved shape, env shape): {shapes}"
+    else:
+        detail = f"; saved {saved}, env {expected}"
+    raise SpaceMismatchError(f"{what} was trained on a different {kind} space than this environment's{detail}")
+
+
+def find_vec_wrapper(venv: VecEnv, wrapper: type) -> Any | None:
+    """The first ``wrapper`` instance in a VecEnv wrapper stack, or ``None``."""
+    while venv is not None:
+        if isinstance(venv, wrapper):
+            return venv
+        venv = getattr(venv, "venv", None)
+    return None
+
+
+def load_normalizer(path: str | Path) -> VecNormalize:
+    """Unpickle saved ``VecNormalize`` statistics without attaching an env (only ``normalize_obs`` is used)."""
+    with open(path, "rb") as f:
+        normalizer = pickle.load(f)
+    if not isinstance(normalizer, VecNormalize):
+        raise SpaceMismatchError(f"{path} does not hold VecNormalize statistics (found {type(normalizer).__name__})")
+    normalizer.training = False
+    return normalizer
+
+
+def index_obs(obs: ObsDict, index: np.ndarray | slice) -> ObsDict:
+    """Rows ``index`` of every key of a batched observation dict."""
+    return {key: value[index] for key, value in obs.items()}
+
+
+@dataclass
+class Teacher:
+    """A trained policy and the observation normalisation it saw during training.
+
+    :param policy: the teacher's policy (eval mode, no gradients are taken through it).
+    :param normalizer: its ``VecNormalize`` statistics, or ``None`` if it was trained on raw observations.
+    :param name: label used in logs (usually the task name).
+    """
+
+    policy: ActorCriticPolicy
+    normalizer: VecNormalize | None = None
+    name: str = "teacher"
+
+    @classmethod
+    def load(
+        cls,
+        model_path: str | Path,
+        normalizer_path: str | Path | None = None,
+        name: str | None = None,
+        observation_space: spaces.Space | None = None,
+        device: str | th.device = "cpu",
+    ) -> Teacher:
+        """Load a teacher saved with ``model.save`` (+ ``VecNormalize.save``).
+
+        :param model_path: the ``.zip`` of a PPO model.
+        :param normalizer_path: its VecNormalize ``.pkl`` (``None``: raw observations).
+        :param name: label (default: the file's parent folder name).
+        :param observation_space: if given, the teacher's space must equal it
+            (:class:`SpaceMismatchError` otherwise).
+        :param device: torch device of the teacher.
+        """
+        model_path = Path(model_path)
+        if not model_path.is_file():
+            raise FileNotFoundError(f"teacher checkpoint {model_path} does not exist")
+        policy = PPO.load(model_path, device=device).policy
+        policy.set_training_mode(False)
+        if observation_space is not None:
+            check_spaces(f"teacher {model_path}", policy.observation_space, observation_space)
+        normalizer = load_normalizer(normalizer_path) if normalizer_path is not None else None
+        if normalizer is not None and observation_space is not None:
+            check_spaces(f"normalisation statistics {normalizer_path}", normalizer.observation_space, observation_space)
+        return cls(policy, normalizer, name or model_path.parent.name)
+
+    def normalize(self, raw_obs: ObsDict) -> ObsDict:
+        return raw_obs if self.normalizer is None else self.normalizer.normalize_obs(raw_obs)
+
+    @th.no_grad()
+    def action_distribution(self, raw_obs: ObsDict) -> tuple[th.Tensor, th.Tensor]:
+        """Mean and standard deviation (B, A) of the teacher's Gaussian on raw observations."""
+        obs, _ = self.policy.obs_to_tensor(self.normalize(raw_obs))
+        normal = self.policy.get_distribution(obs).distribution
+        return normal.mean, normal.stddev.expand_as(normal.mean)
+
+    def act(self, raw_obs: ObsDict) -> np.ndarray:
+        """Deterministic (mean) actions, clipped to the action space."""
+        mean, _ = self.action_distribution(raw_obs)
+        space = self.policy.action_space
+        return np.clip(mean.cpu().numpy(), space.low, space.high)
+
+
+def _task_indices(raw_obs: ObsDict) -> np.ndarray:
+    if TASK_INDEX not in raw_obs:
+        raise KeyError(f"distillation needs the {TASK_INDEX!r} observation to pick each state's teacher")
+    return np.rint(raw_obs[TASK_INDEX].reshape(len(raw_obs[TASK_INDEX]), -1)[:, 0]).astype(np.int64)
+
+
+def _teacher_for(teachers: Mapping[int, Teacher], task_index: int) -> Teacher:
+    if task_index not in teachers:
+        raise KeyError(f"no teacher for task index {task_index}; teachers cover indices {sorted(teachers)}")
+    return teachers[task_index]
+
+
+class TeacherMixingVecEnv(VecEnvWrapper):
+    """Executes each state's teacher action instead of the agent's with probability ``beta``.
+
+    Place it below ``VecNormalize`` so it sees raw observations. ``beta = 0`` passes actions
+    through untouched. The policy's rollout buffer still records the agent's own actions, so mix
+    only in pure distillation (the PPO loss would be off-policy).
+
+    :param venv: the vectorised env (observations must carry ``task_index``).
+    :param teachers: ``{task index: teacher}``.
+    :param beta: initial mixing probability.
+    :param seed: seed of the mixing draws.
+    """
+
+    def __init__(self, venv: VecEnv, teachers: Mapping[int, Teacher], beta: float = 0.0, seed: int | None = None):
+        super().__init__(venv)
+        self.teachers = dict(teachers)
+        self.beta = beta
+        self.rng = np.random.default_rng(seed)
+        self._obs: ObsDict | None = None
+        self.teacher_steps = 0
+
+    def reset(self):
+        self._obs = self.venv.reset()
+        return self._obs
+
+    def step_async(self, actions: np.ndarray) -> None:
+        if self.beta > 0 and self._obs is not None:
+            chosen = np.flatnonzero(self.rng.random(self.num_envs) < self.beta)
+            if len(chosen):
+                actions = np.array(actions, copy=True)
+                tasks = _task_indices(self._obs)
+                for task in np.unique(tasks[chosen]):
+                    rows = chosen[tasks[chosen] == task]
+                    actions[rows] = _teacher_for(self.teachers, int(task)).act(index_obs(self._obs, rows))
+                self.teacher_steps += len(chosen)
+        self.venv.step_async(actions)
+
+    def step_wait(self):
+        obs, rewards, dones, infos = self.venv.step_wait()
+        self._obs = obs
+        return obs, rewards, dones, infos
+
+
+def gaussian_kl(
+    teacher_mean: th.Tensor, teacher_std: th.Tensor, student_mean: th.Tensor, student_std: th.Tensor, real: th.Tensor
+) -> th.Tensor:
+    """``KL(N_teacher || N_student)`` per sample, summed over real action slots: (B, A) x4, (B, A) bool -> (B,)."""
+    per_slot = kl_divergence(Normal(teacher_mean, teacher_std), Normal(student_mean, student_std))
+    return th.where(real, per_slot, th.zeros((), dtype=per_slot.dtype, device=per_slot.device)).sum(-1)
+
+
+class DistillationDataset:
+    """DAgger's aggregated dataset, bounded: raw observations with their teacher labels (FIFO ring).
+
+    :param capacity: most states kept; the oldest are overwritten.
+    """
+
+    def __init__(self, capacity: int):
+        if capacity <= 0:
+            raise ValueError(f"capacity must be positive, got {capacity}")
+        self.capacity = capacity
+        self.obs: ObsDict = {}
+        self.mean = self.std = self.task = None
+        self.size = 0
+        self._next = 0
+
+    def add(self, obs: ObsDict, mean: np.ndarray, std: np.ndarray, task: np.ndarray) -> None:
+        n = len(task)
+        if not self.obs:
+            self.obs = {k: np.zeros((self.capacity, *v.shape[1:]), dtype=v.dtype) for k, v in obs.items()}
+            self.mean = np.zeros((self.capacity, mean.shape[1]), dtype=np.float32)
+            self.std = np.zeros_like(self.mean)
+            self.task = np.zeros(self.capacity, dtype=np.int64)
+        rows = (self._next + np.arange(n)) % self.capacity
+        for key, value in obs.items():
+            self.obs[key][rows] = value
+        self.mean[rows], self.std[rows], self.task[rows] = mean, std, task
+        self._next = int((self._next + n) % self.capacity)
+        self.size = min(self.capacity, self.size + n)
+
+    def batches(self, batch_size: int, rng: np.random.Generator):
+        """Shuffled minibatches over the stored states: ``(obs, mean, std, task)``."""
+        order = rng.permutation(self.size)
+        for start in range(0, self.size, batch_size):
+            rows = order[start : start + batch_size]
+            yield index_obs(self.obs, rows), self.mean[rows], self.std[rows], self.task[rows]
+
+
+class DAggerCallback(BaseCallback):
+    """DAgger-style distillation of per-task teachers into the model being trained.
+
+    After every rollout the callback labels the rollout's states with the teacher of each state's
+    own task (each teacher sees the observations normalised with its own statistics), adds them to
+    a bounded aggregated dataset, and takes ``epochs`` passes of minibatch gradient steps on the
+    KL loss (module docstring) with its own Adam optimiser. The student sees the same raw states
+    normalised by its own ``VecNormalize`` (if any). Use it with :class:`ImitationPPO` for pure
+    distillation, or with ``PPO`` to add distillation to the PPO loss.
+
+    Logged (TensorBoard/CSV through the model's logger): ``distill/loss``,
+    ``distill/kl/<task>`` and ``distill/mean_abs_error/<task>`` (imitation error per task),
+    ``distill/beta``, ``distill/dataset_size``, and for gated students ``gates/<kind>_entropy``,
+    ``gates/<kind>_used`` (tailors with a non-zero gate in the batch) and ``gates/<kind>_usage``
+    (histogram of mean gate weight per tailor).
+
+    :param teachers: ``{task index: teacher}`` (index in ``unimal_envs.contract.TASK_NAMES``).
+    :param task_names: names for logging, indexed like ``task_index``.
+    :param beta: probability of executing the teacher's action; a float, or a function of the
+        remaining progress (1 -> 0, as SB3 schedules). Needs a :class:`TeacherMixingVecEnv` in
+        the env stack when it is ever non-zero.
+    :param learning_rate: Adam learning rate of the distillation steps.
+    :param epochs: passes over the aggregated dataset after each rollout.
+    :param batch_size: minibatch size.
+    :param buffer_size: capacity of the aggregated dataset (states).
+    :param max_grad_norm: gradient clipping.
+    :param seed: seed of the minibatch shuffling.
+    :param verbose: SB3 verbosity.
+    """
+
+    def __init__(
+        self,
+        teachers: Mapping[int, Teacher],
+        task_names: tuple[str, ...] | list[str],
+        beta: float | Callable[[float], float] = 0.0,
+        learning_rate: float = 3e-4,
+        epochs: int = 2,
+        batch_size: int = 256,
+        buffer_size: int = 50_000,
+        max_grad_norm: float = 0.5,
+        seed: int | None = None,
+        verbose: int = 0,
+    ):
+        super().__init__(verbose)
+        if not teachers:
+            raise ValueError("DAggerCallback needs at least one teacher")
+        self.teachers = dict(teachers)
+        self.task_names = list(task_names)
+        self.beta = beta if callable(beta) else (lambda _progress, value=float(beta): value)
+        self.learning_rate = learning_rate
+        self.epochs = epochs
+        self.batch_size = batch_size
+        self.dataset = DistillationDataset(buffer_size)
+        self.max_grad_norm = max_grad_norm
+        self.rng = np.random.default_rng(seed)
+        self.optimizer: th.optim.Optimizer | None = None
+        self._rollout_obs: list[ObsDict] = []
+        self._normalizer: VecNormalize | None = None
+        self._mixer: TeacherMixingVecEnv | None = None
+
+    # -- SB3 hooks -----------------------------------------------------------------------------
+    def _init_callback(self) -> None:
+        obs_space = self.model.observation_space
+        if not isinstance(obs_space, spaces.Dict) or TASK_INDEX not in obs_space.spaces:
+            raise SpaceMismatchError(f"distillation needs a Dict observation space with {TASK_INDEX!r}")
+        for teacher in self.teachers.values():
+            check_spaces(f"teacher {teacher.name}", teacher.policy.observation_space, obs_space)
+            check_spaces(f"teacher {teacher.name}", teacher.policy.action_space, self.model.action_space, "action")
+        self._normalizer = find_vec_wrapper(self.training_env, VecNormalize)
+        self._mixer = find_vec_wrapper(self.training_env, TeacherMixingVecEnv)
+        self.optimizer = th.optim.Adam(self.model.policy.parameters(), lr=self.learning_rate)
+
+    def _current_raw_obs(self, fresh: ObsDict | None = None) -> ObsDict:
+        if self._normalizer is not None:
+            return self._normalizer.get_original_obs()
+        source = fresh if fresh is not None else self.model._last_obs  # type: ignore[attr-defined]
+        return {key: np.array(value, copy=True) for key, value in source.items()}
+
+    def _on_rollout_start(self) -> None:
+        beta = float(self.beta(self.model._current_progress_remaining))  # type: ignore[attr-defined]
+        if beta > 0:
+            if self._mixer is None:
+                raise ValueError("beta > 0 needs the training env wrapped in TeacherMixingVecEnv (below VecNormalize)")
+            if not isinstance(self.model, ImitationPPO):
+                raise ValueError("beta > 0 (teacher actions executed) is off-policy for PPO: use ImitationPPO")
+        if self._mixer is not None:
+            self._mixer.beta = beta
+        self.logger.record("distill/beta", beta)
+        self._rollout_obs = [self._current_raw_obs()]
+
+    def _on_step(self) -> bool:
+        self._rollout_obs.append(self._current_raw_obs(self.locals.get("new_obs")))
+        return True
+
+    def _on_rollout_end(self) -> None:
+        # the last entry is the state after the final step: it belongs to the next rollout
+        states = self._rollout_obs[:-1]
+        self._rollout_obs = []
+        if not states:
+            return
+        obs = {key: np.concatenate([s[key] for s in states]) for key in states[0]}
+        mean, std, tasks = self.label(obs)
+        self.dataset.add(obs, mean, std, tasks)
+        self.train()
+
+    # -- distillation --------------------------------------------------------------------------
+    def label(self, raw_obs: ObsDict, chunk: int = 1024) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Teacher means and stds for a batch of raw states, each by its own task's teacher."""
+        tasks = _task_indices(raw_obs)
+        n, action_dim = len(tasks), int(np.prod(self.model.action_space.shape))
+        mean = np.zeros((n, action_dim), dtype=np.float32)
+        std = np.ones((n, action_dim), dtype=np.float32)
+        for task in np.unique(tasks):
+            teacher = _teacher_for(self.teachers, int(task))
+            rows = np.flatnonzero(tasks == task)
+            for start in range(0, len(rows), chunk):
+                part = rows[start : start + chunk]
+                m, s = teacher.action_distribution(index_obs(raw_obs, part))
+                mean[part], std[part] = m.cpu().numpy(), s.cpu().numpy()
+        return mean, std, tasks
+
+    def _student_obs(self, raw_obs: ObsDict) -> ObsDict:
+        return raw_obs if self._normalizer is None else self._normalizer.normalize_obs(raw_obs)
+
+    def train(self) -> None:
+        """``epochs`` passes of KL minimisation over the aggregated dataset."""
+        policy = self.model.policy
+        policy.set_training_mode(True)
+        device = policy.device
+        losses: list[float] = []
+        kl_sum = np.zeros(len(self.task_names))
+        err_sum = np.zeros(len(self.task_names))
+        count = np.zeros(len(self.task_names))
+        gate_stats: list[Any] = []
+        for epoch in range(self.epochs):
+            for raw, t_mean, t_std, tasks in self.dataset.batches(self.batch_size, self.rng):
+                obs, _ = policy.obs_to_tensor(self._student_obs(raw))
+                student = policy.get_distribution(obs)
+                real = obs[ACT_PADDING_MASK] < 0.5
+                t_mean_t = th.as_tensor(t_mean, device=device)
+                t_std_t = th.as_tensor(t_std, device=device)
+                s_mean = student.distribution.mean
+                kl = gaussian_kl(t_mean_t, t_std_t, s_mean, student.distribution.stddev.expand_as(s_mean), real)
+                loss = kl.mean()
+                self.optimizer.zero_grad()
+                loss.backward()
+                th.nn.utils.clip_grad_norm_(policy.parameters(), self.max_grad_norm)
+                self.optimizer.step()
+                losses.append(loss.item())
+                if epoch == self.epochs - 1:
+                    with th.no_grad():
+                        abs_err = th.where(real, (s_mean - t_mean_t).abs(), th.zeros((), device=device)).sum(-1)
+                        abs_err = abs_err / real.sum(-1).clamp(min=1)
+                    np.add.at(kl_sum, tasks, kl.detach().cpu().numpy())
+                    np.add.at(err_sum, tasks, abs_err.cpu().numpy())
+                    np.add.at(count, tasks, 1)
+                    if hasattr(policy, "get_gates") and len(gate_stats) < 4:
+                        gate_stats.append(policy.get_gates(obs))
+        policy.set_training_mode(False)
+        self.logger.record("distill/loss", float(np.mean(losses)))
+        self.logger.record("distill/dataset_size", self.dataset.size)
+        for index in np.flatnonzero(count):
+            name = self.task_names[index]
+            self.logger.record(f"distill/kl/{name}", kl_sum[index] / count[index])
+            self.logger.record(f"distill/mean_abs_error/{name}", err_sum[index] / count[index])
+        if gate_stats:
+            self._log_gates(gate_stats)
+
+    def _log_gates(self, gate_stats: list[Any]) -> None:
+        for kind in ("morphology", "task"):
+            gates = th.cat([getattr(g, kind) for g in gate_stats])
+            positive = gates.clamp(min=1e-12)
+            entropy = -(gates * positive.log()).sum(-1).mean()
+            usage = gates.mean(0)
+            self.logger.record(f"gates/{kind}_entropy", entropy.item())
+            self.logger.record(f"gates/{kind}_used", int((gates > 0).any(0).sum()))
+            self.logger.record(f"gates/{kind}_usage", usage.cpu(), exclude=("stdout", "log", "json", "csv"))
+
+
+class ImitationPPO(PPO):
+    """PPO that collects rollouts but skips its own policy-gradient update.
+
+    For pure distillation: a :class:`DAggerCallback` does all the learning from the rollouts this
+    algorithm collects (with the student's actions, or the teachers' under a
+    :class:`TeacherMixingVecEnv`). Everything else (rollouts, logging, saving, ``learn``'s progress
+    bar) is PPO's.
+    """
+
+    def train(self) -> None:
+        self._n_updates += 1
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")

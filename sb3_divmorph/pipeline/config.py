@@ -1,0 +1,264 @@
+"""Pipeline profiles (``zoo_configs/divmorph.yml``) and rl-zoo hyperparameter entries, validated.
+
+A profile is plain YAML; every section maps onto a dataclass below, and a key the dataclass does
+not have is an error that names it and lists the valid ones (a typo must never be silently
+ignored in a run that takes hours).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+from stable_baselines3 import PPO
+from stable_baselines3.common.utils import get_linear_fn
+
+from unimal_envs.contract import NOVEL_TASKS, TASK_NAMES, TRAIN_TASKS
+
+#: Where profiles and zoo files are looked up when a relative path is given.
+REPO_ROOT = Path(__file__).resolve().parents[2]
+DEFAULT_PROFILES = Path("zoo_configs") / "divmorph.yml"
+
+
+class ConfigError(ValueError):
+    """A profile or hyperparameter file is invalid (unknown key, bad value, missing file)."""
+
+
+def resolve_path(path: str | Path) -> Path:
+    """``path`` as given if it exists, else relative to the repository root."""
+    path = Path(path)
+    if path.exists() or path.is_absolute():
+        return path
+    candidate = REPO_ROOT / path
+    return candidate if candidate.exists() else path
+
+
+def _from_dict(cls: type, values: dict[str, Any] | None, where: str):
+    values = dict(values or {})
+    names = [f.name for f in dataclasses.fields(cls)]
+    unknown = sorted(set(values) - set(names))
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {unknown}; valid keys: {names}")
+    missing = [
+        f.name
+        for f in dataclasses.fields(cls)
+        if f.name not in values and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
+    ]
+    if missing:
+        raise ConfigError(f"{where}: missing key(s) {missing}")
+    return cls(**values)
+
+
+def _check_tasks(tasks: list[str], allowed: tuple[str, ...], where: str) -> None:
+    bad = [t for t in tasks if t not in allowed]
+    if bad or not tasks:
+        raise ConfigError(f"{where}: unknown or unsuitable task(s) {bad or tasks}; choose from {list(allowed)}")
+
+
+@dataclass
+class TeachersConfig:
+    """One MetaMorph teacher per training task, trained with PPO."""
+
+    tasks: list[str]
+    n_timesteps: int
+    hyperparams: str = "zoo_configs/ppo.yml"
+    overrides: dict[str, Any] = field(default_factory=dict)
+    policy_kwargs: dict[str, Any] = field(default_factory=dict)
+    checkpoint_every: int = 50_000
+
+
+@dataclass
+class StudentConfig:
+    """The DivMorph student's ``policy_kwargs``."""
+
+    policy_kwargs: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class DistillConfig:
+    """DAgger distillation of the teachers into the student."""
+
+    n_timesteps: int
+    n_envs: int = 4
+    n_steps: int = 256
+    beta_start: float = 0.5
+    beta_end: float = 0.0
+    epochs: int = 2
+    batch_size: int = 256
+    learning_rate: float = 1e-3
+    buffer_size: int = 50_000
+    ppo_loss: bool = False
+    checkpoint_every: int = 50_000
+
+
+@dataclass
+class TransferConfig:
+    """Transfer of the student to novel tasks (and the MetaMorph-from-scratch comparison)."""
+
+    tasks: list[str]
+    n_timesteps: int
+    learngene_lr_scale: float = 0.1
+    compare_scratch: bool = True
+    overrides: dict[str, Any] = field(default_factory=dict)
+    checkpoint_every: int = 50_000
+
+
+@dataclass
+class ExportConfig:
+    """Pruned compact actors for a few robots and tasks."""
+
+    tasks: list[str]
+    robots_per_split: int = 1
+    latency_repeats: int = 200
+
+
+@dataclass
+class EvaluateConfig:
+    """Per-morphology evaluation."""
+
+    episodes: int = 1
+
+
+@dataclass
+class Profile:
+    """A whole pipeline configuration (one entry of ``zoo_configs/divmorph.yml``)."""
+
+    name: str
+    teachers: TeachersConfig
+    student: StudentConfig
+    distill: DistillConfig
+    transfer: TransferConfig
+    export: ExportConfig
+    evaluate: EvaluateConfig
+    seed: int = 0
+    device: str = "auto"
+    torch_threads: int = 2
+    train_robots: int | None = None
+    novel_robots: int | None = None
+    max_episode_steps: int = 1000
+
+    @classmethod
+    def from_dict(cls, name: str, values: dict[str, Any]) -> Profile:
+        sections = {
+            "teachers": TeachersConfig,
+            "student": StudentConfig,
+            "distill": DistillConfig,
+            "transfer": TransferConfig,
+            "export": ExportConfig,
+            "evaluate": EvaluateConfig,
+        }
+        values = dict(values)
+        parsed = {key: _from_dict(section, values.pop(key, None), f"profile {name!r}, section {key!r}") for key, section in sections.items()}
+        profile = _from_dict(cls, {**values, **parsed, "name": name}, f"profile {name!r}")
+        _check_tasks(profile.teachers.tasks, TRAIN_TASKS, f"profile {name!r}, teachers.tasks")
+        _check_tasks(profile.transfer.tasks, NOVEL_TASKS, f"profile {name!r}, transfer.tasks")
+        _check_tasks(profile.export.tasks, TASK_NAMES, f"profile {name!r}, export.tasks")
+        if not 0 <= profile.distill.beta_start <= 1 or not 0 <= profile.distill.beta_end <= 1:
+            raise ConfigError(f"profile {name!r}: distill.beta_start/beta_end must be in [0, 1]")
+        if profile.distill.ppo_loss and max(profile.distill.beta_start, profile.distill.beta_end) > 0:
+            raise ConfigError(f"profile {name!r}: distill.ppo_loss needs beta_start = beta_end = 0 (mixing is off-policy)")
+        return profile
+
+
+def load_profiles(path: str | Path = DEFAULT_PROFILES) -> dict[str, dict[str, Any]]:
+    """The raw profile entries of a profiles file."""
+    resolved = resolve_path(path)
+    if not resolved.is_file():
+        raise ConfigError(f"profiles file {path} not found (looked in . and {REPO_ROOT})")
+    with open(resolved) as f:
+        data = yaml.safe_load(f) or {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{resolved}: expected a mapping of profile names")
+    return data
+
+
+def load_profile(name: str, path: str | Path = DEFAULT_PROFILES) -> Profile:
+    """Load and validate one profile; unknown names list the available ones."""
+    profiles = load_profiles(path)
+    if name not in profiles:
+        raise ConfigError(f"unknown profile {name!r}; profiles in {path}: {sorted(profiles)}")
+    return Profile.from_dict(name, profiles[name])
+
+
+# -- rl-zoo hyperparameter entries -----------------------------------------------------------
+#: Keys of an rl-zoo entry that are not PPO constructor arguments.
+_ZOO_ONLY = {"n_timesteps", "policy", "n_envs", "normalize", "env_wrapper", "frame_stack", "callback", "vec_env_wrapper"}
+_PPO_ARGS = set(inspect.signature(PPO.__init__).parameters) - {"self", "env", "policy"}
+
+
+@dataclass
+class ZooEntry:
+    """One env's PPO setup from an rl-zoo YAML, with strings turned into values."""
+
+    policy: str
+    n_timesteps: int
+    n_envs: int
+    policy_kwargs: dict[str, Any]
+    normalize: dict[str, Any] | None
+    ppo_kwargs: dict[str, Any]
+
+
+def _zoo_eval(text: str, where: str) -> Any:
+    try:
+        return eval(text, {"__builtins__": {}}, {"dict": dict, "list": list, "True": True, "False": False, "None": None})  # noqa: S307
+    except Exception as error:  # noqa: BLE001
+        raise ConfigError(f"{where}: cannot evaluate {text!r}: {error}") from None
+
+
+def _schedule(value: Any, where: str) -> Any:
+    if isinstance(value, str) and value.startswith("lin_"):
+        start = float(value[4:])
+        return get_linear_fn(start, 0.0, 1.0)
+    if isinstance(value, str):
+        raise ConfigError(f"{where}: only numbers and 'lin_<value>' schedules are supported, got {value!r}")
+    return value
+
+
+def load_zoo_entry(path: str | Path, env_id: str, overrides: dict[str, Any] | None = None) -> ZooEntry:
+    """Read ``env_id``'s entry of an rl-zoo hyperparameter file and apply ``overrides``.
+
+    :raises ConfigError: missing file or entry, unknown keys (neither rl-zoo nor PPO arguments).
+    """
+    resolved = resolve_path(path)
+    if not resolved.is_file():
+        raise ConfigError(f"rl-zoo hyperparameter file {path} not found")
+    with open(resolved) as f:
+        data = yaml.safe_load(f) or {}
+    if env_id not in data:
+        raise ConfigError(f"{resolved} has no entry for {env_id}; entries: {sorted(data)}")
+    entry = {**data[env_id], **(overrides or {})}
+    where = f"{resolved} [{env_id}]"
+    unknown = sorted(set(entry) - _ZOO_ONLY - _PPO_ARGS)
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {unknown}; valid: {sorted(_ZOO_ONLY | _PPO_ARGS)}")
+    for key in ("env_wrapper", "frame_stack", "callback", "vec_env_wrapper"):
+        if key in entry:
+            raise ConfigError(f"{where}: {key!r} is not supported by the divmorph pipeline")
+    policy_kwargs = entry.pop("policy_kwargs", {}) or {}
+    if isinstance(policy_kwargs, str):
+        policy_kwargs = _zoo_eval(policy_kwargs, where)
+    normalize = entry.pop("normalize", None)
+    if isinstance(normalize, str):
+        normalize = _zoo_eval(normalize, where)
+    elif normalize is True:
+        normalize = {}
+    elif normalize is False:
+        normalize = None
+    if "n_timesteps" not in entry:
+        raise ConfigError(f"{where}: n_timesteps is required")
+    ppo_kwargs = {k: v for k, v in entry.items() if k in _PPO_ARGS}
+    for key in ("learning_rate", "clip_range"):
+        if key in ppo_kwargs:
+            ppo_kwargs[key] = _schedule(ppo_kwargs[key], f"{where} {key}")
+    return ZooEntry(
+        policy=str(entry.get("policy", "MetaMorphPolicy")),
+        n_timesteps=int(float(entry["n_timesteps"])),
+        n_envs=int(entry.get("n_envs", 1)),
+        policy_kwargs=dict(policy_kwargs),
+        normalize=normalize,
+        ppo_kwargs=ppo_kwargs,
+    )

@@ -1,0 +1,123 @@
+"""Stage 5 — evaluation: per-morphology returns on train and novel robots, and gate activations.
+
+Every model of the run is rolled out deterministically, one env per robot, for ``episodes``
+episodes of at most ``max_episode_steps``: teachers on their task, the student on every training
+task and (zero-shot) on the transfer tasks, transferred and from-scratch policies on their novel
+task. Rows go to ``evaluate/returns.csv``. The student's gates for all ten task instructions and for
+every evaluated robot go to ``evaluate/gates.npz`` (for the correlation heatmaps of the report).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from stable_baselines3 import PPO
+from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor, VecNormalize
+from tqdm import tqdm
+
+from sb3_divmorph.distillation import load_normalizer
+from sb3_divmorph.pipeline.config import Profile
+from sb3_divmorph.pipeline.distill import student_folder
+from sb3_divmorph.pipeline.runs import (
+    MODEL,
+    NORMALIZER,
+    atomic_save,
+    atomic_write_text,
+    is_done,
+    mark_done,
+    profile_robots,
+    task_env_name,
+)
+from sb3_divmorph.pipeline.teachers import teacher_folder
+from sb3_divmorph.pipeline.transfer import ARMS, robot_observations, transfer_folder
+from unimal_envs.contract import TASK_NAMES
+from unimal_envs.instructions import shipped_embeddings
+
+COLUMNS = ["model", "task", "split", "morphology", "episode", "return", "length"]
+
+
+def evaluate_model(folder: Path, task: str, robots: list[Path], episodes: int, max_steps: int, seed: int) -> list[dict[str, Any]]:
+    """Deterministic returns of the model saved in ``folder`` on each robot doing ``task``."""
+    venv = VecMonitor(DummyVecEnv([
+        (lambda robot=robot: gym.make(task_env_name(task), morphologies=[robot], max_episode_steps=max_steps)) for robot in robots
+    ]))
+    venv.seed(seed)
+    if (folder / NORMALIZER).is_file():
+        venv = VecNormalize.load(str(folder / NORMALIZER), venv)
+        venv.training, venv.norm_reward = False, False
+    model = PPO.load(folder / MODEL, device="cpu")
+    rows: list[dict[str, Any]] = []
+    finished = np.zeros(len(robots), dtype=int)
+    obs = venv.reset()
+    while (finished < episodes).any():
+        actions, _ = model.predict(obs, deterministic=True)
+        obs, _, dones, infos = venv.step(actions)
+        for i in np.flatnonzero(dones):
+            if finished[i] < episodes:
+                rows.append(dict(morphology=robots[i].stem, episode=int(finished[i]), **{
+                    "return": float(infos[i]["episode"]["r"]), "length": int(infos[i]["episode"]["l"])}))
+                finished[i] += 1
+    venv.close()
+    return rows
+
+
+def evaluation_plan(profile: Profile, out: Path) -> list[tuple[str, Path, str]]:
+    """``(model label, folder, task)`` of everything there is to evaluate."""
+    out = Path(out)
+    plan = [("teacher", teacher_folder(out, t), t) for t in profile.teachers.tasks if is_done(teacher_folder(out, t))]
+    if is_done(student_folder(out)):
+        plan += [("student", student_folder(out), t) for t in (*profile.teachers.tasks, *profile.transfer.tasks)]
+    for task in profile.transfer.tasks:
+        for arm in ARMS:
+            if is_done(transfer_folder(out, task, arm)):
+                plan.append((f"transfer-{arm}", transfer_folder(out, task, arm), task))
+    return plan
+
+
+def student_gates(out: Path, robots: list[Path], seed: int) -> dict[str, np.ndarray]:
+    """The student's task gates for every task instruction and morphology gates for ``robots``."""
+    model = PPO.load(student_folder(out) / MODEL, device="cpu")
+    normalizer_file = student_folder(out) / NORMALIZER
+    normalizer = load_normalizer(normalizer_file) if normalizer_file.is_file() else None
+    obs = robot_observations(task_env_name("FT"), robots, seed)
+    if normalizer is not None:
+        obs = normalizer.normalize_obs(obs)
+    morphology = model.policy.get_gates(obs).morphology.cpu().numpy()
+    embeddings = shipped_embeddings()
+    one = {k: np.repeat(v[:1], len(TASK_NAMES), axis=0) for k, v in obs.items()}
+    one["task_embedding"] = np.stack([embeddings[t] for t in TASK_NAMES]).astype(np.float32)
+    task = model.policy.get_gates(one).task.cpu().numpy()
+    return {"task_gates": task, "tasks": np.array(TASK_NAMES), "morphology_gates": morphology,
+            "robots": np.array([r.stem for r in robots])}
+
+
+def evaluate(profile: Profile, out: Path) -> Path:
+    """Evaluate every finished model of the run; writes ``evaluate/returns.csv`` and ``gates.npz``."""
+    out = Path(out)
+    folder = out / "evaluate"
+    if is_done(folder):
+        return folder
+    splits = {split: profile_robots(profile, split) for split in ("train", "novel")}
+    plan = evaluation_plan(profile, out)
+    if not plan:
+        raise FileNotFoundError(f"nothing to evaluate in {out}: run the teachers/distill/transfer stages first")
+    rows = []
+    jobs = [(label, model, task, split) for label, model, task in plan for split in splits]
+    for label, model, task, split in tqdm(jobs, desc="[evaluate]", unit="model x task x split"):
+        for row in evaluate_model(model, task, splits[split], profile.evaluate.episodes, profile.max_episode_steps, profile.seed):
+            rows.append({"model": label, "task": task, "split": split, **row})
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=COLUMNS)
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write_text(folder / "returns.csv", buffer.getvalue())
+    if is_done(student_folder(out)):
+        gates = student_gates(out, splits["train"] + splits["novel"], profile.seed)
+        atomic_save(folder / "gates.npz", lambda p: np.savez(p, **gates))
+    mark_done(folder, rows=len(rows))
+    return folder

@@ -1,0 +1,181 @@
+"""Stage 4 — deployment: prune and merge the student into a compact actor per robot and task.
+
+For each robot and task the student's gates are evaluated once, unselected tailors are pruned and
+the rest merged (:class:`~sb3_divmorph.compact.CompactActor`), the observation normalisation is
+baked in, and the actor is written as TorchScript (``actor.pt``: ``torch.jit.load`` is all it needs).
+The stage checks the written file against the unpruned student on observations of a short rollout
+(max |diff| <= 1e-5, or it refuses to write) and reports its size against the MetaMorph actor of
+the same width and depth, and its batch-1 CPU latency against the full student.
+
+For a novel task the transferred student (``transfer/<task>/divmorph``) is exported when it
+exists, else the distilled student itself (zero-shot).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+from stable_baselines3 import PPO
+from stable_baselines3.common.vec_env import VecNormalize
+
+from sb3_divmorph.compact import (
+    CompactActor,
+    actor_inputs,
+    actor_parameter_count,
+    batch1_latency,
+    export_torchscript,
+)
+from sb3_divmorph.distillation import load_normalizer
+from sb3_divmorph.pipeline.config import ConfigError, Profile
+from sb3_divmorph.pipeline.distill import student_folder
+from sb3_divmorph.pipeline.runs import MODEL, NORMALIZER, atomic_write_json, atomic_write_text, is_done, mark_done, profile_robots, task_env_name
+from sb3_divmorph.pipeline.transfer import transfer_folder
+from sb3_divmorph.policies import DivMorphPolicy, MetaMorphPolicy
+from unimal_envs.contract import NOVEL_TASKS, TASK_NAMES
+from unimal_envs.tasks import TASKS
+
+#: Largest accepted difference between the exported actor and the student (issue contract).
+TOLERANCE = 1e-5
+
+
+def export_folder(out: Path, robot: str, task: str) -> Path:
+    return Path(out) / "export" / f"{robot}-{task}"
+
+
+def source_model(out: Path, task: str) -> tuple[Path, str]:
+    """The model to export for ``task``: the transferred student for a novel task if there is one."""
+    if task in NOVEL_TASKS and is_done(transfer_folder(out, task, "divmorph")):
+        return transfer_folder(out, task, "divmorph"), "transferred student"
+    if not is_done(student_folder(out)):
+        raise FileNotFoundError(f"no distilled student in {student_folder(out)}; run `divmorph distill --out {out}` first")
+    return student_folder(out), "distilled student" + (" (zero-shot)" if task in NOVEL_TASKS else "")
+
+
+def metamorph_twin(policy: DivMorphPolicy) -> MetaMorphPolicy:
+    """A MetaMorph policy of the same width, depth and encoders (the paper's size reference)."""
+    kwargs = {k: v for k, v in policy._get_constructor_parameters().items() if k not in DivMorphPolicy._divmorph_keys}
+    # the extractor kwargs carry DivMorph's factorization; MetaMorph rebuilds its own from the sizes
+    for key in ("observation_space", "action_space", "lr_schedule", "features_extractor_kwargs"):
+        kwargs.pop(key, None)
+    return MetaMorphPolicy(policy.observation_space, policy.action_space, lambda _: 0.0, **kwargs)
+
+
+def _rollout_observations(env: gym.Env, actor: CompactActor, first: dict[str, np.ndarray], steps: int, seed: int) -> dict[str, np.ndarray]:
+    observations, obs = [first], first
+    rng = np.random.default_rng(seed)
+    with th.no_grad():
+        for _ in range(steps - 1):
+            action = actor(*actor_inputs(obs))[0].numpy()
+            action = np.clip(action + rng.normal(0, 0.3, action.shape), -1, 1).astype(np.float32)
+            obs, _, terminated, truncated, _ = env.step(action)
+            observations.append(obs)
+            if terminated or truncated:
+                break
+    return {k: np.stack([o[k] for o in observations]) for k in first}
+
+
+def export_actor(profile: Profile, out: Path, robot_file: Path, task: str, steps: int = 64) -> dict[str, Any]:
+    """Export one robot x task actor; returns (and writes) its report."""
+    if task not in TASK_NAMES:
+        raise ConfigError(f"unknown task {task!r}; choose from {list(TASK_NAMES)}")
+    robot_file = Path(robot_file)
+    folder = export_folder(out, robot_file.stem, task)
+    if is_done(folder):
+        return json.loads((folder / "report.json").read_text())
+    source, source_label = source_model(out, task)
+    model = PPO.load(source / MODEL, device="cpu")
+    policy = model.policy.eval()
+    if not isinstance(policy, DivMorphPolicy):
+        raise TypeError(f"{source / MODEL} holds a {type(policy).__name__}, not a DivMorph student")
+    normalizer: VecNormalize | None = load_normalizer(source / NORMALIZER) if (source / NORMALIZER).is_file() else None
+
+    env = gym.make(task_env_name(task), morphologies=[robot_file], max_episode_steps=profile.max_episode_steps)
+    try:
+        first, _ = env.reset(seed=profile.seed)
+        actor = CompactActor.from_policy(policy, first, TASKS[task].observation_keys, normalizer)
+        observations = _rollout_observations(env, actor, first, steps, profile.seed)
+    finally:
+        env.close()
+
+    folder.mkdir(parents=True, exist_ok=True)
+    counts = actor.stored_numbers()
+    student_actor = actor_parameter_count(policy)
+    metamorph_actor = actor_parameter_count(metamorph_twin(policy))
+    metadata = {
+        "robot": robot_file.stem,
+        "task": task,
+        "source": str(source / MODEL),
+        "inputs": ["proprioceptive (B,12,52)", "hfield (B,1410)", "goal (B,3)", "object (B,12)"],
+        "output": "action means (B,24), 0 on padded slots; clip to [-1, 1] before env.step",
+    }
+    path = export_torchscript(actor, first, folder / "actor.pt", metadata)
+
+    # Check the written file, loaded with torch alone, against the unpruned student.
+    loaded = th.jit.load(str(path))
+    normalized = observations if normalizer is None else normalizer.normalize_obs(observations)
+    with th.no_grad():
+        obs_t, _ = policy.obs_to_tensor(normalized)
+        reference = policy.get_distribution(obs_t).distribution.mean
+        exported = loaded(*actor_inputs(observations, batch=True))
+    max_diff = float((reference - exported).abs().max())
+    if not max_diff <= TOLERANCE:
+        path.unlink()
+        raise RuntimeError(f"exported actor differs from the student by {max_diff:.2e} > {TOLERANCE} ({robot_file.stem}, {task})")
+
+    one_raw = {k: v[:1] for k, v in observations.items()}
+    one_obs, _ = policy.obs_to_tensor(one_raw if normalizer is None else normalizer.normalize_obs(one_raw))
+
+    def student_step(obs):
+        return policy.get_distribution(obs).distribution.mean
+
+    repeats = profile.export.latency_repeats
+    compact_s = batch1_latency(loaded, actor_inputs(one_raw, batch=True), repeats)
+    student_s = batch1_latency(student_step, (one_obs,), repeats)
+    report = {
+        **metadata,
+        "source_label": source_label,
+        "real_tokens": int(len(actor.real_tokens)),
+        "compact_weights": counts["weights"],
+        "compact_normalization_numbers": counts["normalization"],
+        "student_actor_parameters": student_actor,
+        "metamorph_actor_parameters": metamorph_actor,
+        "reduction_vs_metamorph": metamorph_actor / counts["weights"],
+        "reduction_vs_student": student_actor / counts["weights"],
+        "file_bytes": path.stat().st_size,
+        "max_abs_diff": max_diff,
+        "checked_observations": int(len(observations["proprioceptive"])),
+        "latency_compact_ms": compact_s * 1e3,
+        "latency_student_ms": student_s * 1e3,
+        "speedup_vs_student": student_s / compact_s,
+        "torch_threads": th.get_num_threads(),
+    }
+    atomic_write_json(folder / "report.json", report)
+    mark_done(folder)
+    return report
+
+
+def export_all(profile: Profile, out: Path, tasks: list[str] | None = None, robots: list[Path] | None = None) -> list[dict[str, Any]]:
+    """Export every (robot, task) pair of the profile (or the given ones) and write ``export/summary.csv``."""
+    if robots is None:
+        n = profile.export.robots_per_split
+        robots = profile_robots(profile, "train")[:n] + profile_robots(profile, "novel")[:n]
+    reports = []
+    for task in tasks or profile.export.tasks:
+        for robot in robots:
+            print(f"[export] {Path(robot).stem} x {task}")
+            reports.append(export_actor(profile, out, robot, task))
+    if reports:
+        columns = list(reports[0])
+        buffer = io.StringIO()
+        writer = csv.DictWriter(buffer, fieldnames=columns, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(reports)
+        atomic_write_text(Path(out) / "export" / "summary.csv", buffer.getvalue())
+    return reports

@@ -1,0 +1,249 @@
+"""What every pipeline stage shares: atomic outputs, envs, and resumable PPO runs.
+
+A stage's output folder is *done* once its ``done.json`` exists; that file is written last and
+atomically, so a stage killed at any point is either done or not. Long training saves checkpoints
+(model + ``VecNormalize`` statistics) every ``checkpoint_every`` steps into a fresh folder and then
+atomically points ``checkpoints/latest.json`` at it, so a run killed mid-way resumes from the last
+complete checkpoint and loses at most one interval.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+from stable_baselines3 import PPO
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.callbacks import BaseCallback, CallbackList
+from stable_baselines3.common.logger import configure
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecMonitor, VecNormalize
+
+import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
+from unimal_envs import env_id
+from unimal_envs.morphology.loader import morphology_files
+from sb3_divmorph.distillation import check_spaces
+from sb3_divmorph.pipeline.config import Profile
+
+DONE = "done.json"
+MODEL = "model.zip"
+NORMALIZER = "vecnormalize.pkl"
+
+
+# -- atomic files ----------------------------------------------------------------------------
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` so that readers see the old file or the new one, never a part."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    atomic_write_bytes(path, text.encode())
+
+
+def atomic_write_json(path: Path, data: Any) -> None:
+    atomic_write_text(path, json.dumps(data, indent=2, default=str) + "\n")
+
+
+def atomic_save(path: Path, save: Callable[[Path], None]) -> None:
+    """Call ``save(tmp_path)`` (e.g. ``model.save``) then move the result onto ``path`` atomically."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp{path.suffix}")
+    try:
+        save(tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def is_done(folder: Path) -> bool:
+    return (folder / DONE).is_file()
+
+
+def mark_done(folder: Path, **info: Any) -> None:
+    atomic_write_json(folder / DONE, {"finished": time.strftime("%Y-%m-%d %H:%M:%S"), **info})
+
+
+def read_done(folder: Path) -> dict[str, Any]:
+    return json.loads((folder / DONE).read_text())
+
+
+# -- robots and envs -------------------------------------------------------------------------
+def robot_files(split: str, count: int | None) -> list[Path]:
+    """The first ``count`` robots of a shipped set (all when ``None``)."""
+    files = morphology_files(split)
+    return files if count is None else files[:count]
+
+
+def profile_robots(profile: Profile, split: str) -> list[Path]:
+    return robot_files(split, profile.train_robots if split == "train" else profile.novel_robots)
+
+
+def make_vec_env(
+    env_name: str, n_envs: int, seed: int, max_episode_steps: int, **env_kwargs: Any
+) -> VecEnv:
+    """``n_envs`` envs in one process (torch stays in this process), monitored, seeded ``seed + i``."""
+
+    def factory(rank: int) -> Callable[[], gym.Env]:
+        def make() -> gym.Env:
+            env = gym.make(env_name, max_episode_steps=max_episode_steps, **env_kwargs)
+            env.reset(seed=seed + rank)
+            return env
+
+        return make
+
+    venv = VecMonitor(DummyVecEnv([factory(i) for i in range(n_envs)]))
+    venv.seed(seed)
+    return venv
+
+
+def task_env_name(task: str) -> str:
+    return env_id(task)
+
+
+def resolve_device(device: str) -> str:
+    if device == "auto":
+        return "cuda" if th.cuda.is_available() else "cpu"
+    return device
+
+
+# -- resumable training ----------------------------------------------------------------------
+class AtomicCheckpointCallback(BaseCallback):
+    """Every ``every`` steps, save model + VecNormalize into ``folder/step-<n>/`` and point
+    ``folder/latest.json`` at it (atomically); older checkpoints are then removed."""
+
+    def __init__(self, folder: Path, every: int):
+        super().__init__()
+        self.folder = folder
+        self.every = every
+        self._last = 0
+
+    def _on_training_start(self) -> None:
+        self._last = self.num_timesteps
+
+    def _on_step(self) -> bool:
+        if self.num_timesteps - self._last >= self.every:
+            self._last = self.num_timesteps
+            save_checkpoint(self.model, self.folder)
+        return True
+
+
+def save_checkpoint(model: BaseAlgorithm, folder: Path) -> Path:
+    target = folder / f"step-{model.num_timesteps:012d}"
+    staging = folder / f".staging-{model.num_timesteps:012d}-{os.getpid()}"
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir(parents=True)
+    model.save(staging / MODEL)
+    normalizer = model.get_vec_normalize_env()
+    if normalizer is not None:
+        normalizer.save(str(staging / NORMALIZER))
+    shutil.rmtree(target, ignore_errors=True)
+    os.replace(staging, target)
+    atomic_write_json(folder / "latest.json", {"folder": target.name, "num_timesteps": model.num_timesteps})
+    for old in folder.glob("step-*"):
+        if old != target:
+            shutil.rmtree(old, ignore_errors=True)
+    return target
+
+
+def latest_checkpoint(folder: Path) -> Path | None:
+    pointer = folder / "latest.json"
+    if not pointer.is_file():
+        return None
+    target = folder / json.loads(pointer.read_text())["folder"]
+    return target if (target / MODEL).is_file() else None
+
+
+@dataclass
+class TrainingRun:
+    """A PPO-family run writing into ``folder`` (model, statistics, logs, checkpoints)."""
+
+    folder: Path
+    total_timesteps: int
+    checkpoint_every: int
+    #: builds a fresh model on a fresh VecEnv
+    make_model: Callable[[], BaseAlgorithm]
+    #: builds the VecEnv (the same wrappers as in make_model) for resuming from a checkpoint
+    make_env: Callable[[], VecEnv]
+    #: the algorithm class used to load checkpoints
+    algo: type[BaseAlgorithm] = PPO
+    #: called on the model after it is built or loaded (e.g. transfer's per-unit learning rates)
+    prepare: Callable[[BaseAlgorithm], None] | None = None
+    callbacks: Sequence[BaseCallback] = ()
+    device: str = "cpu"
+    progress_bar: bool = True
+
+    def run(self) -> BaseAlgorithm:
+        """Train to ``total_timesteps``, resuming from the latest checkpoint; skip if done."""
+        if is_done(self.folder):
+            return self.load_final()
+        checkpoints = self.folder / "checkpoints"
+        resume = latest_checkpoint(checkpoints)
+        if resume is not None:
+            venv = self.make_env()
+            normalizer_file = resume / NORMALIZER
+            if normalizer_file.is_file():
+                venv = VecNormalize.load(str(normalizer_file), venv)
+            model = self.algo.load(resume / MODEL, env=venv, device=self.device)
+            check_spaces(f"checkpoint {resume}", model.observation_space, venv.observation_space)
+        else:
+            model = self.make_model()
+        if self.prepare is not None:
+            self.prepare(model)
+        attempt = len(list((self.folder / "logs").glob("run-*"))) if (self.folder / "logs").exists() else 0
+        model.set_logger(configure(str(self.folder / "logs" / f"run-{attempt}"), ["csv", "tensorboard"]))
+        remaining = self.total_timesteps - model.num_timesteps
+        if remaining > 0:
+            callback = CallbackList([*self.callbacks, AtomicCheckpointCallback(checkpoints, self.checkpoint_every)])
+            model.learn(remaining, callback=callback, reset_num_timesteps=False, progress_bar=self.progress_bar)
+        self.save_final(model)
+        return model
+
+    def save_final(self, model: BaseAlgorithm) -> None:
+        atomic_save(self.folder / MODEL, model.save)
+        normalizer = model.get_vec_normalize_env()
+        if normalizer is not None:
+            atomic_save(self.folder / NORMALIZER, lambda p: normalizer.save(str(p)))
+        mark_done(self.folder, num_timesteps=model.num_timesteps)
+        shutil.rmtree(self.folder / "checkpoints", ignore_errors=True)
+
+    def load_final(self) -> BaseAlgorithm:
+        venv = self.make_env()
+        normalizer_file = self.folder / NORMALIZER
+        if normalizer_file.is_file():
+            venv = VecNormalize.load(str(normalizer_file), venv)
+        model = self.algo.load(self.folder / MODEL, env=venv, device=self.device)
+        if self.prepare is not None:
+            self.prepare(model)
+        return model
+
+
+def normalizer_for(venv: VecEnv, normalize: dict[str, Any] | None, gamma: float) -> VecEnv:
+    """Wrap in ``VecNormalize`` with rl-zoo's ``normalize`` kwargs (``None``: no normalisation)."""
+    if normalize is None:
+        return venv
+    return VecNormalize(venv, gamma=gamma, **normalize)
+
+
+def seed_everything(seed: int, threads: int) -> None:
+    th.set_num_threads(max(1, threads))
+    np.random.seed(seed)
+    th.manual_seed(seed)

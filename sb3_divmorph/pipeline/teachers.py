@@ -1,0 +1,84 @@
+"""Stage 1 — teachers: one MetaMorph policy per training task, trained with PPO.
+
+Hyperparameters come from the rl-zoo file of the profile (entry ``Unimal-<task>-v0``), updated by
+the profile's ``overrides`` and ``policy_kwargs``. Each teacher is saved with its
+``VecNormalize`` statistics, which distillation needs to show it observations the way it saw them.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from stable_baselines3 import PPO
+
+from sb3_divmorph.distillation import Teacher
+from sb3_divmorph.pipeline.config import ConfigError, Profile, load_zoo_entry
+from sb3_divmorph.pipeline.runs import (
+    MODEL,
+    NORMALIZER,
+    TrainingRun,
+    is_done,
+    make_vec_env,
+    normalizer_for,
+    profile_robots,
+    resolve_device,
+    task_env_name,
+)
+from unimal_envs.contract import TASK_NAMES, observation_space
+
+
+def teacher_folder(out: Path, task: str) -> Path:
+    return Path(out) / "teachers" / task
+
+
+def teacher_run(profile: Profile, out: Path, task: str, progress_bar: bool = True) -> TrainingRun:
+    """The (resumable) PPO run of one task's teacher."""
+    cfg = profile.teachers
+    env_name = task_env_name(task)
+    entry = load_zoo_entry(cfg.hyperparams, env_name, cfg.overrides)
+    policy_kwargs = {**entry.policy_kwargs, **cfg.policy_kwargs}
+    robots = profile_robots(profile, "train")
+    seed = profile.seed + 1000 * (TASK_NAMES.index(task) + 1)
+    device = resolve_device(profile.device)
+
+    def make_env():
+        return make_vec_env(env_name, entry.n_envs, seed, profile.max_episode_steps, morphologies=robots)
+
+    def make_model():
+        venv = normalizer_for(make_env(), entry.normalize, entry.ppo_kwargs.get("gamma", 0.99))
+        return PPO(entry.policy, venv, policy_kwargs=policy_kwargs, seed=seed, device=device, verbose=0, **entry.ppo_kwargs)
+
+    return TrainingRun(
+        teacher_folder(out, task), cfg.n_timesteps, cfg.checkpoint_every, make_model, make_env,
+        device=device, progress_bar=progress_bar,
+    )
+
+
+def train_teachers(profile: Profile, out: Path, tasks: list[str] | None = None, progress_bar: bool = True) -> list[Path]:
+    """Train (or resume, or skip when done) the teachers of ``tasks`` (default: the profile's)."""
+    done = []
+    for task in tasks or profile.teachers.tasks:
+        if task not in profile.teachers.tasks:
+            raise ConfigError(f"task {task!r} has no teacher in profile {profile.name!r}: {profile.teachers.tasks}")
+        folder = teacher_folder(out, task)
+        if not is_done(folder):
+            print(f"[teachers] {task}: PPO for {profile.teachers.n_timesteps} steps -> {folder}")
+            teacher_run(profile, out, task, progress_bar).run()
+        done.append(folder)
+    return done
+
+
+def load_teachers(profile: Profile, out: Path) -> dict[int, Teacher]:
+    """``{task index: Teacher}`` for every teacher of the profile; a missing one is an error."""
+    teachers = {}
+    for task in profile.teachers.tasks:
+        folder = teacher_folder(out, task)
+        if not is_done(folder):
+            raise FileNotFoundError(
+                f"teacher for {task} not found in {folder} (no done.json); run `divmorph teachers --out {out}` first"
+            )
+        normalizer = folder / NORMALIZER
+        teachers[TASK_NAMES.index(task)] = Teacher.load(
+            folder / MODEL, normalizer if normalizer.is_file() else None, name=task, observation_space=observation_space()
+        )
+    return teachers
