@@ -10,7 +10,7 @@ export MUJOCO_GL ?= egl
 export HF_HUB_OFFLINE ?= 1
 export TRANSFORMERS_OFFLINE ?= 1
 
-.PHONY: demo test install benchmarks clean
+.PHONY: demo tour test install benchmarks clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -22,8 +22,13 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
+# The main job: the knowledge-diversion pipeline at its tiny "demo" budget (~10 min on 2 cores).
 demo: $(STAMP)
-	$(PY) -m unimal_envs.demo --out runs/demo
+	$(VENV)/bin/divmorph pipeline --profile demo --out runs/demo
+
+# A tour of the environments: scripted gaits on several robots, a table, a video and a picture.
+tour: $(STAMP)
+	$(PY) -m unimal_envs.demo --out runs/tour
 
 test: $(STAMP)
 	$(PY) -m pytest -q

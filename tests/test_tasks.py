@@ -209,6 +209,8 @@ def test_task_observation_keys(train_files):
     uses = {"hfield": {"VT", "Obstacle", "Escape"}, "goal": {"Patrol", "PointNav", "PushBoxIncline", "ManipulateBox"},
             "object": {"PushBoxIncline", "ManipulateBox"}}
     for task in TASKS:
+        # the declared keys (what an exported single-task actor keeps) are the ones the task fills
+        assert set(TASKS[task].observation_keys) == {key for key, tasks in uses.items() if task in tasks}, task
         env = gym.make(unimal_envs.env_id(task), morphologies=train_files[:1])
         obs, _ = env.reset(seed=0)
         for key, tasks in uses.items():

@@ -15,7 +15,7 @@ from typing import Any
 
 import yaml
 from stable_baselines3 import PPO
-from stable_baselines3.common.utils import get_linear_fn
+from stable_baselines3.common.utils import LinearSchedule
 
 from unimal_envs.contract import NOVEL_TASKS, TASK_NAMES, TRAIN_TASKS
 
@@ -212,7 +212,7 @@ def _zoo_eval(text: str, where: str) -> Any:
 def _schedule(value: Any, where: str) -> Any:
     if isinstance(value, str) and value.startswith("lin_"):
         start = float(value[4:])
-        return get_linear_fn(start, 0.0, 1.0)
+        return LinearSchedule(start, 0.0, 1.0)
     if isinstance(value, str):
         raise ConfigError(f"{where}: only numbers and 'lin_<value>' schedules are supported, got {value!r}")
     return value

@@ -13,7 +13,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from stable_baselines3 import PPO
-from stable_baselines3.common.utils import get_linear_fn
+from stable_baselines3.common.utils import LinearSchedule
 from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_divmorph.distillation import DAggerCallback, ImitationPPO, TeacherMixingVecEnv
@@ -57,7 +57,7 @@ def distill_run(profile: Profile, out: Path, progress_bar: bool = True) -> Train
     callback = DAggerCallback(
         teachers,
         TASK_NAMES,
-        beta=get_linear_fn(cfg.beta_start, cfg.beta_end, 1.0),
+        beta=LinearSchedule(cfg.beta_start, cfg.beta_end, 1.0),
         learning_rate=cfg.learning_rate,
         epochs=cfg.epochs,
         batch_size=cfg.batch_size,

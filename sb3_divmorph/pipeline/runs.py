@@ -196,6 +196,10 @@ class TrainingRun:
         if is_done(self.folder):
             return self.load_final()
         checkpoints = self.folder / "checkpoints"
+        for stale in checkpoints.glob(".staging-*"):  # a save cut short by a kill
+            shutil.rmtree(stale, ignore_errors=True)
+        for stale in self.folder.glob(".*.tmp*"):
+            stale.unlink(missing_ok=True)
         resume = latest_checkpoint(checkpoints)
         if resume is not None:
             venv = self.make_env()

@@ -1,0 +1,183 @@
+"""The divmorph pipeline end to end on a tiny profile: stages, resumption, atomicity, bad input."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch as th
+import yaml
+
+from sb3_divmorph.cli import main as cli
+from sb3_divmorph.pipeline.config import ConfigError, load_profile, load_zoo_entry
+from sb3_divmorph.pipeline.runs import latest_checkpoint, read_done
+
+REPO = Path(__file__).resolve().parents[1]
+TINY_POLICY = {"d_model": 16, "n_layers": 1, "ff_dim": 32, "exteroception": {"hfield": [8], "goal": [4], "object": [4]}}
+TINY = {
+    "seed": 0,
+    "device": "cpu",
+    "torch_threads": 1,
+    "train_robots": 2,
+    "novel_robots": 2,
+    "max_episode_steps": 40,
+    "teachers": {
+        "tasks": ["FT", "Patrol"],
+        "hyperparams": str(REPO / "zoo_configs" / "ppo.yml"),
+        "n_timesteps": 128,
+        "overrides": {"n_envs": 1, "n_steps": 64, "batch_size": 64, "n_epochs": 1},
+        "policy_kwargs": TINY_POLICY,
+        "checkpoint_every": 64,
+    },
+    "student": {"policy_kwargs": {**TINY_POLICY, "n_morph_tailors": 6, "n_task_tailors": 6, "top_k_morph": 2, "top_k_task": 2}},
+    "distill": {"n_timesteps": 128, "n_envs": 2, "n_steps": 32, "epochs": 1, "batch_size": 32, "buffer_size": 256, "checkpoint_every": 64},
+    "transfer": {"tasks": ["Escape"], "n_timesteps": 128, "overrides": {"n_envs": 1, "n_steps": 64, "batch_size": 64, "n_epochs": 1},
+                 "checkpoint_every": 64},
+    "export": {"tasks": ["FT", "Escape"], "latency_repeats": 5},
+    "evaluate": {"episodes": 1},
+}
+
+
+def write_profiles(folder: Path, **changes) -> Path:
+    profile = json.loads(json.dumps(TINY))
+    for dotted, value in changes.items():
+        *parents, key = dotted.split("__")
+        target = profile
+        for parent in parents:
+            target = target[parent]
+        target[key] = value
+    path = folder / "profiles.yml"
+    path.write_text(yaml.safe_dump({"tiny": profile}))
+    return path
+
+
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory):
+    """The whole tiny pipeline, run once through the CLI."""
+    folder = tmp_path_factory.mktemp("pipeline")
+    profiles = write_profiles(folder)
+    out = folder / "run"
+    assert cli(["pipeline", "--profile", "tiny", "--profiles", str(profiles), "--out", str(out), "--no-progress"]) == 0
+    th.set_num_threads(2)
+    return out, profiles
+
+
+def test_every_stage_writes_its_outputs(finished_run):
+    out, _ = finished_run
+    for task in ("FT", "Patrol"):
+        assert (out / "teachers" / task / "model.zip").is_file() and (out / "teachers" / task / "vecnormalize.pkl").is_file()
+        assert read_done(out / "teachers" / task)["num_timesteps"] >= 128
+    with open(next((out / "student" / "logs").glob("run-*/progress.csv"))) as f:
+        columns = next(csv.reader(f))
+    assert {"distill/loss", "distill/kl/FT", "distill/kl/Patrol", "gates/task_entropy", "distill/beta"} <= set(columns)
+    assert list((out / "student" / "logs").glob("run-*/events.out.tfevents*"))
+    for arm in ("divmorph", "scratch"):
+        assert read_done(out / "transfer" / "Escape" / arm)["num_timesteps"] >= 128
+    reports = sorted((out / "export").glob("*/report.json"))
+    assert len(reports) == 4  # 2 robots (one per split) x 2 tasks
+    for path in reports:
+        report = json.loads(path.read_text())
+        assert report["max_abs_diff"] <= 1e-5
+        assert report["compact_weights"] < report["student_actor_parameters"]
+        assert (path.parent / "actor.pt").is_file()
+    with open(out / "evaluate" / "returns.csv") as f:
+        rows = list(csv.DictReader(f))
+    # teachers (2 tasks) + student (2 train + 1 novel task) + 2 transfer arms, on 2 + 2 robots
+    assert len(rows) == (2 + 3 + 2) * 4
+    assert {r["split"] for r in rows} == {"train", "novel"}
+    assert all(np.isfinite(float(r["return"])) for r in rows)
+    with np.load(out / "evaluate" / "gates.npz") as gates:
+        assert gates["task_gates"].shape == (10, 6) and gates["morphology_gates"].shape == (4, 6)
+    for png in ("curves.png", "gates.png", "returns.png"):
+        assert (out / "report" / png).stat().st_size > 10_000
+    summary = (out / "summary.md").read_text()
+    assert "Deployment" in summary and "transfer-divmorph" in summary
+
+
+def test_a_finished_pipeline_is_skipped_not_recomputed(finished_run):
+    out, profiles = finished_run
+    stamps = {p: p.stat().st_mtime_ns for p in out.glob("**/model.zip")}
+    start = time.perf_counter()
+    assert cli(["pipeline", "--profile", "tiny", "--profiles", str(profiles), "--out", str(out), "--no-progress"]) == 0
+    assert {p: p.stat().st_mtime_ns for p in out.glob("**/model.zip")} == stamps
+    assert time.perf_counter() - start < 30
+
+
+def test_a_killed_run_resumes_from_its_last_checkpoint(tmp_path):
+    profiles = write_profiles(tmp_path, teachers__n_timesteps=4096, teachers__checkpoint_every=256, teachers__tasks=["FT"])
+    out = tmp_path / "run"
+    command = [sys.executable, "-m", "sb3_divmorph.cli", "teachers", "--profile", "tiny", "--profiles", str(profiles),
+               "--out", str(out), "--no-progress"]
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    checkpoints = out / "teachers" / "FT" / "checkpoints"
+    deadline = time.time() + 240
+    while time.time() < deadline and (latest_checkpoint(checkpoints) is None or _steps(checkpoints) < 512):
+        time.sleep(0.2)
+    os.kill(process.pid, signal.SIGKILL)
+    process.wait()
+    saved = _steps(checkpoints)
+    assert saved >= 512, "no checkpoint was written before the kill"
+    assert not (out / "teachers" / "FT" / "done.json").exists()
+
+    assert cli(["teachers", "--profile", "tiny", "--profiles", str(profiles), "--out", str(out), "--no-progress"]) == 0
+    assert read_done(out / "teachers" / "FT")["num_timesteps"] == 4096
+    logs = sorted((out / "teachers" / "FT" / "logs").glob("run-*/progress.csv"))
+    assert len(logs) == 2
+    with open(logs[1]) as f:
+        resumed = [int(float(row["time/total_timesteps"])) for row in csv.DictReader(f)]
+    # the second attempt started from the checkpoint (lost at most one interval), not from zero
+    assert resumed[0] > saved
+    assert resumed[0] <= saved + 256
+    assert not [p for p in out.glob("**/*") if ".tmp" in p.name or ".staging" in p.name]
+
+
+def _steps(checkpoints: Path) -> int:
+    pointer = checkpoints / "latest.json"
+    try:
+        return json.loads(pointer.read_text())["num_timesteps"]
+    except (FileNotFoundError, json.JSONDecodeError):
+        return 0
+
+
+def test_profile_errors_name_the_key_and_the_choices(tmp_path):
+    with pytest.raises(ConfigError, match=r"unknown key\(s\) \['n_timestep'\].*valid keys"):
+        load_profile("tiny", write_profiles(tmp_path, distill__n_timestep=5))
+    with pytest.raises(ConfigError, match="unknown profile 'nope'.*tiny"):
+        load_profile("nope", write_profiles(tmp_path))
+    with pytest.raises(ConfigError, match="Escape"):
+        load_profile("tiny", write_profiles(tmp_path, teachers__tasks=["FT", "Escape"]))
+    with pytest.raises(ConfigError, match="ppo_loss needs beta"):
+        load_profile("tiny", write_profiles(tmp_path, distill__ppo_loss=True))
+    zoo = tmp_path / "zoo.yml"
+    zoo.write_text("Unimal-FT-v0:\n  n_timesteps: 10\n  learning_rat: 0.1\n")
+    with pytest.raises(ConfigError, match="learning_rat"):
+        load_zoo_entry(zoo, "Unimal-FT-v0")
+    with pytest.raises(ConfigError, match="no entry for Unimal-VT-v0"):
+        load_zoo_entry(zoo, "Unimal-VT-v0")
+    assert load_profile("demo").name == "demo" and load_profile("gpu").transfer.tasks
+
+
+def test_missing_stages_and_bad_arguments_give_clear_errors(tmp_path, capsys):
+    profiles = write_profiles(tmp_path)
+    out = tmp_path / "empty"
+    base = ["--profile", "tiny", "--profiles", str(profiles), "--out", str(out), "--no-progress"]
+    assert cli(["distill", *base]) == 2
+    assert "teacher for FT not found" in capsys.readouterr().err
+    assert cli(["transfer", *base, "--task", "Escape"]) == 2
+    assert "no distilled student" in capsys.readouterr().err
+    assert cli(["transfer", *base, "--task", "FT"]) == 2
+    assert "not one of" in capsys.readouterr().err
+    assert cli(["export", *base, "--morphology", "nobody"]) == 2
+    assert "unknown morphology 'nobody'" in capsys.readouterr().err
+    assert cli(["teachers", *base, "--task", "Walk"]) == 2
+    assert "no teacher" in capsys.readouterr().err
+    assert cli(["report", "--profile", "missing", "--profiles", str(profiles)]) == 2
+    assert "unknown profile" in capsys.readouterr().err
