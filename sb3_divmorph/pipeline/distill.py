@@ -18,7 +18,7 @@ from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_divmorph.distillation import DAggerCallback, ImitationPPO, TeacherMixingVecEnv
 from sb3_divmorph.pipeline.config import Profile, load_zoo_entry
-from sb3_divmorph.pipeline.runs import TrainingRun, make_vec_env, profile_robots, resolve_device
+from sb3_divmorph.pipeline.runs import TrainingRun, is_done, make_vec_env, profile_robots, resolve_device
 from sb3_divmorph.pipeline.teachers import load_teachers
 from sb3_divmorph.policies import DivMorphPolicy
 from unimal_envs.contract import TASK_NAMES
@@ -72,5 +72,7 @@ def distill_run(profile: Profile, out: Path, progress_bar: bool = True) -> Train
 
 def distill(profile: Profile, out: Path, progress_bar: bool = True):
     """Distil the profile's teachers into a DivMorph student (resumes; skips when done)."""
+    if is_done(student_folder(out)):
+        return None
     print(f"[distill] DAgger into a DivMorph student for {profile.distill.n_timesteps} steps -> {student_folder(out)}")
     return distill_run(profile, out, progress_bar).run()

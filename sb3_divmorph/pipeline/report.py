@@ -21,7 +21,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from sb3_divmorph.pipeline.config import Profile  # noqa: E402
-from sb3_divmorph.pipeline.runs import atomic_save, atomic_write_text, read_done  # noqa: E402
+from sb3_divmorph.pipeline.runs import atomic_save, atomic_write_text  # noqa: E402
 
 
 def read_progress(folder: Path) -> dict[str, np.ndarray]:
@@ -81,6 +81,10 @@ def _correlation(gates: np.ndarray) -> np.ndarray:
     norms[norms == 0] = 1
     unit = centred / norms
     return unit @ unit.T
+
+
+def _distinct(gates: np.ndarray) -> int:
+    return len({tuple(row) for row in (gates > 0)})
 
 
 def plot_gates(gates: dict[str, np.ndarray], target: Path) -> None:
@@ -194,7 +198,11 @@ def report(profile: Profile, out: Path, command: str = "") -> str:
         plot_gates(gates, folder / "gates.png")
         used = (gates["task_gates"] > 0).sum(0)
         lines += ["", "## Gates", "", "![gates](report/gates.png)", "",
-                  f"Task tailors selected by at least one of the 10 instructions: {int((used > 0).sum())} of {len(used)}."]
+                  f"Task tailors selected by at least one of the 10 instructions: {int((used > 0).sum())} of {len(used)}; "
+                  f"distinct task-tailor selections: {_distinct(gates['task_gates'])} among {len(gates['tasks'])} tasks; "
+                  f"distinct morphology-tailor selections: {_distinct(gates['morphology_gates'])} among "
+                  f"{len(gates['robots'])} robots (the correlation of two gate vectors that select the same top-k "
+                  "tailors is close to 1 even when their weights differ)."]
 
     exports = sorted((out / "export").glob("*/report.json"))
     if exports:
@@ -213,11 +221,3 @@ def report(profile: Profile, out: Path, command: str = "") -> str:
     summary = "\n".join(lines) + "\n"
     atomic_write_text(out / "summary.md", summary)
     return summary
-
-
-def stage_seconds(out: Path) -> dict[str, str]:
-    """When each finished stage finished (from its ``done.json``)."""
-    found = {}
-    for done in sorted(Path(out).glob("**/done.json")):
-        found[str(done.parent.relative_to(out))] = read_done(done.parent).get("finished", "")
-    return found
