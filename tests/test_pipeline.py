@@ -11,6 +11,7 @@ import sys
 import time
 from pathlib import Path
 
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
@@ -19,6 +20,7 @@ import yaml
 from sb3_divmorph.cli import main as cli
 from sb3_divmorph.pipeline.config import ConfigError, load_profile, load_zoo_entry
 from sb3_divmorph.pipeline.runs import latest_checkpoint, read_done
+from unimal_envs.morphology.loader import morphology_files
 
 REPO = Path(__file__).resolve().parents[1]
 TINY_POLICY = {"d_model": 16, "n_layers": 1, "ff_dim": 32, "exteroception": {"hfield": [8], "goal": [4], "object": [4]}}
@@ -181,3 +183,28 @@ def test_missing_stages_and_bad_arguments_give_clear_errors(tmp_path, capsys):
     assert "no teacher" in capsys.readouterr().err
     assert cli(["report", "--profile", "missing", "--profiles", str(profiles)]) == 2
     assert "unknown profile" in capsys.readouterr().err
+
+
+def test_a_checkpoint_for_another_observation_space_is_refused(finished_run, tmp_path):
+    from gymnasium import spaces
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor
+
+    from sb3_divmorph.distillation import SpaceMismatchError
+    from sb3_divmorph.pipeline.runs import TrainingRun
+
+    out, _ = finished_run
+
+    class Narrow(gym.ObservationWrapper):
+        def __init__(self, env):
+            super().__init__(env)
+            self.observation_space = spaces.Dict({**env.observation_space.spaces, "goal": spaces.Box(-1, 1, (2,), np.float32)})
+
+        def observation(self, obs):
+            return {**obs, "goal": obs["goal"][:2]}
+
+    def make_env():
+        return VecMonitor(DummyVecEnv([lambda: Narrow(gym.make("Unimal-FT-v0", morphologies=morphology_files("train")[:1]))]))
+
+    run = TrainingRun(out / "teachers" / "FT", 10, 10, make_model=None, make_env=make_env)
+    with pytest.raises(SpaceMismatchError, match="goal"):
+        run.load_final()

@@ -26,6 +26,7 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.logger import configure
+from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecMonitor, VecNormalize
 
 import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
@@ -202,12 +203,7 @@ class TrainingRun:
             stale.unlink(missing_ok=True)
         resume = latest_checkpoint(checkpoints)
         if resume is not None:
-            venv = self.make_env()
-            normalizer_file = resume / NORMALIZER
-            if normalizer_file.is_file():
-                venv = VecNormalize.load(str(normalizer_file), venv)
-            model = self.algo.load(resume / MODEL, env=venv, device=self.device)
-            check_spaces(f"checkpoint {resume}", model.observation_space, venv.observation_space)
+            model = self._load(resume)
         else:
             model = self.make_model()
         if self.prepare is not None:
@@ -230,14 +226,19 @@ class TrainingRun:
         shutil.rmtree(self.folder / "checkpoints", ignore_errors=True)
 
     def load_final(self) -> BaseAlgorithm:
-        venv = self.make_env()
-        normalizer_file = self.folder / NORMALIZER
-        if normalizer_file.is_file():
-            venv = VecNormalize.load(str(normalizer_file), venv)
-        model = self.algo.load(self.folder / MODEL, env=venv, device=self.device)
+        model = self._load(self.folder)
         if self.prepare is not None:
             self.prepare(model)
         return model
+
+    def _load(self, folder: Path) -> BaseAlgorithm:
+        """Model + statistics saved in ``folder``, on a fresh env; a space mismatch is an error."""
+        venv = self.make_env()
+        saved_space = load_from_zip_file(folder / MODEL, device="cpu")[0]["observation_space"]
+        check_spaces(f"checkpoint {folder}", saved_space, venv.observation_space)
+        if (folder / NORMALIZER).is_file():
+            venv = VecNormalize.load(str(folder / NORMALIZER), venv)
+        return self.algo.load(folder / MODEL, env=venv, device=self.device)
 
 
 def normalizer_for(venv: VecEnv, normalize: dict[str, Any] | None, gamma: float) -> VecEnv:
