@@ -156,6 +156,8 @@ def test_profile_errors_name_the_key_and_the_choices(tmp_path):
         load_profile("nope", write_profiles(tmp_path))
     with pytest.raises(ConfigError, match="Escape"):
         load_profile("tiny", write_profiles(tmp_path, teachers__tasks=["FT", "Escape"]))
+    with pytest.raises(ConfigError, match="not in transfer.tasks"):
+        load_profile("tiny", write_profiles(tmp_path, transfer__instructions={"PointNav": "go"}))
     with pytest.raises(ConfigError, match="ppo_loss needs beta"):
         load_profile("tiny", write_profiles(tmp_path, distill__ppo_loss=True))
     zoo = tmp_path / "zoo.yml"
@@ -208,3 +210,13 @@ def test_a_checkpoint_for_another_observation_space_is_refused(finished_run, tmp
     run = TrainingRun(out / "teachers" / "FT", 10, 10, make_model=None, make_env=make_env)
     with pytest.raises(SpaceMismatchError, match="goal"):
         run.load_final()
+
+
+def test_a_transfer_instruction_reaches_the_gates_input():
+    from sb3_divmorph.pipeline.transfer import robot_observations
+
+    robots = morphology_files("train")[:1]
+    default = robot_observations("Unimal-Escape-v0", robots)
+    custom = robot_observations("Unimal-Escape-v0", robots, instruction="Climb out of the crater as fast as you can.")
+    assert not np.allclose(default["task_embedding"], custom["task_embedding"])
+    assert np.isclose(np.linalg.norm(custom["task_embedding"]), 1.0, atol=1e-4)

@@ -103,6 +103,9 @@ class TransferConfig:
     n_timesteps: int
     learngene_lr_scale: float = 0.1
     compare_scratch: bool = True
+    #: ``{task: instruction}``: a novel task described in your own words (re-embedded by the
+    #: text encoder; the gates read it); default: the task's built-in instruction
+    instructions: dict[str, str] = field(default_factory=dict)
     overrides: dict[str, Any] = field(default_factory=dict)
     checkpoint_every: int = 50_000
 
@@ -157,6 +160,9 @@ class Profile:
         _check_tasks(profile.teachers.tasks, TRAIN_TASKS, f"profile {name!r}, teachers.tasks")
         _check_tasks(profile.transfer.tasks, NOVEL_TASKS, f"profile {name!r}, transfer.tasks")
         _check_tasks(profile.export.tasks, TASK_NAMES, f"profile {name!r}, export.tasks")
+        stray = sorted(set(profile.transfer.instructions) - set(profile.transfer.tasks))
+        if stray:
+            raise ConfigError(f"profile {name!r}: transfer.instructions for {stray}, which are not in transfer.tasks {profile.transfer.tasks}")
         if not 0 <= profile.distill.beta_start <= 1 or not 0 <= profile.distill.beta_end <= 1:
             raise ConfigError(f"profile {name!r}: distill.beta_start/beta_end must be in [0, 1]")
         if profile.distill.ppo_loss and max(profile.distill.beta_start, profile.distill.beta_end) > 0:

@@ -1,8 +1,9 @@
 """Stage 3 — transfer to a novel task: the student with fixed gates vs MetaMorph from scratch.
 
 The student's weights and observation statistics are loaded into a PPO run on the novel task
-(``Unimal-<task>-v0`` on the training robots); its gates see the task's instruction embedding and
-stay fixed; PPO trains the tailors those gates select and, ``learngene_lr_scale`` times slower, the
+(``Unimal-<task>-v0`` on the training robots); its gates see the embedding of the task's
+instruction (the built-in one, or ``transfer.instructions[task]`` of the profile, embedded by the
+text encoder) and stay fixed; PPO trains the tailors those gates select and, ``learngene_lr_scale`` times slower, the
 shared knowledge (:func:`sb3_divmorph.finetune.prepare_transfer`). With ``compare_scratch`` the same
 budget trains a MetaMorph policy from scratch with the task's rl-zoo settings, so both learning
 curves come from one command.
@@ -41,11 +42,11 @@ def transfer_folder(out: Path, task: str, arm: str) -> Path:
     return Path(out) / "transfer" / task / arm
 
 
-def robot_observations(env_name: str, robots: list[Path], seed: int = 0) -> dict[str, np.ndarray]:
+def robot_observations(env_name: str, robots: list[Path], seed: int = 0, instruction: str | None = None) -> dict[str, np.ndarray]:
     """One reset observation per robot, batched (for gates and selections)."""
     import gymnasium as gym
 
-    env = gym.make(env_name, morphologies=robots)
+    env = gym.make(env_name, morphologies=robots, **({"instruction": instruction} if instruction else {}))
     try:
         observations = [env.reset(seed=seed, options={"morphology": i})[0] for i in range(len(robots))]
     finally:
@@ -72,9 +73,12 @@ def transfer_run(profile: Profile, out: Path, task: str, arm: str, progress_bar:
     device = resolve_device(profile.device)
     seed = profile.seed + 7000 + TASK_NAMES.index(task)
     gamma = entry.ppo_kwargs.get("gamma", 0.99)
+    env_kwargs = {"morphologies": robots}
+    if task in cfg.instructions:
+        env_kwargs["instruction"] = cfg.instructions[task]
 
     def make_env():
-        return make_vec_env(env_name, entry.n_envs, seed, profile.max_episode_steps, morphologies=robots)
+        return make_vec_env(env_name, entry.n_envs, seed, profile.max_episode_steps, **env_kwargs)
 
     prepare = None
     if arm == "scratch":
@@ -88,7 +92,7 @@ def transfer_run(profile: Profile, out: Path, task: str, arm: str, progress_bar:
         source = student_folder(out)
         if not is_done(source):
             raise FileNotFoundError(f"no distilled student in {source}; run `divmorph distill --out {out}` first")
-        selection_obs = robot_observations(env_name, robots, seed)
+        selection_obs = robot_observations(env_name, robots, seed, env_kwargs.get("instruction"))
 
         def make_model():
             student = PPO.load(source / MODEL, device=device)
