@@ -171,11 +171,12 @@ def export_all(profile: Profile, out: Path, tasks: list[str] | None = None, robo
         for robot in robots:
             print(f"[export] {Path(robot).stem} x {task}")
             reports.append(export_actor(profile, out, robot, task))
-    if reports:
-        columns = list(reports[0])
+    # the summary covers every actor exported into this run folder so far, not only this call's
+    everything = [json.loads(p.read_text()) for p in sorted((Path(out) / "export").glob("*/report.json"))]
+    if everything:
         buffer = io.StringIO()
-        writer = csv.DictWriter(buffer, fieldnames=columns, extrasaction="ignore")
+        writer = csv.DictWriter(buffer, fieldnames=list(everything[0]), extrasaction="ignore")
         writer.writeheader()
-        writer.writerows(reports)
+        writer.writerows(everything)
         atomic_write_text(Path(out) / "export" / "summary.csv", buffer.getvalue())
     return reports
