@@ -232,9 +232,8 @@ class CompactActor(nn.Module):
         tailor = None if gates is None else gates[0]
         first = merged_layer(decoder_layers[0], tailor, keep_rows, dropped_values)
         self.decoder = nn.ModuleList([first] + [merged_layer(layer, tailor) for layer in decoder_layers[1:]])
-        self.decoder_relu = [True] * (len(decoder_layers) - 1) + [False]
-        if policy.activation_fn not in (nn.ReLU,):
-            raise NotImplementedError(f"export supports ReLU decoders, got {policy.activation_fn.__name__}")
+        # the decoder's own activation modules (after every hidden layer, none after the head)
+        self.decoder_activations = nn.ModuleList(copy.deepcopy(list(policy.mlp_extractor.policy_net.activations)) + [nn.Identity()])
 
         slot_real = (obs[ACT_PADDING_MASK][0] < 0.5).float().view(self.n_tokens, self.slots)
         self.register_buffer("action_scale", slot_real[real])
@@ -255,10 +254,8 @@ class CompactActor(nn.Module):
         if self.used_extero:
             extero = th.cat([self.exteroception[k](self._normalize(k, inputs[k].flatten(1))) for k in self.used_extero], dim=-1)
             x = th.cat([x, extero[:, None, :].expand(-1, x.shape[1], -1)], dim=-1)
-        for layer, relu in zip(self.decoder, self.decoder_relu):
-            x = layer(x)
-            if relu:
-                x = F.relu(x)
+        for layer, activation in zip(self.decoder, self.decoder_activations):
+            x = activation(layer(x))
         actions = x * self.action_scale
         out = x.new_zeros(x.shape[0], self.n_tokens, self.slots)
         out = out.index_copy(1, self.real_tokens, actions)

@@ -170,12 +170,13 @@ def test_transfer_keeps_gates_fixed_and_unselected_tailors_frozen():
     assert th.equal(after.task, gates.task) and th.equal(after.morphology, gates.morphology)
 
 
-@pytest.mark.parametrize("task", ["FT", "VT", "ManipulateBox"])
-def test_compact_actor_equals_the_student_and_runs_from_torch_alone(task, tmp_path):
+@pytest.mark.parametrize("task, activation", [("FT", th.nn.ReLU), ("VT", th.nn.Tanh), ("ManipulateBox", th.nn.ReLU)])
+def test_compact_actor_equals_the_student_and_runs_from_torch_alone(task, activation, tmp_path):
     th.manual_seed(1)
     venv = VecNormalize(DummyVecEnv([lambda: gym.make(f"Unimal-{task}-v0", morphologies=ROBOTS[:1], max_episode_steps=50)]),
                         norm_obs_keys=["proprioceptive"])
-    model = PPO("DivMorphPolicy", venv, n_steps=64, batch_size=64, n_epochs=1, seed=0, policy_kwargs=TINY_DIVMORPH)
+    model = PPO("DivMorphPolicy", venv, n_steps=64, batch_size=64, n_epochs=1, seed=0,
+                policy_kwargs=dict(TINY_DIVMORPH, activation_fn=activation))
     model.learn(64)  # moves the weights away from the SVD init and fills the statistics
     venv.training = False
     venv.reset()
