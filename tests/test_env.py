@@ -167,6 +167,25 @@ def test_velocities_describe_the_current_state(train_files):
     np.testing.assert_allclose(obs["proprioceptive"][0, 1:3], fresh.xpos[unwrapped.robot.torso_id, 1:3], atol=1e-5)
 
 
+def test_proprioception_sensors_are_read_once_per_step_not_while_stepping(train_files):
+    env = make_ft(train_files[:1])
+    env.reset(seed=0)
+    unwrapped = env.unwrapped
+    model, data = unwrapped.model, unwrapped.data
+    # Only the robot's proprioception sensors are compiled, and they are off during mj_step.
+    assert all(model.sensor(s).name.startswith("proprioception/") for s in range(model.nsensor))
+    assert model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_SENSOR
+    obs = env.step(np.full(C.ACTION_DIM, 0.5, np.float32))[0]["proprioceptive"]
+    data.sensordata[:] = np.nan
+    mujoco.mj_step(model, data, nstep=4)
+    assert np.isnan(data.sensordata).all()
+    # The observation evaluates them itself, so stale sensordata never leaks into it.
+    mujoco.mj_resetData(model, data)
+    unwrapped.robot.sync()
+    again = unwrapped.robot.proprioception()
+    assert np.isfinite(again).all() and not np.array_equal(again, obs)
+    assert model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_SENSOR
+
 def test_wrong_action_shape_is_rejected(train_files):
     env = make_ft(train_files[:1])
     env.reset(seed=0)

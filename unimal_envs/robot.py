@@ -11,12 +11,24 @@ Velocity convention
 last substep while ``qpos``/``qvel`` are already integrated (mujoco_py observed this mixed state).
 After stepping, :meth:`Robot.sync` runs ``mj_kinematics``, ``mj_comPos`` and ``mj_comVel`` so every
 feature describes the same instant, the current state. Body velocities are the
-world-frame linear velocity of the body-frame
-origin and the world-frame angular velocity, i.e. ``mj_objectVelocity(mjOBJ_XBODY, flg_local=0)``
-(= ``mj_jacBody @ qvel`` on fresh kinematics, what mujoco_py's ``body_xvelp/xvelr`` meant).
+world-frame linear velocity of the body-frame origin and the world-frame angular velocity, i.e.
+``mj_objectVelocity(mjOBJ_XBODY, flg_local=0)`` (= ``mj_jacBody @ qvel`` on fresh kinematics,
+what mujoco_py's ``body_xvelp/xvelr`` meant).
+
+How it is read
+--------------
+The dynamic features come from MuJoCo sensors the robot adds to its world (``framepos``,
+``framelinvel``, ``frameangvel``, ``framequat`` per body; ``jointpos``, ``jointvel`` per hinge),
+so one ``mj_sensorPos`` + ``mj_sensorVel`` call computes them all in C and the observation is a
+block copy plus one scatter. Sensors are disabled (``mjDSBL_SENSOR``) while ``mj_step`` runs its
+four substeps and switched on only for that call; the robot file's own IMU and touch sensors
+are not compiled into the world (nothing reads them).
 """
 
 from __future__ import annotations
+
+import functools
+import xml.etree.ElementTree as ET
 
 import mujoco
 import numpy as np
@@ -29,6 +41,34 @@ TIMESTEP = 0.005
 _FILTERPARENT = int(mujoco.mjtDisableBit.mjDSBL_FILTERPARENT)
 # Body-frame origin (mjOBJ_BODY would give the centre of mass); a plain int is faster to pass.
 _XBODY = int(mujoco.mjtObj.mjOBJ_XBODY)
+_JOINT = int(mujoco.mjtObj.mjOBJ_JOINT)
+_SENSORS = int(mujoco.mjtDisableBit.mjDSBL_SENSOR)
+_SENSOR = mujoco.mjtSensor
+#: Per token, in the order of the observation's columns 0-12 (contract XPOS, XVELP, XVELR, XQUAT).
+_BODY_SENSORS = {
+    "pos": _SENSOR.mjSENS_FRAMEPOS,
+    "linvel": _SENSOR.mjSENS_FRAMELINVEL,
+    "angvel": _SENSOR.mjSENS_FRAMEANGVEL,
+    "quat": _SENSOR.mjSENS_FRAMEQUAT,
+}
+_HINGE_SENSORS = {"angle": _SENSOR.mjSENS_JOINTPOS, "velocity": _SENSOR.mjSENS_JOINTVEL}
+
+
+@functools.lru_cache(maxsize=256)
+def _world_xml(xml: str) -> str:
+    """The robot file without its ``<contact><exclude>`` list and its sensors.
+
+    MetaMorph drops the excludes (self-collisions are filtered by parent only). No observation
+    reads the file's IMU and touch sensors, and computing them at every substep costs ~7% of a
+    step, so the world does without them. Editing the text is much faster than deleting the
+    elements from an MjSpec one by one, and a world is recompiled on every cache miss.
+    """
+    root = ET.fromstring(xml)
+    for section, child in (("contact", "exclude"), ("sensor", None)):
+        for parent in root.findall(section):
+            for element in list(parent) if child is None else parent.findall(child):
+                parent.remove(element)
+    return ET.tostring(root, encoding="unicode")
 
 
 class Robot:
@@ -58,22 +98,33 @@ class Robot:
         """A world spec holding only this robot, ready for an arena and a task to add to.
 
         Applies MetaMorph's loader settings: timestep 0.005, ``filterparent`` enabled, the file's
-        ``<contact><exclude>`` list dropped (self-collisions are filtered by parent only).
+        ``<contact><exclude>`` list dropped (self-collisions are filtered by parent only). The
+        file's sensors are replaced by the proprioception sensors, which are disabled while
+        stepping and evaluated once per control step by :meth:`proprioception`.
 
         :param pos: torso spawn position; default ``(0, 0, torso_height)``.
         :param quat: torso spawn orientation (w, x, y, z); default identity.
         """
-        spec = self.morphology.spec()
+        spec = mujoco.MjSpec.from_string(_world_xml(self.morphology.xml))
         spec.option.timestep = TIMESTEP
-        spec.option.disableflags &= ~_FILTERPARENT
+        spec.option.disableflags = (spec.option.disableflags & ~_FILTERPARENT) | _SENSORS
         spec.njmax, spec.nconmax = 1000, 200
-        for exclude in list(spec.excludes):
-            spec.delete(exclude)
+        self._add_proprioception_sensors(spec)
         torso = spec.body(TORSO)
         torso.pos = pos if pos is not None else (0.0, 0.0, self.morphology.torso_height)
         if quat is not None:
             torso.quat = quat
         return spec
+
+    def _add_proprioception_sensors(self, spec: mujoco.MjSpec) -> None:
+        # sensordata then holds the whole dynamic state in one block: per token the 13 body
+        # columns in observation order, then every hinge's angle, then every hinge's velocity.
+        for body in self.morphology.tokens:
+            for reading, kind in _BODY_SENSORS.items():
+                spec.add_sensor(name=f"proprioception/{body}/{reading}", type=kind, objtype=_XBODY, objname=body)
+        for reading, kind in _HINGE_SENSORS.items():
+            for hinge in self._slot_of_hinge:
+                spec.add_sensor(name=f"proprioception/{hinge}/{reading}", type=kind, objtype=_JOINT, objname=hinge)
 
     def bind(self, model: mujoco.MjModel, data: mujoco.MjData) -> None:
         """Resolve indices into a compiled world that contains this robot."""
@@ -106,42 +157,31 @@ class Robot:
             [hinge_slots[hinge_ids.index(actuated[a])] for a in self._robot_actuators], dtype=np.intp
         )
         self._ctrl_all = len(self._robot_actuators) == model.nu
-        token, slot = np.divmod(hinge_slots, C.SLOTS_PER_TOKEN)
-        col = np.array([C.HINGE_SLOT_COLUMNS[s].start for s in slot], dtype=np.intp)
-        # Every dynamic feature is gathered into one state vector laid out as
-        # [xpos (n,3) | angular, linear velocity (n,6) | xquat (n,4) | hinge qpos | hinge qvel],
-        # then scaled (qpos normalisation) and scattered into the observation with one assignment.
+        # The proprioception sensors (see _add_proprioception_sensors) fill one block of
+        # sensordata: n rows of the 13 body columns, then the hinge angles, then hinge velocities.
         n, dof = self.num_tokens, self.dof
-        state = np.zeros(13 * n + 2 * dof)
-        self._state = state
-        self._state_xpos = state[: 3 * n].reshape(n, 3)
-        self._state_velocity_rows = list(state[3 * n : 9 * n].reshape(n, 6))  # filled in place by MuJoCo
-        self._state_xquat = state[9 * n : 13 * n].reshape(n, 4)
-        self._state_qpos = state[13 * n : 13 * n + dof]
-        self._state_qvel = state[13 * n + dof :]
-        rows = np.arange(n)[:, None] * C.PROPRIO_DIM
-        velocity_columns = np.r_[np.arange(C.XVELR.start, C.XVELR.stop), np.arange(C.XVELP.start, C.XVELP.stop)]
-        self._state_targets = np.concatenate(
-            [
-                (rows + np.arange(C.XPOS.start, C.XPOS.stop)).ravel(),
-                (rows + velocity_columns).ravel(),
-                (rows + np.arange(C.XQUAT.start, C.XQUAT.stop)).ravel(),
-                token * C.PROPRIO_DIM + col + C.HINGE_QPOS,
-                token * C.PROPRIO_DIM + col + C.HINGE_QVEL,
-            ]
-        )
-        lo, hi = model.jnt_range[hinge_ids].T
-        self._state_scale = np.ones_like(state)
-        self._state_offset = np.zeros_like(state)
-        self._state_scale[13 * n : 13 * n + dof] = 1.0 / np.maximum(hi - lo, 1e-8)
-        self._state_offset[13 * n : 13 * n + dof] = -lo * self._state_scale[13 * n : 13 * n + dof]
-        self._body_ids = list(range(first, first + n))
+        first_sensor = model.sensor(f"proprioception/{TORSO}/pos").id
+        if model.nsensor - first_sensor < 4 * n + 2 * dof:
+            raise RuntimeError("the world lost some of the robot's proprioception sensors")
+        start = int(model.sensor_adr[first_sensor])
+        readings = data.sensordata[start : start + 13 * n + 2 * dof]
+        self._body_readings = readings[: 13 * n].reshape(n, 13)
+        self._torso_relative_x = readings[: 13 * n : 13]  # body x, made relative to the torso in place
+        self._hinge_readings = readings[13 * n :]
+        sensor_hinges = list(self._slot_of_hinge)  # token order, "x" before "y", as the sensors
+        token, slot = np.divmod(np.array([self._slot_of_hinge[h] for h in sensor_hinges], dtype=np.intp), C.SLOTS_PER_TOKEN)
+        column = token * C.PROPRIO_DIM + np.array([C.HINGE_SLOT_COLUMNS[s].start for s in slot], dtype=np.intp)
+        self._hinge_targets = np.concatenate([column + C.HINGE_QPOS, column + C.HINGE_QVEL])
+        # Angles are normalised to [0, 1] over the joint range: (q - lo) / (hi - lo).
+        lo, hi = model.jnt_range[[model.joint(h).id for h in sensor_hinges]].T
+        scale = 1.0 / np.maximum(hi - lo, 1e-8)
+        self._hinge_scale = np.concatenate([scale, np.ones(dof)])
+        self._hinge_offset = np.concatenate([-lo * scale, np.zeros(dof)])
+        self._hinge_buffer = np.empty(2 * dof)
         self._static = self.morphology.proprio_static.astype(np.float32)
-        # Views into MjData stay valid for its lifetime; reading through them skips a lookup per step.
-        self._xpos = data.xpos[self._bodies]
-        self._xquat = data.xquat[self._bodies]
-        self._hinge_qpos = data.qpos[self._qpos_hinges]
-        self._hinge_qvel = data.qvel[self._qvel_hinges]
+        self._option = model.opt
+        self._flags_stepping = int(model.opt.disableflags) | _SENSORS
+        self._flags_sensing = self._flags_stepping & ~_SENSORS
 
     # ------------------------------------------------------------------ state
     @property
@@ -182,17 +222,17 @@ class Robot:
 
     def proprioception(self) -> np.ndarray:
         """The (12, 52) float32 ``proprioceptive`` observation of the current (synced) state."""
-        model, data, state, xpos = self.model, self.data, self._state, self._state_xpos
-        np.copyto(xpos, self._xpos)
-        xpos[:, 0] -= xpos[0, 0]  # x relative to the torso; y, z absolute (MetaMorph)
-        object_velocity = mujoco.mj_objectVelocity
-        for body, row in zip(self._body_ids, self._state_velocity_rows):
-            object_velocity(model, data, _XBODY, body, row, 0)
-        np.copyto(self._state_xquat, self._xquat)
-        np.copyto(self._state_qpos, self._hinge_qpos)
-        np.copyto(self._state_qvel, self._hinge_qvel)
-        np.multiply(state, self._state_scale, out=state)
-        state += self._state_offset
+        # Sensors are off while stepping (no substep needs them) and evaluated once here.
+        option, model, data = self._option, self.model, self.data
+        option.disableflags = self._flags_sensing
+        mujoco.mj_sensorPos(model, data)
+        mujoco.mj_sensorVel(model, data)
+        option.disableflags = self._flags_stepping
+        x = self._torso_relative_x
+        x -= x[0]  # x relative to the torso; y, z absolute (MetaMorph)
+        hinges = np.multiply(self._hinge_readings, self._hinge_scale, out=self._hinge_buffer)
+        hinges += self._hinge_offset
         obs = self._static.copy()
-        obs.reshape(-1)[self._state_targets] = state
+        obs[: self.num_tokens, :13] = self._body_readings
+        obs.reshape(-1)[self._hinge_targets] = hinges
         return obs
