@@ -133,7 +133,8 @@ def main(argv: list[str] | None = None) -> None:
         f"alternating blocks; env {'unwrapped' if args.unwrapped else 'from gym.make (TimeLimit, OrderEnforcing, PassiveEnvChecker)'}.",
         "",
         "Ratio = env steps/s / physics steps/s, where physics = `mj_step(nstep=4)` on the same compiled model "
-        "with the same controls (median over morphologies). Target: ratio >= 0.7; reset < 50 ms. "
+        "with the same controls (median over morphologies; the world's sensors are off while `mj_step` runs, so the "
+        "proprioception sensors the env reads once per step count as env time). Target: ratio >= 0.7; reset < 50 ms. "
         "Reset = a new episode of a cached world (terrain and props re-randomised in place); "
         "reset with a new robot = the world is compiled first (cache miss).",
         "",
