@@ -140,6 +140,8 @@ class Robot:
         self._qvel_root = int(root.dofadr[0])
         #: View of the torso's world position inside ``data.qpos`` (the free joint's first 3 entries).
         self.torso_qpos = data.qpos[self._qpos_root : self._qpos_root + 3]
+        #: View of the torso's world linear velocity inside ``data.qvel`` (the free joint's first 3 dofs).
+        self.torso_velocity = data.qvel[self._qvel_root : self._qvel_root + 3]
         # Hinges follow the root joint contiguously in qpos/qvel (joint order = document order).
         self._qpos_hinges = slice(self._qpos_root + 7, self._qpos_root + 7 + self.dof)
         self._qvel_hinges = slice(self._qvel_root + 6, self._qvel_root + 6 + self.dof)

@@ -52,7 +52,9 @@ class _BoxTask(Task):
         names = [model.site(i).name for i in range(model.nsite)]
         robot_sites = [i for i, n in enumerate(names) if n.startswith(("limb/mid/", "limb/btm/", "torso"))]
         self._robot_sites = np.array(robot_sites, dtype=np.intp)
-        self._velocity = np.zeros(6)
+        self._velocity = np.zeros(6)  # box (angular, linear), filled by MuJoCo
+        self._rows = np.zeros((4, 3))  # the object observation before rotation into the torso frame
+        self._box_xpos = data.xpos[self._box]
 
     def place(self, box_xyz: tuple[float, float, float], goal_xyz: tuple[float, float, float],
               quat: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)) -> None:
@@ -96,11 +98,13 @@ class _BoxTask(Task):
         return terms
 
     def observations(self, robot: Robot) -> dict[str, np.ndarray]:
-        data = self.data
-        mujoco.mj_objectVelocity(self.model, data, _XBODY, self._box, self._velocity, 0)
-        torso = robot.torso_qpos
-        root_velocity = data.qvel[robot._qvel_root : robot._qvel_root + 3]
-        rows = np.stack([data.xpos[self._box] - torso, self._velocity[3:] - root_velocity, self._velocity[:3], self.goal - torso])
+        velocity, rows, torso = self._velocity, self._rows, robot.torso_qpos
+        mujoco.mj_objectVelocity(self.model, self.data, _XBODY, self._box, velocity, 0)
+        # Rows: box position, box velocity minus the torso's, box angular velocity, goal position.
+        np.subtract(self._box_xpos, torso, out=rows[0])
+        np.subtract(velocity[3:], robot.torso_velocity, out=rows[1])
+        rows[2] = velocity[:3]
+        np.subtract(self.goal, torso, out=rows[3])
         in_torso = to_torso_frame(robot, rows)
         return {"object": in_torso.reshape(-1), "goal": in_torso[3].copy()}
 
