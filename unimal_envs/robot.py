@@ -39,7 +39,7 @@ from unimal_envs.morphology.loader import TORSO, Morphology
 #: Physics timestep in seconds (4 substeps per control step).
 TIMESTEP = 0.005
 _FILTERPARENT = int(mujoco.mjtDisableBit.mjDSBL_FILTERPARENT)
-# Body-frame origin (mjOBJ_BODY would give the centre of mass); a plain int is faster to pass.
+# Body-frame origin (mjOBJ_BODY would give the centre of mass).
 _XBODY = int(mujoco.mjtObj.mjOBJ_XBODY)
 _JOINT = int(mujoco.mjtObj.mjOBJ_JOINT)
 _SENSORS = int(mujoco.mjtDisableBit.mjDSBL_SENSOR)
@@ -162,10 +162,11 @@ class Robot:
         # The proprioception sensors (see _add_proprioception_sensors) fill one block of
         # sensordata: n rows of the 13 body columns, then the hinge angles, then hinge velocities.
         n, dof = self.num_tokens, self.dof
-        first_sensor = model.sensor(f"proprioception/{TORSO}/pos").id
-        if model.nsensor - first_sensor < 4 * n + 2 * dof:
-            raise RuntimeError("the world lost some of the robot's proprioception sensors")
-        start = int(model.sensor_adr[first_sensor])
+        start = int(model.sensor(f"proprioception/{TORSO}/pos").adr[0])
+        last = f"proprioception/{list(self._slot_of_hinge)[-1]}/velocity" if dof else f"proprioception/{self.morphology.tokens[-1]}/quat"
+        last_sensor = model.sensor(last)
+        if int(last_sensor.adr[0]) + int(last_sensor.dim[0]) != start + 13 * n + 2 * dof:
+            raise RuntimeError("the robot's proprioception sensors are not one contiguous block of sensordata")
         readings = data.sensordata[start : start + 13 * n + 2 * dof]
         self._body_readings = readings[: 13 * n].reshape(n, 13)
         self._torso_relative_x = readings[: 13 * n : 13]  # body x, made relative to the torso in place
