@@ -52,6 +52,10 @@ _BODY_SENSORS = {
     "quat": _SENSOR.mjSENS_FRAMEQUAT,
 }
 _HINGE_SENSORS = {"angle": _SENSOR.mjSENS_JOINTPOS, "velocity": _SENSOR.mjSENS_JOINTVEL}
+# proprioception() copies the body readings as one block into these columns.
+_BODY_COLUMNS = slice(C.XPOS.start, C.XQUAT.stop)
+if [(c.start, c.stop) for c in (C.XPOS, C.XVELP, C.XVELR, C.XQUAT)] != [(0, 3), (3, 6), (6, 9), (9, 13)]:
+    raise ImportError("unimal_envs.contract moved the body columns; update Robot's proprioception sensors")
 
 
 @functools.lru_cache(maxsize=256)
@@ -236,6 +240,6 @@ class Robot:
         hinges = np.multiply(self._hinge_readings, self._hinge_scale, out=self._hinge_buffer)
         hinges += self._hinge_offset
         obs = self._static.copy()
-        obs[: self.num_tokens, :13] = self._body_readings
+        obs[: self.num_tokens, _BODY_COLUMNS] = self._body_readings
         obs.reshape(-1)[self._hinge_targets] = hinges
         return obs
