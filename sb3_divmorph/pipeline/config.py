@@ -140,6 +140,12 @@ class Profile:
     seed: int = 0
     device: str = "auto"
     torch_threads: int = 2
+    #: the training robots: a shipped set name (``train``/``novel``), a directory of MJCF files
+    #: (``DIR/xml/*.xml``, e.g. the official unimals_100 set), relative paths resolved like files
+    train_set: str = "train"
+    #: the novel robots, used only for evaluation; robots of the training list are never among them
+    #: (so one directory can serve both: the novel robots are then the ones after the training ones)
+    novel_set: str = "novel"
     train_robots: int | None = None
     novel_robots: int | None = None
     max_episode_steps: int = 1000

@@ -155,7 +155,8 @@ def report(profile: Profile, out: Path, command: str = "") -> str:
         f"- command: `{command or 'divmorph pipeline --profile ' + profile.name}`",
         f"- written {time.strftime('%Y-%m-%d %H:%M')} on {platform.node() or 'this machine'} "
         f"({platform.processor() or platform.machine()}), seed {profile.seed}, device {profile.device}",
-        f"- robots: first {profile.train_robots or 100} of `train`, first {profile.novel_robots or 100} of `novel`; "
+        f"- robots: first {profile.train_robots or 'all'} of `{profile.train_set}`, first {profile.novel_robots or 'all'} "
+        f"of `{profile.novel_set}` (never a training robot); "
         f"episodes of at most {profile.max_episode_steps} steps",
         "",
         "## Stages",

@@ -33,7 +33,7 @@ import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
 from unimal_envs import env_id
 from unimal_envs.morphology.loader import morphology_files
 from sb3_divmorph.distillation import check_spaces
-from sb3_divmorph.pipeline.config import Profile
+from sb3_divmorph.pipeline.config import Profile, resolve_path
 
 DONE = "done.json"
 MODEL = "model.zip"
@@ -88,14 +88,23 @@ def read_done(folder: Path) -> dict[str, Any]:
 
 
 # -- robots and envs -------------------------------------------------------------------------
-def robot_files(split: str, count: int | None) -> list[Path]:
-    """The first ``count`` robots of a shipped set (all when ``None``)."""
-    files = morphology_files(split)
+def robot_files(robot_set: str, count: int | None, exclude: Sequence[Path] = ()) -> list[Path]:
+    """The first ``count`` robots of a set (all when ``None``), leaving out the files in ``exclude``.
+
+    :param robot_set: a shipped set name or a directory (relative paths also from the repository root)
+    """
+    source: str | Path = robot_set if robot_set in ("train", "novel") else resolve_path(robot_set)
+    excluded = {p.resolve() for p in exclude}
+    files = [f for f in morphology_files(source) if f.resolve() not in excluded]
     return files if count is None else files[:count]
 
 
 def profile_robots(profile: Profile, split: str) -> list[Path]:
-    return robot_files(split, profile.train_robots if split == "train" else profile.novel_robots)
+    """The profile's ``train`` or ``novel`` robots; novel robots never include a training robot."""
+    train = robot_files(profile.train_set, profile.train_robots)
+    if split == "train":
+        return train
+    return robot_files(profile.novel_set, profile.novel_robots, exclude=train)
 
 
 def make_vec_env(
