@@ -45,9 +45,11 @@ def _parser() -> argparse.ArgumentParser:
     p = command("transfer", "transfer the student to a novel task (and train MetaMorph from scratch)")
     p.add_argument("--task", action="append", help="novel task (repeatable; default: the profile's)")
     p.add_argument("--no-scratch", action="store_true", help="skip the from-scratch comparison")
-    p = command("export", "prune + merge the student into a compact TorchScript actor")
+    p = command("export", "prune + merge the student into a compact actor (ONNX and/or TorchScript)")
     p.add_argument("--morphology", action="append", help="robot name in the train/novel sets, or an MJCF path")
     p.add_argument("--task", action="append", help="task (default: the profile's)")
+    p.add_argument("--format", choices=("onnx", "torchscript", "all"), default="all",
+                   help="onnx (runs with onnxruntime + numpy), torchscript (torch alone), or all (default)")
     command("evaluate", "per-morphology returns on train and novel robots")
     command("report", "plots and a markdown summary of the run")
     return parser
@@ -97,9 +99,11 @@ def main(argv: list[str] | None = None) -> int:
             P.transfer(profile, out, args.task, False if args.no_scratch else None, progress)
         elif args.command == "export":
             robots = [_robot_path(m) for m in args.morphology] if args.morphology else None
-            for r in P.export_all(profile, out, args.task, robots):
+            formats = ("onnx", "torchscript") if args.format == "all" else (args.format,)
+            for r in P.export_all(profile, out, args.task, robots, formats):
                 print(f"{r['robot']} x {r['task']}: {r['compact_weights']:,} weights "
-                      f"({r['reduction_vs_metamorph']:.1f}x smaller than MetaMorph's actor), max |diff| {r['max_abs_diff']:.1e}, "
+                      f"({r['reduction_vs_metamorph']:.1f}x smaller than MetaMorph's actor through the same folding), "
+                      f"max |diff| {r['max_abs_diff']:.1e}, "
                       f"latency {r['latency_compact_ms']:.3f} ms vs {r['latency_student_ms']:.3f} ms -> {Path(out) / 'export'}")
         elif args.command == "evaluate":
             print(f"returns -> {P.evaluate(profile, out) / 'returns.csv'}")

@@ -23,6 +23,7 @@ import json
 import math
 import statistics
 import time
+import warnings
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -101,6 +102,11 @@ def merged_layer(
         if rank * (in_dim + out_dim) < in_dim * out_dim:
             return LowRankLinear(A, B, bias)
         return _frozen_linear(A @ B.T, bias)
+
+
+def merged_encoder(encoder: nn.Sequential, tailor_gates: th.Tensor | None) -> nn.Sequential:
+    """An exteroception encoder (layers and ReLUs) with every layer pruned and merged."""
+    return nn.Sequential(*(m if isinstance(m, nn.ReLU) else merged_layer(m, tailor_gates) for m in encoder))
 
 
 class CompactBlock(nn.Module):
@@ -206,12 +212,13 @@ class CompactActor(nn.Module):
 
         activation = "gelu" if extractor.encoder.layers and extractor.encoder.layers[0].activation is F.gelu else "relu"
         self.blocks = nn.ModuleList(CompactBlock(block, None if gates is None else gates[0], activation) for block in extractor.encoder.layers)
-        self.exteroception = nn.ModuleDict({k: copy.deepcopy(extractor.exteroception[k]) for k in self.used_extero})
+        tailor = None if gates is None else gates[0]
+        self.exteroception = nn.ModuleDict({k: merged_encoder(extractor.exteroception[k], tailor) for k in self.used_extero})
 
         # Exteroception encodings of the task's missing observations are constants: fold them
         # into the first decoder layer's bias.
         extero_const = {
-            k: encoder(obs[k].flatten(1))[0] for k, encoder in extractor.exteroception.items() if k not in self.used_extero
+            k: encoder(obs[k].flatten(1), gates)[0] for k, encoder in extractor.exteroception.items() if k not in self.used_extero
         }
         d_model = extractor.d_model
         pieces, keep, offset = [], [th.arange(d_model)], d_model
@@ -229,7 +236,6 @@ class CompactActor(nn.Module):
         dropped_values = full_input[~th.isin(th.arange(offset), keep_rows)]
 
         decoder_layers = list(policy.mlp_extractor.policy_net.layers) + [policy.action_net]
-        tailor = None if gates is None else gates[0]
         first = merged_layer(decoder_layers[0], tailor, keep_rows, dropped_values)
         self.decoder = nn.ModuleList([first] + [merged_layer(layer, tailor) for layer in decoder_layers[1:]])
         # the decoder's own activation modules (after every hidden layer, none after the head)
@@ -237,6 +243,8 @@ class CompactActor(nn.Module):
 
         slot_real = (obs[ACT_PADDING_MASK][0] < 0.5).float().view(self.n_tokens, self.slots)
         self.register_buffer("action_scale", slot_real[real])
+        # a deployed actor is not trained: its outputs convert to numpy without torch.no_grad()
+        self.requires_grad_(False)
         return self.eval()
 
     def _normalize(self, key: str, x: th.Tensor) -> th.Tensor:
@@ -269,7 +277,8 @@ class CompactActor(nn.Module):
 
 
 def actor_parameter_count(policy: nn.Module) -> int:
-    """Parameters a policy's actor needs at inference (extractor, decoder, head, router, std)."""
+    """Numbers a policy's actor needs at inference (extractor, decoder, head, router, std, and the
+    SVD bases of Cayley-parametrised factors)."""
     counts = policy.parameter_counts()
     prefix = "shared" if policy.share_features_extractor else "actor"
     total = sum(v for k, v in counts.items() if k.startswith((prefix + "/", "router/")))
@@ -296,6 +305,70 @@ def export_torchscript(actor: CompactActor, example: Mapping[str, np.ndarray], p
     tmp.write_bytes(buffer.getvalue())
     tmp.replace(path)
     return path
+
+
+def export_onnx(actor: CompactActor, example: Mapping[str, np.ndarray], path: str | Path, metadata: Mapping[str, Any]) -> Path:
+    """Write ``actor`` as ONNX to ``path`` atomically, for ``onnxruntime`` + ``numpy`` alone.
+
+    The graph keeps only the inputs the actor reads (e.g. FT's actor has no ``hfield`` input), with
+    a free batch axis; ``metadata`` (robot, task, ...) is stored in the model's ``metadata_props``,
+    together with the inputs' names and shapes and the robot's ``obs_padding_mask``, which
+    :class:`sb3_divmorph.onnx_actor.OnnxActor` checks observations against.
+    """
+    import onnx
+
+    path = Path(path)
+    names = list(ACTOR_INPUTS)
+    buffer = io.BytesIO()
+    with th.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the TorchScript-based exporter's deprecation notice
+        th.onnx.export(
+            actor, actor_inputs(example), buffer, input_names=names, output_names=["actions"],
+            dynamic_axes={name: {0: "batch"} for name in [*names, "actions"]}, dynamo=False,
+        )
+    model = onnx.load_from_string(buffer.getvalue())
+    kept = [i.name for i in model.graph.input]
+    padding = np.asarray(example[OBS_PADDING_MASK], dtype=np.float32).reshape(-1) if OBS_PADDING_MASK in example else None
+    props = {
+        **{k: v if isinstance(v, str) else json.dumps(v) for k, v in metadata.items()},
+        "inputs": json.dumps({k: list(np.asarray(example[k]).shape) for k in kept}),
+        **({OBS_PADDING_MASK: json.dumps(padding.tolist())} if padding is not None else {}),
+    }
+    onnx.helper.set_model_props(model, props)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(model.SerializeToString())
+    tmp.replace(path)
+    return path
+
+
+def metamorph_twin(policy: nn.Module) -> nn.Module:
+    """A MetaMorph policy of the same width, depth and encoders as a DivMorph student (random init):
+    the paper's size reference."""
+    from sb3_divmorph.policies import DivMorphPolicy, MetaMorphPolicy
+
+    kwargs = {k: v for k, v in policy._get_constructor_parameters().items() if k not in (*DivMorphPolicy._divmorph_keys, "diversion")}
+    # the extractor kwargs carry DivMorph's factorization; MetaMorph rebuilds its own from the sizes
+    for key in ("observation_space", "action_space", "lr_schedule", "features_extractor_kwargs"):
+        kwargs.pop(key, None)
+    return MetaMorphPolicy(policy.observation_space, policy.action_space, lambda _: 0.0, **kwargs)
+
+
+def size_comparison(
+    policy: nn.Module, compact: CompactActor, observation: Mapping[str, np.ndarray], observation_keys: tuple[str, ...], normalizer: Any | None = None
+) -> dict[str, float]:
+    """Like-for-like sizes: the compact actor against the MetaMorph actor of the same task and
+    sizes exported through the *same* folding (:class:`CompactActor`), so that pruning is credited
+    with what pruning removes and folding is reported on its own.
+
+    :return: ``metamorph_actor`` (stored parameters of the unfolded MetaMorph actor),
+        ``metamorph_folded`` (its folded export), ``compact`` (this actor's), ``folding`` =
+        unfolded / folded MetaMorph, ``reduction`` = folded MetaMorph / compact (like for like).
+    """
+    twin = metamorph_twin(policy) if hasattr(policy, "router") else policy
+    folded = CompactActor.from_policy(twin, observation, observation_keys, normalizer).stored_numbers()["weights"]
+    unfolded = actor_parameter_count(twin)
+    ours = compact.stored_numbers()["weights"]
+    return {"metamorph_actor": unfolded, "metamorph_folded": folded, "compact": ours, "folding": unfolded / folded, "reduction": folded / ours}
 
 
 def batch1_latency(fn, inputs: tuple, repeats: int = 200, warmup: int = 20) -> float:

@@ -29,6 +29,7 @@ class TokenMLP(nn.Module):
     :param activation_fn: activation class.
     :param final_activation: apply the activation after the last layer too.
     :param last_init: initialiser of the last layer's dense init (e.g. :func:`small_uniform_init`).
+    :param name: prefix of the layers' names in errors.
     """
 
     def __init__(
@@ -39,12 +40,13 @@ class TokenMLP(nn.Module):
         activation_fn: type[nn.Module] = nn.ReLU,
         final_activation: bool = True,
         last_init=None,
+        name: str = "decoder",
     ):
         super().__init__()
         layers = []
         for i, out_dim in enumerate(dims):
             is_last = i == len(dims) - 1
-            layers.append(builder(in_dim, out_dim, last_init if is_last else None))
+            layers.append(builder(in_dim, out_dim, last_init if is_last else None, name=f"{name}.{i}"))
             in_dim = out_dim
         self.layers = nn.ModuleList(layers)
         self.activations = nn.ModuleList(
@@ -81,8 +83,8 @@ class TokenDecoder(nn.Module):
             pi_dims, vf_dims = net_arch.get("pi", []), net_arch.get("vf", [])
         else:
             pi_dims = vf_dims = net_arch
-        self.policy_net = TokenMLP(features_dim, list(pi_dims), actor_builder, activation_fn)
-        self.value_net = TokenMLP(features_dim, list(vf_dims), critic_builder, activation_fn)
+        self.policy_net = TokenMLP(features_dim, list(pi_dims), actor_builder, activation_fn, name="actor decoder")
+        self.value_net = TokenMLP(features_dim, list(vf_dims), critic_builder, activation_fn, name="critic decoder")
         self.latent_dim_pi = self.policy_net.out_dim
         self.latent_dim_vf = self.value_net.out_dim
 

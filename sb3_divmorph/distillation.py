@@ -35,7 +35,8 @@ from stable_baselines3.common.policies import ActorCriticPolicy
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper, VecNormalize
 from torch.distributions import Normal, kl_divergence
 
-from sb3_divmorph.extractors import ACT_PADDING_MASK
+from sb3_divmorph.extractors import ACT_PADDING_MASK, CONTEXT, OBS_PADDING_MASK, TASK_EMBEDDING
+from sb3_divmorph.gates import load_balancing_loss
 
 #: Observation key holding the index of the episode's task in ``unimal_envs.contract.TASK_NAMES``.
 TASK_INDEX = "task_index"
@@ -262,8 +263,10 @@ class DAggerCallback(BaseCallback):
     Logged (TensorBoard/CSV through the model's logger): ``distill/loss``,
     ``distill/kl/<task>`` and ``distill/mean_abs_error/<task>`` (imitation error per task),
     ``distill/beta``, ``distill/dataset_size``, and for gated students ``gates/<kind>_entropy``,
-    ``gates/<kind>_used`` (tailors with a non-zero gate in the batch) and ``gates/<kind>_usage``
-    (histogram of mean gate weight per tailor).
+    ``gates/<kind>_used`` (tailors with a non-zero gate in the batch: a falling count is gate
+    collapse, a few tailors serving every robot or task), ``gates/<kind>_used_fraction``,
+    ``gates/<kind>_usage`` (histogram of mean gate weight per tailor), and with ``load_balance``
+    ``distill/load_balance_loss``. :attr:`tailor_usage` keeps the history of the used counts.
 
     :param teachers: ``{task index: teacher}`` (index in ``unimal_envs.contract.TASK_NAMES``).
     :param task_names: names for logging, indexed like ``task_index``.
@@ -276,6 +279,10 @@ class DAggerCallback(BaseCallback):
     :param buffer_size: capacity of the aggregated dataset (states).
     :param max_grad_norm: gradient clipping.
     :param seed: seed of the minibatch shuffling.
+    :param load_balance: weight of a Switch-Transformer load-balancing term on both gates
+        (:func:`~sb3_divmorph.gates.load_balancing_loss`, minus its uniform value 1 per gate) added
+        to the KL. Default 0 (off, DivMorph's recipe). Use it against gate collapse, or with
+        ``top_k = 1``, where the TopK weights give the gate's scorer no gradient at all.
     :param verbose: SB3 verbosity.
     """
 
@@ -290,11 +297,17 @@ class DAggerCallback(BaseCallback):
         buffer_size: int = 50_000,
         max_grad_norm: float = 0.5,
         seed: int | None = None,
+        load_balance: float = 0.0,
         verbose: int = 0,
     ):
         super().__init__(verbose)
         if not teachers:
             raise ValueError("DAggerCallback needs at least one teacher")
+        if load_balance < 0:
+            raise ValueError(f"load_balance must be >= 0, got {load_balance}")
+        self.load_balance = float(load_balance)
+        #: ``{"morphology": [...], "task": [...]}``: tailors in use after each distillation round
+        self.tailor_usage: dict[str, list[int]] = {"morphology": [], "task": []}
         self.teachers = dict(teachers)
         self.task_names = list(task_names)
         self.beta = beta if callable(beta) else (lambda _progress, value=float(beta): value)
@@ -383,6 +396,7 @@ class DAggerCallback(BaseCallback):
         err_sum = np.zeros(len(self.task_names))
         count = np.zeros(len(self.task_names))
         gate_stats: list[Any] = []
+        balance_sum = 0.0
         for epoch in range(self.epochs):
             for raw, t_mean, t_std, tasks in self.dataset.batches(self.batch_size, self.rng):
                 obs, _ = policy.obs_to_tensor(self._student_obs(raw))
@@ -393,6 +407,10 @@ class DAggerCallback(BaseCallback):
                 s_mean = student.distribution.mean
                 kl = gaussian_kl(t_mean_t, t_std_t, s_mean, student.distribution.stddev.expand_as(s_mean), real)
                 loss = kl.mean()
+                if self.load_balance > 0 and hasattr(policy, "router"):
+                    balance = self._balance_loss(policy, obs)
+                    balance_sum = balance_sum + balance.item()
+                    loss = loss + self.load_balance * balance
                 self.optimizer.zero_grad()
                 loss.backward()
                 th.nn.utils.clip_grad_norm_(policy.parameters(), self.max_grad_norm)
@@ -409,6 +427,8 @@ class DAggerCallback(BaseCallback):
                         gate_stats.append(policy.get_gates(obs))
         policy.set_training_mode(False)
         self.logger.record("distill/loss", float(np.mean(losses)))
+        if self.load_balance > 0:
+            self.logger.record("distill/load_balance_loss", balance_sum / max(len(losses), 1))
         self.logger.record("distill/dataset_size", self.dataset.size)
         for index in np.flatnonzero(count):
             name = self.task_names[index]
@@ -417,14 +437,25 @@ class DAggerCallback(BaseCallback):
         if gate_stats:
             self._log_gates(gate_stats)
 
+    @staticmethod
+    def _balance_loss(policy: Any, obs: Mapping[str, th.Tensor]) -> th.Tensor:
+        """Load balance of both gates, 0 when tailor use is uniform."""
+        gates, probabilities = policy.router.route_with_probabilities(
+            obs[CONTEXT], obs[OBS_PADDING_MASK] > 0.5, obs[TASK_EMBEDDING].flatten(1)
+        )
+        return sum(load_balancing_loss(w, p) - 1.0 for w, p in zip(gates, probabilities))
+
     def _log_gates(self, gate_stats: list[Any]) -> None:
         for kind in ("morphology", "task"):
             gates = th.cat([getattr(g, kind) for g in gate_stats])
             positive = gates.clamp(min=1e-12)
             entropy = -(gates * positive.log()).sum(-1).mean()
             usage = gates.mean(0)
+            used = int((gates > 0).any(0).sum())
+            self.tailor_usage[kind].append(used)
             self.logger.record(f"gates/{kind}_entropy", entropy.item())
-            self.logger.record(f"gates/{kind}_used", int((gates > 0).any(0).sum()))
+            self.logger.record(f"gates/{kind}_used", used)
+            self.logger.record(f"gates/{kind}_used_fraction", used / gates.shape[-1])
             self.logger.record(f"gates/{kind}_usage", usage.cpu(), exclude=("stdout", "log", "json", "csv"))
 
 

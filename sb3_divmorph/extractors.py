@@ -35,17 +35,32 @@ def token_padding(observations: Mapping[str, th.Tensor]) -> th.Tensor:
 class ExteroceptionEncoder(nn.Sequential):
     """MLP with ReLU after every layer (MetaMorph's height-map encoder 1410 -> 64 -> 64).
 
+    Built dense by default; with a factorizing ``builder`` its layers are diverted like the
+    Transformer's (DivMorph's ``divert_exteroception``), so deployment can prune them too.
+
     :param in_dim: flat input size.
     :param dims: layer widths.
+    :param builder: builds each layer (default: dense ``nn.Linear``-compatible layers).
+    :param name: prefix of the layers' names in errors.
     """
 
-    def __init__(self, in_dim: int, dims: Sequence[int]):
+    def __init__(self, in_dim: int, dims: Sequence[int], builder: LinearBuilder | None = None, name: str = "exteroception"):
+        builder = builder or LinearBuilder()
         layers: list[nn.Module] = []
-        for out_dim in dims:
-            layers += [nn.Linear(in_dim, out_dim), nn.ReLU()]
+        for i, out_dim in enumerate(dims):
+            layers += [builder(in_dim, out_dim, name=f"{name}.{i}"), nn.ReLU()]
             in_dim = out_dim
         super().__init__(*layers)
         self.out_dim = in_dim
+
+    def forward(self, x: th.Tensor, tailor_gates: th.Tensor | None = None) -> th.Tensor:  # type: ignore[override]
+        """
+        :param x: (B, in_dim).
+        :param tailor_gates: (B, G_m + G_t) gates for diverted layers, or ``None``.
+        """
+        for module in self:
+            x = module(x) if isinstance(module, nn.ReLU) else module(x, tailor_gates)
+        return x
 
 
 class MorphologyTransformerExtractor(BaseFeaturesExtractor):
@@ -63,8 +78,10 @@ class MorphologyTransformerExtractor(BaseFeaturesExtractor):
     :param use_context: append the static ``context`` row to each token's input.
     :param exteroception: ``{obs key: MLP widths}``; keys absent from the space are skipped.
     :param factorization: plain-valued :class:`~sb3_divmorph.layers.Factorization` fields
-        (``n_morph_tailors``, ``n_task_tailors``, ``orthogonal``, ``divert``), or ``None`` for
-        dense projections.
+        (``n_morph_tailors``, ``n_task_tailors``, ``orthogonal``, ``divert``, ``n_learngenes``), or
+        ``None`` for dense projections.
+    :param factorize_exteroception: build the exteroception encoders with the same factorization
+        (diverted like the Transformer); default: dense encoders.
     """
 
     def __init__(
@@ -79,7 +96,8 @@ class MorphologyTransformerExtractor(BaseFeaturesExtractor):
         activation: str = "relu",
         use_context: bool = True,
         exteroception: Mapping[str, Sequence[int]] | None = None,
-        factorization: Mapping[str, int | bool] | None = None,
+        factorization: Mapping[str, int | bool | None] | None = None,
+        factorize_exteroception: bool = False,
     ):
         proprio_shape = observation_space[PROPRIOCEPTIVE].shape
         self.max_tokens = proprio_shape[0]
@@ -91,15 +109,17 @@ class MorphologyTransformerExtractor(BaseFeaturesExtractor):
             for key, dims in sorted((exteroception or {}).items())
             if key in observation_space.spaces and len(dims) > 0
         }
+        builder = LinearBuilder(Factorization(**factorization) if factorization else None)
+        extero_builder = builder if factorize_exteroception else LinearBuilder()
         encoders = {
-            key: ExteroceptionEncoder(int(th.tensor(observation_space[key].shape).prod()), dims)
+            key: ExteroceptionEncoder(int(th.tensor(observation_space[key].shape).prod()), dims, extero_builder, name=f"exteroception.{key}")
             for key, dims in extero.items()
         }
         extero_dim = sum(encoder.out_dim for encoder in encoders.values())
         super().__init__(observation_space, features_dim=d_model + extero_dim)
 
         self.d_model = d_model
-        self.builder = LinearBuilder(Factorization(**factorization) if factorization else None)
+        self.builder = builder
         self.embedding = TokenEmbedding(token_dim, d_model, self.max_tokens, embedding_dropout)
         self.encoder = TransformerEncoder(d_model, n_layers, n_heads, ff_dim, self.builder, dropout, activation)
         self.exteroception = nn.ModuleDict(encoders)
@@ -124,7 +144,7 @@ class MorphologyTransformerExtractor(BaseFeaturesExtractor):
         features = self.encoder(self.embedding(tokens), padding, tailor_gates)
         if len(self.exteroception):
             extero = th.cat(
-                [encoder(observations[key].flatten(1)) for key, encoder in self.exteroception.items()], dim=-1
+                [encoder(observations[key].flatten(1), tailor_gates) for key, encoder in self.exteroception.items()], dim=-1
             )
             features = th.cat([features, extero[:, None, :].expand(-1, features.shape[1], -1)], dim=-1)
         return features

@@ -8,6 +8,17 @@ their gradients would be undone by Adam's normalisation. :class:`UnitLearningRat
 scales each element's *update*: it snapshots the parameters before every optimiser step and
 afterwards moves each element only ``scale`` of the way, which for Adam (or SGD) is exactly a
 per-element learning rate of ``scale x lr``.
+
+Two details make that exact in practice:
+
+* the Cayley skew ``A`` of a square factor mixes every unit with every other once ``A != 0``, so
+  :func:`prepare_transfer` first folds the distilled rotation into the base
+  (:meth:`~sb3_divmorph.layers.FactorizedLinear.rebase_square_factor`); restarted at zero with its
+  rows and columns of unselected units frozen, ``A`` then never touches those units;
+* Adam's ``eps`` (1e-5 in SB3) is larger than the gradients of a distilled student's tailors
+  (~1e-6), so Adam would not normalise them and the effective ratio would depend on gradient sizes;
+  transfer runs Adam with ``adam_eps`` (1e-10 by default) and :class:`UnitLearningRates` measures
+  the ratio actually applied (:meth:`UnitLearningRates.measured_ratio`).
 """
 
 from __future__ import annotations
@@ -79,28 +90,62 @@ class UnitLearningRates:
     Parameters not listed move at the optimiser's full rate. A scale of 0 freezes an element
     exactly. The hooks live on the optimiser object: install them again after loading a model.
 
+    With ``groups``, every step also accumulates the mean absolute update of each named group of
+    elements, so the learning-rate ratio actually applied can be read back
+    (:meth:`mean_updates`, :meth:`measured_ratio`).
+
     :param optimizer: the optimiser (e.g. ``model.policy.optimizer``).
     :param scales: ``{parameter: scale tensor broadcastable to it}``.
+    :param groups: ``{group name: {parameter: bool mask of its elements}}`` to measure.
     """
 
-    def __init__(self, optimizer: th.optim.Optimizer, scales: Mapping[nn.Parameter, th.Tensor]):
+    def __init__(
+        self,
+        optimizer: th.optim.Optimizer,
+        scales: Mapping[nn.Parameter, th.Tensor],
+        groups: Mapping[str, Mapping[nn.Parameter, th.Tensor]] | None = None,
+    ):
         self.optimizer = optimizer
         self.scales = {p: s.to(p.device, p.dtype) for p, s in scales.items() if not th.all(s == 1)}
+        self.groups = {
+            name: {p: m.to(p.device).expand_as(p) for p, m in masks.items() if m.any()} for name, masks in (groups or {}).items()
+        }
+        self._moved = {name: 0.0 for name in self.groups}
+        self._counted = {name: 0 for name in self.groups}
+        watched = set(self.scales) | {p for masks in self.groups.values() for p in masks}
         self._before: dict[nn.Parameter, th.Tensor] = {}
+        self._watched = list(watched)
         self._handles = [
             optimizer.register_step_pre_hook(self._snapshot),
             optimizer.register_step_post_hook(self._rescale),
         ]
 
     def _snapshot(self, *_args) -> None:
-        self._before = {p: p.detach().clone() for p in self.scales}
+        self._before = {p: p.detach().clone() for p in self._watched}
 
     @th.no_grad()
     def _rescale(self, *_args) -> None:
         for p, scale in self.scales.items():
             before = self._before[p]
             p.copy_(before + scale * (p - before))
+        for name, masks in self.groups.items():
+            for p, mask in masks.items():
+                self._moved[name] += float((p - self._before[p]).abs()[mask].sum())
+                self._counted[name] += int(mask.sum())
         self._before = {}
+
+    def mean_updates(self, reset: bool = False) -> dict[str, float]:
+        """Mean absolute update per element and optimiser step of each group since the last reset."""
+        means = {name: self._moved[name] / self._counted[name] if self._counted[name] else float("nan") for name in self.groups}
+        if reset:
+            self._moved = {name: 0.0 for name in self.groups}
+            self._counted = {name: 0 for name in self.groups}
+        return means
+
+    def measured_ratio(self, numerator: str = "learngene", denominator: str = "selected_tailor", reset: bool = False) -> float:
+        """Ratio of two groups' mean absolute updates (e.g. learngenes / selected tailors)."""
+        means = self.mean_updates(reset)
+        return means[numerator] / means[denominator] if means[denominator] else float("nan")
 
     def remove(self) -> None:
         """Uninstall the hooks (the optimiser then updates every element at its full rate)."""
@@ -124,36 +169,71 @@ def actor_modules(policy: nn.Module) -> list[nn.Module]:
     return [extractor, policy.mlp_extractor.policy_net, policy.action_net]
 
 
+def unit_groups(layer: FactorizedLinear, unit: th.Tensor) -> dict[str, dict[nn.Parameter, th.Tensor]]:
+    """Masks of a layer's learngene and selected-tailor elements (singular values, tall factor),
+    for measuring the update ratio actually applied."""
+    is_learngene = th.zeros(layer.rank, dtype=th.bool)
+    is_learngene[: layer.n_learngenes] = True
+    is_selected = ~is_learngene & (unit > 0)
+    return {
+        name: {layer.singular_values: mask.clone(), layer.tall: mask.expand_as(layer.tall).clone()}
+        for name, mask in (("learngene", is_learngene), ("selected_tailor", is_selected))
+    }
+
+
+#: Adam's ``eps`` during transfer: far below a distilled student's smallest useful gradients.
+TRANSFER_ADAM_EPS = 1e-10
+
+
 def prepare_transfer(
-    policy: nn.Module, selection: UnitSelection, learngene_scale: float = 0.1
+    policy: nn.Module, selection: UnitSelection, learngene_scale: float = 0.1, adam_eps: float | None = TRANSFER_ADAM_EPS
 ) -> UnitLearningRates:
     """Set a DivMorph policy up for DivMorph transfer, in place.
 
     * the router (morphology encoder and both gates) is frozen, so the gates stay fixed;
+    * every square factor is re-based (its rotation folded into the base, the skew restarted at
+      zero), so that unselected tailors stay exactly frozen (see the module docstring);
     * in every factorized actor layer, selected tailors train at the full learning rate, the
       learngenes at ``learngene_scale`` of it, unselected tailors not at all;
     * the actor's other parameters (token embedding, layer norms, biases, exteroception
       encoders), which carry shared knowledge like the learngenes, train at ``learngene_scale``;
-    * the critic (never distilled) trains at the full rate.
+    * the critic (never distilled) trains at the full rate;
+    * the optimiser's ``eps`` is set to ``adam_eps`` so that Adam normalises even the small
+      gradients of a distilled student and the configured ratio is the one applied.
 
     :param policy: a :class:`~sb3_divmorph.policies.DivMorphPolicy` (its optimiser must exist).
     :param selection: the tailors the fixed gates select (:meth:`UnitSelection.from_gates`).
     :param learngene_scale: learning-rate ratio of the shared knowledge to the selected tailors.
-    :return: the installed :class:`UnitLearningRates` (keep it, or call ``remove``).
+    :param adam_eps: ``eps`` for every parameter group of the optimiser; ``None`` keeps it.
+    :return: the installed :class:`UnitLearningRates` (keep it, or call ``remove``); its
+        :meth:`~UnitLearningRates.measured_ratio` is the learngene / selected-tailor update ratio.
     """
     if not hasattr(policy, "router"):
         raise TypeError(f"transfer with fixed gates needs a DivMorphPolicy, got {type(policy).__name__}")
     if not 0 <= learngene_scale <= 1:
         raise ValueError(f"learngene_scale must be in [0, 1], got {learngene_scale}")
     freeze([policy.router])
+    optimizer = policy.optimizer
     scales: dict[nn.Parameter, th.Tensor] = {}
+    groups: dict[str, dict[nn.Parameter, th.Tensor]] = {"learngene": {}, "selected_tailor": {}}
     for module in actor_modules(policy):
         for layer in module.modules():
             if isinstance(layer, FactorizedLinear):
-                scales.update(factor_parameter_scales(layer, unit_scales(layer, selection, learngene_scale), learngene_scale))
+                layer.rebase_square_factor()
+                if layer.orthogonal:
+                    # Adam's moments of the skew belonged to the old parametrisation
+                    optimizer.state.pop(layer.square_skew, None)
+                unit = unit_scales(layer, selection, learngene_scale)
+                scales.update(factor_parameter_scales(layer, unit, learngene_scale))
+                for name, masks in unit_groups(layer, unit).items():
+                    groups[name].update(masks)
         for p in module.parameters():
             if p.requires_grad and p not in scales:
                 scales[p] = th.full((), float(learngene_scale))
     if isinstance(getattr(policy, "log_std", None), nn.Parameter):
         scales[policy.log_std] = th.full((), float(learngene_scale))
-    return UnitLearningRates(policy.optimizer, scales)
+    if adam_eps is not None:
+        for group in optimizer.param_groups:
+            if "eps" in group:
+                group["eps"] = adam_eps
+    return UnitLearningRates(optimizer, scales, groups)

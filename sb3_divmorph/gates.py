@@ -42,12 +42,33 @@ class TopKSoftGate(nn.Module):
 
     def forward(self, embedding: th.Tensor) -> th.Tensor:
         """(B, in_dim) -> (B, n_units) gate weights."""
+        return self.weights_and_probabilities(embedding)[0]
+
+    def weights_and_probabilities(self, embedding: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        """Gate weights and the dense ``softmax(G(e))`` over every tailor (before TopK), which a
+        load-balancing loss needs: unlike the weights, it gives every score a gradient."""
         scores = self.score(embedding)
+        probabilities = th.softmax(scores, dim=-1)
         if self.k == self.n_units:
-            return th.softmax(scores, dim=-1)
+            return probabilities, probabilities
         top, index = scores.topk(self.k, dim=-1)
         masked = th.full_like(scores, float("-inf")).scatter(-1, index, top)
-        return th.softmax(masked, dim=-1)
+        return th.softmax(masked, dim=-1), probabilities
+
+
+def load_balancing_loss(weights: th.Tensor, probabilities: th.Tensor) -> th.Tensor:
+    """Switch-Transformer load balance ``N * sum_i f_i P_i`` of one gate over a batch.
+
+    ``f_i`` is the fraction of the batch's TopK selections that picked tailor ``i`` (no gradient),
+    ``P_i`` the mean dense probability of tailor ``i``. It is 1 when use is uniform and up to ``N``
+    when every sample picks the same tailors, and pushes the scores of over-used tailors down.
+
+    :param weights: (B, N) TopK gate weights.
+    :param probabilities: (B, N) dense softmax probabilities.
+    """
+    selected = (weights > 0).float()
+    fraction = selected.sum(0) / selected.sum().clamp(min=1)
+    return weights.shape[-1] * (fraction.detach() * probabilities.mean(0)).sum()
 
 
 def masked_mean(tokens: th.Tensor, padding_mask: th.Tensor) -> th.Tensor:
@@ -172,13 +193,24 @@ class DiversionRouter(nn.Module):
         return gates
 
     def _route(self, context: th.Tensor, padding_mask: th.Tensor, task_embedding: th.Tensor) -> GateActivations:
+        gates, _ = self.route_with_probabilities(context, padding_mask, task_embedding)
+        return gates
+
+    def route_with_probabilities(
+        self, context: th.Tensor, padding_mask: th.Tensor, task_embedding: th.Tensor
+    ) -> tuple[GateActivations, GateActivations]:
+        """The gates and, in the same layout, both gates' dense probabilities (see
+        :meth:`TopKSoftGate.weights_and_probabilities`), for a load-balancing loss."""
         context = th.where(padding_mask[..., None], th.zeros((), dtype=context.dtype, device=context.device), context)
         morph_key = th.cat([context.flatten(1), padding_mask.to(context.dtype)], dim=-1)
         morph_rows, morph_index = _unique_rows(morph_key)
         task_rows, task_index = _unique_rows(task_embedding)
         morphology = self.morphology_encoder(context[morph_rows], padding_mask[morph_rows])
-        return GateActivations(
-            self.morphology_gate(morphology)[morph_index], self.task_gate(task_embedding[task_rows])[task_index]
+        morph_w, morph_p = self.morphology_gate.weights_and_probabilities(morphology)
+        task_w, task_p = self.task_gate.weights_and_probabilities(task_embedding[task_rows])
+        return (
+            GateActivations(morph_w[morph_index], task_w[task_index]),
+            GateActivations(morph_p[morph_index], task_p[task_index]),
         )
 
 

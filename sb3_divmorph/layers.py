@@ -93,6 +93,11 @@ class FactorizedLinear(nn.Module):
     :param weight: (out, in) dense init to factorize; default: ``nn.Linear``'s own init.
     :param bias: (out,) bias init, or ``None`` for no bias. Default: ``nn.Linear``'s own init.
     :param path: ``"auto"``, ``"merged"`` (learngenes merged, tailors low-rank) or ``"lowrank"``.
+    :param gate_slots: ``(G_m, G_t)``, the sizes of the morphology and task gate vectors the layer
+        is given, when they differ from its own tailor counts (a layer too small to hold one tailor
+        per gate slot): its ``j``-th morphology tailor is then scaled by the sum of the gates of
+        the ``j``-th of ``N_m`` contiguous groups of morphology slots (likewise for task tailors),
+        so TopK still selects at most ``k`` of its tailors per gate. Default: one slot per tailor.
     """
 
     def __init__(
@@ -105,6 +110,7 @@ class FactorizedLinear(nn.Module):
         weight: th.Tensor | None = None,
         bias: th.Tensor | None | bool = True,
         path: str = "auto",
+        gate_slots: tuple[int, int] | None = None,
     ):
         super().__init__()
         rank = min(in_features, out_features)
@@ -114,6 +120,12 @@ class FactorizedLinear(nn.Module):
                 f"A {out_features}x{in_features} layer has {rank} units; cannot hold "
                 f"{n_morph_tailors} morphology + {n_task_tailors} task tailors."
             )
+        slots = (n_morph_tailors, n_task_tailors) if gate_slots is None else tuple(int(g) for g in gate_slots)
+        if slots[0] < n_morph_tailors or slots[1] < n_task_tailors or (n_morph_tailors == 0) != (slots[0] == 0) or (
+            n_task_tailors == 0
+        ) != (slots[1] == 0):
+            raise ValueError(f"gate slots {slots} cannot drive {n_morph_tailors} morphology + {n_task_tailors} task tailors")
+        self.gate_slots = slots
         if path not in ("auto", "merged", "lowrank"):
             raise ValueError(f"Unknown path {path!r}")
         if weight is None or bias is True:
@@ -154,6 +166,21 @@ class FactorizedLinear(nn.Module):
         lowrank_cost = rank * (in_features + out_features)
         self.path = path if path != "auto" else ("merged" if merged_cost <= lowrank_cost else "lowrank")
         self._cache: tuple[tuple, _Factors] | None = None
+        if slots != (n_morph_tailors, n_task_tailors):
+            self.register_buffer("gate_pool", th.block_diag(slot_pooling(slots[0], n_morph_tailors), slot_pooling(slots[1], n_task_tailors)))
+        else:
+            self.gate_pool = None
+
+    @property
+    def n_gates(self) -> int:
+        """Width of the gate vector the layer takes (``G_m + G_t``)."""
+        return sum(self.gate_slots) if self.n_tailors else 0
+
+    def local_gates(self, tailor_gates: th.Tensor) -> th.Tensor:
+        """(..., G_m + G_t) gate slots -> (..., N_m + N_t) gates of this layer's own tailors."""
+        if tailor_gates.shape[-1] != self.n_gates:
+            raise ValueError(f"expected {self.n_gates} tailor gates, got {tailor_gates.shape[-1]}")
+        return tailor_gates if self.gate_pool is None else tailor_gates @ self.gate_pool
 
     # ------------------------------------------------------------------------------------------
     @property
@@ -171,6 +198,22 @@ class FactorizedLinear(nn.Module):
         if self.orthogonal:
             return self.square_base @ cayley(self.square_skew, self.rank)
         return self.square
+
+    @th.no_grad()
+    def rebase_square_factor(self) -> None:
+        """Fold the current rotation into the base: ``Q0 <- Q0 cayley(A)``, ``A <- 0``.
+
+        The layer computes exactly the same function afterwards. What changes is what a skew entry
+        ``A_ij`` does from here on: ``cayley(A)`` mixes units ``i`` and ``j`` only through the
+        entries it has, so with ``A`` restarted at zero, a unit whose row and column of ``A`` stay
+        zero keeps its column of ``Q`` bit for bit (transfer freezes unselected tailors this way).
+        A no-op without orthogonality (the square factor is then a free parameter).
+        """
+        if not self.orthogonal:
+            return
+        self.square_base.copy_(self.square_base @ cayley(self.square_skew, self.rank))
+        self.square_skew.zero_()
+        self._cache = None
 
     def orthogonality_error(self) -> float:
         """``max |Q^T Q - I|`` of the square factor."""
@@ -203,12 +246,15 @@ class FactorizedLinear(nn.Module):
         return self._cache[1]
 
     def unit_scales(self, tailor_gates: th.Tensor | None) -> th.Tensor:
-        """Per-sample effective singular values ``s * g``: (r,) without gates, else (B, r)."""
+        """Per-sample effective singular values ``s * g``: (r,) without gates, else (B, r).
+
+        :param tailor_gates: (B, G_m + G_t) gate slots (see ``gate_slots``), or ``None``.
+        """
         s = self.singular_values
         if tailor_gates is None or self.n_tailors == 0:
             return s
         learngenes = s[: self.n_learngenes].expand(tailor_gates.shape[0], -1)
-        return th.cat([learngenes, s[self.n_learngenes :] * tailor_gates], dim=-1)
+        return th.cat([learngenes, s[self.n_learngenes :] * self.local_gates(tailor_gates)], dim=-1)
 
     def dense_weight(self, tailor_gates: th.Tensor | None = None) -> th.Tensor:
         """The weight matrix for one gate vector (analysis and export; not used in forward).
@@ -234,13 +280,13 @@ class FactorizedLinear(nn.Module):
             scales = self.unit_scales(None if tailor_gates is None else tailor_gates.reshape(1, -1)).reshape(-1)
             keep = th.ones(self.rank, dtype=th.bool, device=scales.device)
             if tailor_gates is not None and self.n_tailors:
-                keep[self.n_learngenes :] = tailor_gates.reshape(-1) != 0
+                keep[self.n_learngenes :] = self.local_gates(tailor_gates.reshape(1, -1)).reshape(-1) != 0
             return U[:, keep].clone(), scales[keep].clone(), V[:, keep].clone()
 
     def forward(self, x: th.Tensor, tailor_gates: th.Tensor | None = None) -> th.Tensor:
         """
         :param x: (B, ..., in_features).
-        :param tailor_gates: (B, N_m + N_t) per-sample gates (morphology then task), or ``None``
+        :param tailor_gates: (B, G_m + G_t) per-sample gates (morphology then task), or ``None``
             to switch every unit on (the layer is then the dense init it was built from).
         :return: (B, ..., out_features).
         """
@@ -249,8 +295,7 @@ class FactorizedLinear(nn.Module):
             if self.n_tailors == 0:
                 return F.linear(x, merged, self.bias)
             return F.linear(x, (U * self.singular_values) @ V.T, self.bias)
-        if tailor_gates.shape[-1] != self.n_tailors:
-            raise ValueError(f"expected {self.n_tailors} tailor gates, got {tailor_gates.shape[-1]}")
+        tailor_gates = self.local_gates(tailor_gates)
         # Work on (rows, features) so every product is one BLAS call and bias / partial sums are
         # fused into addmm; per-sample scales broadcast over each sample's rows.
         batch = tailor_gates.shape[0]
@@ -261,7 +306,8 @@ class FactorizedLinear(nn.Module):
             hidden = ((rows @ V[:, g:]).view(batch, -1, self.n_tailors) * scales).view(-1, self.n_tailors)
             out = th.addmm(F.linear(rows, merged, self.bias), hidden, U[:, g:].T)
         else:
-            scales = self.unit_scales(tailor_gates)[:, None, :]
+            learngenes = self.singular_values[: self.n_learngenes].expand(batch, -1)
+            scales = th.cat([learngenes, self.singular_values[self.n_learngenes :] * tailor_gates], dim=-1)[:, None, :]
             hidden = ((rows @ V).view(batch, -1, self.rank) * scales).view(-1, self.rank)
             out = F.linear(hidden, U, self.bias)
         return out.view(*x.shape[:-1], self.out_features)
@@ -272,7 +318,17 @@ class FactorizedLinear(nn.Module):
             f"learngenes={self.n_learngenes}, morph_tailors={self.n_morph_tailors}, "
             f"task_tailors={self.n_task_tailors}, orthogonal={self.orthogonal}, "
             f"square={self.square_side}, path={self.path}"
+            + (f", gate_slots={self.gate_slots}" if self.gate_pool is not None else "")
         )
+
+
+def slot_pooling(n_slots: int, n_tailors: int) -> th.Tensor:
+    """(n_slots, n_tailors) 0/1 matrix: slot ``s`` feeds tailor ``floor(s * n_tailors / n_slots)``
+    (contiguous, near-equal groups; the identity when the counts are equal)."""
+    pool = th.zeros(n_slots, n_tailors)
+    if n_tailors:
+        pool[th.arange(n_slots), th.arange(n_slots) * n_tailors // n_slots] = 1.0
+    return pool
 
 
 @dataclass(frozen=True)
@@ -284,24 +340,53 @@ class Factorization:
     :param orthogonal: Cayley-orthogonal square factors.
     :param divert: gate the tailors; ``False`` factorizes without diversion (every unit is a
         learngene), the ablation that keeps the parametrization but drops the routing.
+    :param n_learngenes: ``None``: every diverted layer holds exactly ``N_m + N_t`` tailors (one
+        per gate slot) and its remaining units are learngenes, so its rank must exceed
+        ``N_m + N_t``. An int ``N_G``: tailor counts are sized per layer instead: a diverted layer of
+        rank ``r`` keeps ``N_G`` learngenes and splits the other ``r - N_G`` units into morphology
+        and task tailors in the ratio ``N_m : N_t`` (at most one per gate slot; layers with fewer
+        tailors than slots pool the slots, see ``FactorizedLinear``'s ``gate_slots``). A layer of
+        rank below ``N_G + 2`` (e.g. the 3-input goal encoder) keeps ``r - 2`` learngenes, at least
+        one. Few learngenes and a small TopK make the deployed actor small.
     """
 
     n_morph_tailors: int
     n_task_tailors: int
     orthogonal: bool = True
     divert: bool = True
+    n_learngenes: int | None = None
 
     @property
     def n_tailors(self) -> int:
         return self.n_morph_tailors + self.n_task_tailors
 
+    def layer_tailors(self, rank: int) -> tuple[int, int] | None:
+        """``(N_m, N_t)`` of a diverted layer of this rank, or ``None`` if it cannot hold them."""
+        if self.n_learngenes is None:
+            return (self.n_morph_tailors, self.n_task_tailors) if rank > self.n_tailors else None
+        kinds = int(self.n_morph_tailors > 0) + int(self.n_task_tailors > 0)
+        if self.n_tailors == 0 or rank < 1 + kinds:
+            return None
+        # a layer too small for N_G learngenes plus one tailor per kind keeps fewer learngenes (>= 1)
+        free = rank - min(self.n_learngenes, rank - kinds)
+        morph = min(self.n_morph_tailors, max(int(self.n_morph_tailors > 0), round(free * self.n_morph_tailors / self.n_tailors)))
+        task = min(self.n_task_tailors, free - morph)
+        if self.n_task_tailors > 0 and task < 1:
+            morph, task = morph - 1, 1
+        return morph, task
+
+
+class LayerDiversionError(ValueError):
+    """A layer asked to be diverted cannot hold the requested tailors."""
+
 
 class LinearBuilder:
     """Builds every projection of a network the same way: dense, or factorized from the dense init.
 
-    A layer is diverted only if its rank leaves at least one learngene next to the tailors; smaller
-    layers (e.g. the 2-output action head) are factorized with every unit as a learngene, since a
-    rank-2 matrix has no room for tailors.
+    Every layer built with ``divert=True`` (the default) is diverted, or the build fails with a
+    :class:`LayerDiversionError` naming the layer, its rank and the requested counts: a diversion
+    is never switched off silently. Layers that are never diverted (the 2-output action head, the
+    value head) say so with ``divert=False`` and are factorized with every unit a learngene.
 
     :param factorization: ``None`` for dense layers.
     """
@@ -314,11 +399,15 @@ class LinearBuilder:
         f = self.factorization
         return 0 if f is None or not f.divert else f.n_tailors
 
-    def __call__(self, in_features: int, out_features: int, init: LinearInit | None = None) -> nn.Module:
+    def __call__(
+        self, in_features: int, out_features: int, init: LinearInit | None = None, name: str = "layer", divert: bool = True
+    ) -> nn.Module:
         """
         :param in_features: input size.
         :param out_features: output size.
         :param init: in-place initialiser of the dense init (default: ``nn.Linear``'s).
+        :param name: the layer's name in errors (e.g. ``"transformer.0.ff_in"``).
+        :param divert: whether the layer is meant to carry tailors (when the factorization diverts).
         """
         dense = DenseLinear(in_features, out_features)
         if init is not None:
@@ -326,15 +415,28 @@ class LinearBuilder:
         f = self.factorization
         if f is None:
             return dense
-        divert = f.divert and min(in_features, out_features) > f.n_tailors
+        counts = (0, 0)
+        if f.divert and divert and f.n_tailors:
+            rank = min(in_features, out_features)
+            fitted = f.layer_tailors(rank)
+            if fitted is None:
+                need = f"rank > {f.n_tailors}" if f.n_learngenes is None else "rank >= 3 (a learngene and a tailor of each kind)"
+                raise LayerDiversionError(
+                    f"cannot divert layer {name!r} ({out_features}x{in_features}, rank {rank}): "
+                    f"{f.n_morph_tailors} morphology + {f.n_task_tailors} task tailors"
+                    + ("" if f.n_learngenes is None else f" with {f.n_learngenes} learngenes")
+                    + f" need {need}. Use fewer tailors, set n_learngenes to size tailors per layer, or do not divert this part."
+                )
+            counts = fitted
         return FactorizedLinear(
             in_features,
             out_features,
-            n_morph_tailors=f.n_morph_tailors if divert else 0,
-            n_task_tailors=f.n_task_tailors if divert else 0,
+            n_morph_tailors=counts[0],
+            n_task_tailors=counts[1],
             orthogonal=f.orthogonal,
             weight=dense.weight.detach(),
             bias=dense.bias.detach(),
+            gate_slots=(f.n_morph_tailors, f.n_task_tailors) if any(counts) else None,
         )
 
 
@@ -370,16 +472,17 @@ def project_many(layers: list[nn.Module], x: th.Tensor, tailor_gates: th.Tensor 
     if not gated:
         return [layer(x, tailor_gates) for layer in layers]
     factors = [layer.factors() for layer in layers]
-    batch, n_tailors = tailor_gates.shape
+    batch = tailor_gates.shape[0]
     rows = x.reshape(-1, x.shape[-1])
     learngene_out = F.linear(
         rows, th.cat([f.merged for f in factors]), th.cat([layer.bias for layer in layers])
     ).split([layer.out_features for layer in layers], dim=-1)
     down = th.cat([f.V[:, layer.n_learngenes :] for f, layer in zip(factors, layers)], dim=1)
-    scales = th.cat([layer.singular_values[layer.n_learngenes :] * tailor_gates for layer in layers], dim=-1)
+    scales = th.cat([layer.singular_values[layer.n_learngenes :] * layer.local_gates(tailor_gates) for layer in layers], dim=-1)
     hidden = ((rows @ down).view(batch, -1, scales.shape[-1]) * scales[:, None, :]).view(-1, scales.shape[-1])
-    outputs = []
-    for i, (f, layer) in enumerate(zip(factors, layers)):
-        out = th.addmm(learngene_out[i], hidden[:, i * n_tailors : (i + 1) * n_tailors], f.U[:, layer.n_learngenes :].T)
+    outputs, start = [], 0
+    for f, layer in zip(factors, layers):
+        out = th.addmm(learngene_out[len(outputs)], hidden[:, start : start + layer.n_tailors], f.U[:, layer.n_learngenes :].T)
         outputs.append(out.view(*x.shape[:-1], layer.out_features))
+        start += layer.n_tailors
     return outputs

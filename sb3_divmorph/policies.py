@@ -90,6 +90,19 @@ DIVMORPH_PRESETS: dict[str, dict[str, Any]] = {
 }
 
 
+#: Named diversion configurations (``DivMorphPolicy(diversion=NAME)``), built for deployment: few
+#: always-on units (``n_learngenes`` per layer, tailors sized per layer from the rest of its rank)
+#: and a TopK of 1-2 per gate, with the exteroception encoders diverted too, so that pruning keeps
+#: only a handful of units per layer. ``n_morph_tailors`` / ``n_task_tailors`` left out here
+#: default to half of the ``d_model``-rank layers' free units each (see :meth:`DivMorphPolicy.config`).
+DIVERSIONS: dict[str, dict[str, Any]] = {
+    "default": {},
+    "deploy-g4k2": dict(n_learngenes=4, top_k_morph=2, top_k_task=2, divert_exteroception=True),
+    "deploy-g2k1": dict(n_learngenes=2, top_k_morph=1, top_k_task=1, divert_exteroception=True),
+    "deploy-g1k1": dict(n_learngenes=1, top_k_morph=1, top_k_task=1, divert_exteroception=True),
+}
+
+
 def _resolve(preset_table: Mapping[str, Mapping[str, Any]], preset: str, explicit: Mapping[str, Any]) -> dict[str, Any]:
     if preset not in preset_table:
         raise ValueError(f"Unknown preset {preset!r}; choose from {sorted(preset_table)}")
@@ -262,8 +275,11 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
         self.action_dist = MaskedDiagGaussianDistribution(int(np.prod(self.action_space.shape)))
         self._rebuild_critic_extractor()
         self._build_mlp_extractor()
-        self.action_net = self._decoder_builder()(self.mlp_extractor.latent_dim_pi, self.slots_per_token, small_uniform_init)
-        self.value_net = self._critic_builder()(self.mlp_extractor.latent_dim_vf, 1, small_uniform_init)
+        # the output heads (2 actions, 1 value per token) have no room for tailors: never diverted
+        self.action_net = self._decoder_builder()(
+            self.mlp_extractor.latent_dim_pi, self.slots_per_token, small_uniform_init, name="action head", divert=False
+        )
+        self.value_net = self._critic_builder()(self.mlp_extractor.latent_dim_vf, 1, small_uniform_init, name="value head", divert=False)
         log_std = th.full((self.action_dist.action_dim,), math.log(self.action_std))
         if self.learn_std:
             self.log_std = nn.Parameter(log_std)
@@ -284,8 +300,10 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
     ) -> tuple[th.Tensor | None, th.Tensor | None, th.Tensor | None]:
         """Per-token actor and critic latents, and the tailor gates used by the actor."""
         gates = self._tailor_gates(obs)
-        # The router is trained by the policy objective only: the critic's own modules see
-        # detached gates, so the value loss cannot re-route the actor.
+        # With separate actor and critic extractors (the default) the router is trained by the
+        # policy objective only: the critic's modules see detached gates, so the value loss cannot
+        # re-route the actor. With share_features_extractor=True the value loss reaches the router
+        # (and every shared weight) through the shared features, as any shared SB3 extractor does.
         critic_gates = None if gates is None else gates.detach()
         latent_pi = latent_vf = None
         if self.share_features_extractor:
@@ -349,7 +367,9 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
 
     # -- analysis ------------------------------------------------------------------------------
     def parameter_counts(self) -> dict[str, int]:
-        """Stored parameter elements per part (buffers such as fixed std or SVD bases excluded)."""
+        """Stored numbers per part: parameters, plus the SVD bases of Cayley-parametrised factors
+        (``square_base`` buffers, which a DivMorph student needs at inference). A fixed std is
+        excluded (it is a constant of the distribution, not of the network)."""
 
         def count(*modules: nn.Module | None) -> int:
             seen: set[int] = set()
@@ -357,7 +377,8 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
             for module in modules:
                 if module is None:
                     continue
-                for p in module.parameters():
+                bases = (b for name, b in module.named_buffers() if name.endswith("square_base"))
+                for p in (*module.parameters(), *bases):
                     if id(p) not in seen:
                         seen.add(id(p))
                         total += p.numel()
@@ -442,6 +463,8 @@ class DivMorphPolicy(MorphologyTransformerPolicy):
         "orthogonal",
         "divert_transformer",
         "divert_decoder",
+        "divert_exteroception",
+        "n_learngenes",
         "factorize_critic",
     )
     _config_keys = MorphologyTransformerPolicy._config_keys + _divmorph_keys
@@ -462,9 +485,16 @@ class DivMorphPolicy(MorphologyTransformerPolicy):
         orthogonal: bool = True,
         divert_transformer: bool = True,
         divert_decoder: bool = True,
+        divert_exteroception: bool | None = None,
+        n_learngenes: int | None = None,
         factorize_critic: bool = False,
+        diversion: str = "default",
         **kwargs: Any,
     ):
+        if diversion not in DIVERSIONS:
+            raise ValueError(f"unknown diversion {diversion!r}; choose from {sorted(DIVERSIONS)}")
+        self.diversion = diversion
+        named = DIVERSIONS[diversion]
         self._divmorph_explicit = dict(
             n_morph_tailors=n_morph_tailors,
             n_task_tailors=n_task_tailors,
@@ -476,24 +506,51 @@ class DivMorphPolicy(MorphologyTransformerPolicy):
             orthogonal=orthogonal,
             divert_transformer=divert_transformer,
             divert_decoder=divert_decoder,
+            divert_exteroception=divert_exteroception,
+            n_learngenes=n_learngenes,
             factorize_critic=factorize_critic,
         )
+        # explicit keywords win over the named diversion, which wins over the size preset
+        for key, value in named.items():
+            if self._divmorph_explicit.get(key) is None:
+                self._divmorph_explicit[key] = value
+        self._auto_tailors = n_morph_tailors is None and n_task_tailors is None and "n_learngenes" in named
         super().__init__(observation_space, action_space, lr_schedule, preset=preset, **kwargs)
 
     def _extra_explicit(self) -> dict[str, Any]:
         return self._divmorph_explicit
 
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        return {**super()._get_constructor_parameters(), "diversion": self.diversion}
+
+    def _resolve_diversion(self) -> None:
+        """Fill the diversion defaults that depend on the network size."""
+        c = self.config
+        c["divert_exteroception"] = bool(c.get("divert_exteroception") or False)
+        c.setdefault("n_learngenes", None)
+        if getattr(self, "_auto_tailors", False):
+            free = c["d_model"] - c["n_learngenes"]
+            c["n_morph_tailors"], c["n_task_tailors"] = free // 2, free - free // 2
+
     def _factorization(self, divert: bool) -> Factorization:
         c = self.config
-        return Factorization(c["n_morph_tailors"], c["n_task_tailors"], orthogonal=c["orthogonal"], divert=divert)
+        return Factorization(
+            c["n_morph_tailors"], c["n_task_tailors"], orthogonal=c["orthogonal"], divert=divert, n_learngenes=c["n_learngenes"]
+        )
 
     def _extractor_kwargs(self) -> dict[str, Any]:
+        self._resolve_diversion()
         f = self._factorization(self.config["divert_transformer"])
         return {
             **super()._extractor_kwargs(),
             "factorization": dict(
-                n_morph_tailors=f.n_morph_tailors, n_task_tailors=f.n_task_tailors, orthogonal=f.orthogonal, divert=f.divert
+                n_morph_tailors=f.n_morph_tailors,
+                n_task_tailors=f.n_task_tailors,
+                orthogonal=f.orthogonal,
+                divert=f.divert,
+                n_learngenes=f.n_learngenes,
             ),
+            "factorize_exteroception": self.config["divert_exteroception"],
         }
 
     def _decoder_builder(self) -> LinearBuilder:
@@ -505,13 +562,14 @@ class DivMorphPolicy(MorphologyTransformerPolicy):
     def _rebuild_critic_extractor(self) -> None:
         if self.share_features_extractor or self.config["factorize_critic"]:
             return
-        kwargs = {**self.features_extractor_kwargs, "factorization": None}
+        kwargs = {**self.features_extractor_kwargs, "factorization": None, "factorize_exteroception": False}
         self.vf_features_extractor = self.features_extractor_class(self.observation_space, **kwargs)
 
     @property
     def is_gated(self) -> bool:
-        """Whether any layer takes gates (False when both diversions are ablated)."""
-        return bool(self.config["divert_transformer"] or self.config["divert_decoder"])
+        """Whether any layer takes gates (False when every diversion is ablated)."""
+        c = self.config
+        return bool(c["divert_transformer"] or c["divert_decoder"] or (c["divert_exteroception"] and c["exteroception"]))
 
     def _build_router(self) -> None:
         c = self.config

@@ -51,19 +51,20 @@ class MultiHeadSelfAttention(nn.Module):
     :param n_heads: number of heads (must divide ``d_model``).
     :param builder: builds the projections (dense or factorized).
     :param dropout: attention-weight dropout.
+    :param name: prefix of the projections' names in errors.
     """
 
-    def __init__(self, d_model: int, n_heads: int, builder: LinearBuilder, dropout: float = 0.0):
+    def __init__(self, d_model: int, n_heads: int, builder: LinearBuilder, dropout: float = 0.0, name: str = "attention"):
         super().__init__()
         if d_model % n_heads:
             raise ValueError(f"d_model={d_model} is not divisible by n_heads={n_heads}")
         self.n_heads = n_heads
         self.head_dim = d_model // n_heads
         self.dropout = dropout
-        self.q = builder(d_model, d_model, xavier_init)
-        self.k = builder(d_model, d_model, xavier_init)
-        self.v = builder(d_model, d_model, xavier_init)
-        self.o = builder(d_model, d_model, zero_bias_init)
+        self.q = builder(d_model, d_model, xavier_init, name=f"{name}.q")
+        self.k = builder(d_model, d_model, xavier_init, name=f"{name}.k")
+        self.v = builder(d_model, d_model, xavier_init, name=f"{name}.v")
+        self.o = builder(d_model, d_model, zero_bias_init, name=f"{name}.o")
 
     def _heads(self, x: th.Tensor) -> th.Tensor:
         batch, length, _ = x.shape
@@ -91,6 +92,7 @@ class TransformerEncoderLayer(nn.Module):
     :param builder: builds the six projections.
     :param dropout: dropout on attention weights and both residual branches.
     :param activation: FFN activation, ``"relu"`` (MetaMorph) or ``"gelu"``.
+    :param name: prefix of the projections' names in errors.
     """
 
     def __init__(
@@ -101,13 +103,14 @@ class TransformerEncoderLayer(nn.Module):
         builder: LinearBuilder,
         dropout: float = 0.0,
         activation: str = "relu",
+        name: str = "transformer.0",
     ):
         super().__init__()
-        self.attention = MultiHeadSelfAttention(d_model, n_heads, builder, dropout)
+        self.attention = MultiHeadSelfAttention(d_model, n_heads, builder, dropout, name=f"{name}.attention")
         self.norm1 = nn.LayerNorm(d_model)
         self.norm2 = nn.LayerNorm(d_model)
-        self.ff_in = builder(d_model, ff_dim)
-        self.ff_out = builder(ff_dim, d_model)
+        self.ff_in = builder(d_model, ff_dim, name=f"{name}.ff_in")
+        self.ff_out = builder(ff_dim, d_model, name=f"{name}.ff_out")
         self.dropout = nn.Dropout(dropout)
         self.activation = ACTIVATIONS[activation]
 
@@ -142,7 +145,8 @@ class TransformerEncoder(nn.Module):
         super().__init__()
         builder = builder or LinearBuilder()
         self.layers = nn.ModuleList(
-            TransformerEncoderLayer(d_model, n_heads, ff_dim, builder, dropout, activation) for _ in range(n_layers)
+            TransformerEncoderLayer(d_model, n_heads, ff_dim, builder, dropout, activation, name=f"transformer.{i}")
+            for i in range(n_layers)
         )
 
     def forward(

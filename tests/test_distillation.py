@@ -110,6 +110,21 @@ def test_dagger_reduces_the_kl_to_each_states_own_teacher(teachers):
         assert th.equal(before_params[i], dict(student.policy.named_parameters())[name].detach())
 
 
+@pytest.mark.parametrize("load_balance", [0.0, 0.1])
+def test_load_balancing_gives_top1_gates_a_gradient_and_usage_is_logged(teachers, load_balance):
+    th.manual_seed(0)
+    venv = multitask_venv()
+    kwargs = dict(TINY_DIVMORPH, top_k_morph=1, top_k_task=1)
+    student = ImitationPPO("DivMorphPolicy", venv, n_steps=64, batch_size=64, seed=0, policy_kwargs=kwargs)
+    callback = DAggerCallback(teachers, TASK_NAMES, learning_rate=3e-3, epochs=2, batch_size=64, seed=0, load_balance=load_balance)
+    scorer = [p.detach().clone() for p in student.policy.router.morphology_gate.parameters()]
+    student.learn(256, callback=callback)  # 2 envs x 64 steps: two distillation rounds
+    moved = max((a - b.detach()).abs().max().item() for a, b in zip(scorer, student.policy.router.morphology_gate.parameters()))
+    # top-1 weights are always 1: only the load-balancing term reaches the scorer
+    assert (moved > 0) == (load_balance > 0)
+    assert len(callback.tailor_usage["morphology"]) == 2 and all(1 <= n <= 6 for n in callback.tailor_usage["morphology"])
+
+
 def test_beta_one_executes_the_teachers_actions(teachers):
     venv = multitask_venv(n_envs=1, mixer_teachers=teachers, beta=1.0)
     mixer = venv.venv

@@ -2,12 +2,24 @@
 
 from __future__ import annotations
 
+import gymnasium as gym
 import pytest
 import torch as th
 from torch.nn import functional as F
 
+import unimal_envs  # noqa: F401
 from sb3_divmorph.gates import DiversionRouter, MorphologyEncoder, TopKSoftGate
-from sb3_divmorph.layers import DenseLinear, FactorizedLinear, Factorization, LinearBuilder, cayley, project_many
+from sb3_divmorph.layers import (
+    DenseLinear,
+    FactorizedLinear,
+    Factorization,
+    LayerDiversionError,
+    LinearBuilder,
+    cayley,
+    project_many,
+)
+from sb3_divmorph.policies import DivMorphPolicy
+from unimal_envs.morphology.loader import morphology_files
 from sb3_divmorph.transformer import TransformerEncoder
 
 th.set_num_threads(1)
@@ -48,11 +60,46 @@ def test_builder_factorizes_the_same_init_as_the_dense_network():
     assert th.allclose(factorized(x), dense(x), atol=1e-5)
 
 
-def test_small_layers_keep_every_unit_a_learngene():
-    head = LinearBuilder(Factorization(4, 4))(16, 2)
+def test_layers_not_meant_to_divert_keep_every_unit_a_learngene():
+    head = LinearBuilder(Factorization(4, 4))(16, 2, divert=False)
     assert isinstance(head, FactorizedLinear) and head.n_tailors == 0 and head.n_learngenes == 2
     ablated = LinearBuilder(Factorization(4, 4, divert=False))(16, 16)
     assert ablated.n_tailors == 0
+
+
+def test_a_layer_too_small_for_its_tailors_is_an_error_naming_it():
+    with pytest.raises(LayerDiversionError, match=r"'actor decoder\.0' \(64x256, rank 64\): 56 morphology \+ 56 task"):
+        LinearBuilder(Factorization(56, 56))(256, 64, name="actor decoder.0")
+    # the policy refuses such a configuration instead of silently not diverting its decoder
+    env = gym.make("Unimal-FT-v0", morphologies=morphology_files("train")[:1])
+    with pytest.raises(LayerDiversionError, match="actor decoder.0"):
+        DivMorphPolicy(env.observation_space, env.action_space, lambda _: 1e-3, d_model=128, n_layers=1, ff_dim=128,
+                       net_arch=dict(pi=[64], vf=[64]), n_morph_tailors=56, n_task_tailors=56)
+
+
+def test_per_layer_tailor_counts_fit_every_rank_and_pool_the_gate_slots():
+    f = Factorization(14, 14, n_learngenes=2)
+    big = LinearBuilder(f)(32, 32)
+    small = LinearBuilder(f)(32, 8)
+    assert (big.n_learngenes, big.n_morph_tailors, big.n_task_tailors) == (4, 14, 14)  # capped at one tailor per slot
+    assert (small.n_learngenes, small.n_morph_tailors, small.n_task_tailors) == (2, 3, 3)
+    # one-hot slots: slot s of the morphology gate drives tailor floor(s * 3 / 14) of the small layer
+    for slot in range(14):
+        gates = th.zeros(1, 28)
+        gates[0, slot] = 1.0
+        local = small.local_gates(gates)[0]
+        assert local[: 3].tolist() == [1.0 if j == slot * 3 // 14 else 0.0 for j in range(3)] and local[3:].sum() == 0
+    # pooled gates still give an exact pruned layer and a working forward
+    gates = th.zeros(2, 28)
+    gates[:, [1, 20]] = 1.0
+    x = th.randn(2, 5, 32)
+    U, s, V = small.selected_units(gates[0])
+    assert len(s) == 2 + 1 + 1
+    assert th.allclose(small(x, gates)[0], x[0] @ V @ (U * s).T + small.bias, atol=1e-5)
+    goal = LinearBuilder(Factorization(4, 4, n_learngenes=2))(3, 32, name="exteroception.goal.0")
+    assert (goal.n_learngenes, goal.n_morph_tailors, goal.n_task_tailors) == (1, 1, 1)
+    with pytest.raises(LayerDiversionError, match="rank 2"):
+        LinearBuilder(Factorization(4, 4, n_learngenes=2))(2, 32, name="tiny")
 
 
 @pytest.mark.parametrize("in_features,out_features", SHAPES)

@@ -18,7 +18,8 @@ import torch as th
 import yaml
 
 from sb3_divmorph.cli import main as cli
-from sb3_divmorph.pipeline.config import ConfigError, load_profile, load_zoo_entry
+from sb3_divmorph.pipeline.config import ConfigError, load_profile, load_profiles, load_zoo_entry
+from sb3_divmorph.policies import DivMorphPolicy, MetaMorphPolicy
 from sb3_divmorph.pipeline.runs import latest_checkpoint, read_done
 from unimal_envs.morphology.loader import morphology_files
 
@@ -167,6 +168,18 @@ def test_profile_errors_name_the_key_and_the_choices(tmp_path):
     with pytest.raises(ConfigError, match="no entry for Unimal-VT-v0"):
         load_zoo_entry(zoo, "Unimal-VT-v0")
     assert load_profile("demo").name == "demo" and load_profile("gpu").transfer.tasks
+
+
+@pytest.mark.parametrize("name", sorted(load_profiles()))
+def test_every_shipped_profile_builds_its_models(name):
+    """A shipped profile whose student cannot divert a layer (or whose teacher cannot be built)
+    fails here, not hours into a run."""
+    profile = load_profile(name)
+    env = gym.make("Unimal-MultiTask-v0", tasks=list(profile.teachers.tasks), morphologies=morphology_files("train")[:1])
+    policy = DivMorphPolicy(env.observation_space, env.action_space, lambda _: 1e-3, **profile.student.policy_kwargs)
+    assert policy.is_gated
+    teacher_kwargs = {**load_zoo_entry(profile.teachers.hyperparams, "Unimal-VT-v0").policy_kwargs, **profile.teachers.policy_kwargs}
+    MetaMorphPolicy(env.observation_space, env.action_space, lambda _: 1e-3, **teacher_kwargs)
 
 
 def test_missing_stages_and_bad_arguments_give_clear_errors(tmp_path, capsys):

@@ -93,6 +93,8 @@ class DistillConfig:
     buffer_size: int = 50_000
     ppo_loss: bool = False
     checkpoint_every: int = 50_000
+    #: weight of the optional gate load-balancing term (0 = off; see ``DAggerCallback``)
+    load_balance: float = 0.0
 
 
 @dataclass

@@ -63,6 +63,7 @@ def distill_run(profile: Profile, out: Path, progress_bar: bool = True) -> Train
         batch_size=cfg.batch_size,
         buffer_size=cfg.buffer_size,
         seed=seed,
+        load_balance=cfg.load_balance,
     )
     return TrainingRun(
         student_folder(out), cfg.n_timesteps, cfg.checkpoint_every, make_model, make_env,

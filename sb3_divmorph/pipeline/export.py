@@ -2,10 +2,12 @@
 
 For each robot and task the student's gates are evaluated once, unselected tailors are pruned and
 the rest merged (:class:`~sb3_divmorph.compact.CompactActor`), the observation normalisation is
-baked in, and the actor is written as TorchScript (``actor.pt``: ``torch.jit.load`` is all it needs).
-The stage checks the written file against the unpruned student on observations of a short rollout
-(max |diff| <= 1e-5, or it refuses to write) and reports its size against the MetaMorph actor of
-the same width and depth, and its batch-1 CPU latency against the full student.
+baked in, and the actor is written as ONNX (``actor.onnx``: ``onnxruntime`` + ``numpy`` run it, see
+:mod:`sb3_divmorph.onnx_actor`) and/or TorchScript (``actor.pt``: ``torch.jit.load`` is all it
+needs). The stage checks every written file against the unpruned student on observations of a
+short rollout (max |diff| <= 1e-5, or it refuses to write) and reports its size like for like: the
+MetaMorph actor of the same task and sizes goes through the same folding, so the reduction counts
+pruning only (folding is reported on its own); and its batch-1 CPU latency against the full student.
 
 For a novel task the transferred student (``transfer/<task>/divmorph``) is exported when it
 exists, else the distilled student itself (zero-shot).
@@ -30,19 +32,23 @@ from sb3_divmorph.compact import (
     actor_inputs,
     actor_parameter_count,
     batch1_latency,
+    export_onnx,
     export_torchscript,
+    size_comparison,
 )
 from sb3_divmorph.distillation import load_normalizer
 from sb3_divmorph.pipeline.config import ConfigError, Profile
 from sb3_divmorph.pipeline.distill import student_folder
 from sb3_divmorph.pipeline.runs import MODEL, NORMALIZER, atomic_write_json, atomic_write_text, is_done, mark_done, profile_robots, task_env_name
 from sb3_divmorph.pipeline.transfer import transfer_folder
-from sb3_divmorph.policies import DivMorphPolicy, MetaMorphPolicy
+from sb3_divmorph.policies import DivMorphPolicy
 from unimal_envs.contract import NOVEL_TASKS, TASK_NAMES
 from unimal_envs.tasks import TASKS
 
 #: Largest accepted difference between the exported actor and the student (issue contract).
 TOLERANCE = 1e-5
+#: Deployment file formats: ``onnx`` (onnxruntime + numpy) and ``torchscript`` (torch alone).
+FORMATS = ("onnx", "torchscript")
 
 
 def export_folder(out: Path, robot: str, task: str) -> Path:
@@ -56,15 +62,6 @@ def source_model(out: Path, task: str) -> tuple[Path, str]:
     if not is_done(student_folder(out)):
         raise FileNotFoundError(f"no distilled student in {student_folder(out)}; run `divmorph distill --out {out}` first")
     return student_folder(out), "distilled student" + (" (zero-shot)" if task in NOVEL_TASKS else "")
-
-
-def metamorph_twin(policy: DivMorphPolicy) -> MetaMorphPolicy:
-    """A MetaMorph policy of the same width, depth and encoders (the paper's size reference)."""
-    kwargs = {k: v for k, v in policy._get_constructor_parameters().items() if k not in DivMorphPolicy._divmorph_keys}
-    # the extractor kwargs carry DivMorph's factorization; MetaMorph rebuilds its own from the sizes
-    for key in ("observation_space", "action_space", "lr_schedule", "features_extractor_kwargs"):
-        kwargs.pop(key, None)
-    return MetaMorphPolicy(policy.observation_space, policy.action_space, lambda _: 0.0, **kwargs)
 
 
 def _rollout_observations(env: gym.Env, actor: CompactActor, first: dict[str, np.ndarray], steps: int, seed: int) -> dict[str, np.ndarray]:
@@ -81,10 +78,22 @@ def _rollout_observations(env: gym.Env, actor: CompactActor, first: dict[str, np
     return {k: np.stack([o[k] for o in observations]) for k in first}
 
 
-def export_actor(profile: Profile, out: Path, robot_file: Path, task: str, steps: int = 64) -> dict[str, Any]:
-    """Export one robot x task actor; returns (and writes) its report."""
+def _onnx_runner(path: Path):
+    from sb3_divmorph.onnx_actor import OnnxActor
+
+    actor = OnnxActor(path)
+    return lambda observations: th.as_tensor(actor(observations))
+
+
+def export_actor(
+    profile: Profile, out: Path, robot_file: Path, task: str, steps: int = 64, formats: tuple[str, ...] = FORMATS
+) -> dict[str, Any]:
+    """Export one robot x task actor in ``formats``; returns (and writes) its report."""
     if task not in TASK_NAMES:
         raise ConfigError(f"unknown task {task!r}; choose from {list(TASK_NAMES)}")
+    bad = [f for f in formats if f not in FORMATS]
+    if bad or not formats:
+        raise ConfigError(f"unknown export format(s) {bad or list(formats)}; choose from {list(FORMATS)} or 'all'")
     robot_file = Path(robot_file)
     folder = export_folder(out, robot_file.stem, task)
     if is_done(folder):
@@ -107,37 +116,44 @@ def export_actor(profile: Profile, out: Path, robot_file: Path, task: str, steps
     folder.mkdir(parents=True, exist_ok=True)
     counts = actor.stored_numbers()
     student_actor = actor_parameter_count(policy)
-    metamorph_actor = actor_parameter_count(metamorph_twin(policy))
+    sizes = size_comparison(policy, actor, first, TASKS[task].observation_keys, normalizer)
     metadata = {
         "robot": robot_file.stem,
         "task": task,
         "source": str(source / MODEL),
-        "inputs": ["proprioceptive (B,12,52)", "hfield (B,1410)", "goal (B,3)", "object (B,12)"],
         "output": "action means (B,24), 0 on padded slots; clip to [-1, 1] before env.step",
     }
-    path = export_torchscript(actor, first, folder / "actor.pt", metadata)
-
-    # Check the written file, loaded with torch alone, against the unpruned student.
-    loaded = th.jit.load(str(path))
     normalized = observations if normalizer is None else normalizer.normalize_obs(observations)
     with th.no_grad():
         obs_t, _ = policy.obs_to_tensor(normalized)
         reference = policy.get_distribution(obs_t).distribution.mean
-        exported = loaded(*actor_inputs(observations, batch=True))
-    max_diff = float((reference - exported).abs().max())
-    if not max_diff <= TOLERANCE:
-        path.unlink()
-        raise RuntimeError(f"exported actor differs from the student by {max_diff:.2e} > {TOLERANCE} ({robot_file.stem}, {task})")
-
     one_raw = {k: v[:1] for k, v in observations.items()}
+    repeats = profile.export.latency_repeats
+    files: dict[str, Any] = {}
+    writers = {
+        "torchscript": ("actor.pt", export_torchscript, lambda p: (lambda obs, m=th.jit.load(str(p)): m(*actor_inputs(obs, batch=True)))),
+        "onnx": ("actor.onnx", export_onnx, _onnx_runner),
+    }
+    for fmt in formats:
+        name, write, runner = writers[fmt]
+        path = write(actor, first, folder / name, metadata)
+        # Check the written file, loaded by its own runtime, against the unpruned student.
+        run = runner(path)
+        with th.no_grad():
+            max_diff = float((reference - run(observations)).abs().max())
+        if not max_diff <= TOLERANCE:
+            path.unlink()
+            raise RuntimeError(f"exported {fmt} actor differs from the student by {max_diff:.2e} > {TOLERANCE} ({robot_file.stem}, {task})")
+        files[fmt] = {"file": name, "bytes": path.stat().st_size, "max_abs_diff": max_diff,
+                      "latency_ms": batch1_latency(run, (one_raw,), repeats) * 1e3}
+
     one_obs, _ = policy.obs_to_tensor(one_raw if normalizer is None else normalizer.normalize_obs(one_raw))
 
     def student_step(obs):
         return policy.get_distribution(obs).distribution.mean
 
-    repeats = profile.export.latency_repeats
-    compact_s = batch1_latency(loaded, actor_inputs(one_raw, batch=True), repeats)
     student_s = batch1_latency(student_step, (one_obs,), repeats)
+    compact_ms = min(f["latency_ms"] for f in files.values())
     report = {
         **metadata,
         "source_label": source_label,
@@ -145,15 +161,17 @@ def export_actor(profile: Profile, out: Path, robot_file: Path, task: str, steps
         "compact_weights": counts["weights"],
         "compact_normalization_numbers": counts["normalization"],
         "student_actor_parameters": student_actor,
-        "metamorph_actor_parameters": metamorph_actor,
-        "reduction_vs_metamorph": metamorph_actor / counts["weights"],
+        "metamorph_actor_parameters": sizes["metamorph_actor"],
+        "metamorph_folded_weights": sizes["metamorph_folded"],
+        "folding_metamorph": sizes["folding"],
+        "reduction_vs_metamorph": sizes["reduction"],
         "reduction_vs_student": student_actor / counts["weights"],
-        "file_bytes": path.stat().st_size,
-        "max_abs_diff": max_diff,
+        "max_abs_diff": max(f["max_abs_diff"] for f in files.values()),
         "checked_observations": int(len(observations["proprioceptive"])),
-        "latency_compact_ms": compact_s * 1e3,
+        "formats": files,
+        "latency_compact_ms": compact_ms,
         "latency_student_ms": student_s * 1e3,
-        "speedup_vs_student": student_s / compact_s,
+        "speedup_vs_student": student_s * 1e3 / compact_ms,
         "torch_threads": th.get_num_threads(),
     }
     atomic_write_json(folder / "report.json", report)
@@ -161,8 +179,11 @@ def export_actor(profile: Profile, out: Path, robot_file: Path, task: str, steps
     return report
 
 
-def export_all(profile: Profile, out: Path, tasks: list[str] | None = None, robots: list[Path] | None = None) -> list[dict[str, Any]]:
-    """Export every (robot, task) pair of the profile (or the given ones) and write ``export/summary.csv``."""
+def export_all(
+    profile: Profile, out: Path, tasks: list[str] | None = None, robots: list[Path] | None = None, formats: tuple[str, ...] = FORMATS
+) -> list[dict[str, Any]]:
+    """Export every (robot, task) pair of the profile (or the given ones) in ``formats`` and write
+    ``export/summary.csv``."""
     if robots is None:
         n = profile.export.robots_per_split
         robots = profile_robots(profile, "train")[:n] + profile_robots(profile, "novel")[:n]
@@ -170,7 +191,7 @@ def export_all(profile: Profile, out: Path, tasks: list[str] | None = None, robo
     for task in tasks or profile.export.tasks:
         for robot in robots:
             print(f"[export] {Path(robot).stem} x {task}")
-            reports.append(export_actor(profile, out, robot, task))
+            reports.append(export_actor(profile, out, robot, task, formats=formats))
     # the summary covers every actor exported into this run folder so far, not only this call's
     everything = [json.loads(p.read_text()) for p in sorted((Path(out) / "export").glob("*/report.json"))]
     if everything:

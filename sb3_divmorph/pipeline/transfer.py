@@ -11,14 +11,16 @@ curves come from one command.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import torch as th
 from stable_baselines3 import PPO
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecNormalize
 
-from sb3_divmorph.finetune import UnitSelection, prepare_transfer
+from sb3_divmorph.finetune import UnitLearningRates, UnitSelection, prepare_transfer
 from sb3_divmorph.pipeline.config import ConfigError, Profile, load_zoo_entry
 from sb3_divmorph.pipeline.distill import student_folder
 from sb3_divmorph.pipeline.runs import (
@@ -61,6 +63,30 @@ def gate_selection(policy: DivMorphPolicy, raw_obs: dict[str, np.ndarray], norma
     return UnitSelection.from_gates(gates.morphology.cpu().numpy(), gates.task.cpu().numpy())
 
 
+class UpdateRatioLogger(BaseCallback):
+    """Logs ``transfer/update_ratio``: the learngene / selected-tailor mean absolute update of the
+    last rollout's optimiser steps, as applied (the configured ``learngene_lr_scale`` is the target).
+
+    :param rates: returns the installed :class:`~sb3_divmorph.finetune.UnitLearningRates`.
+    """
+
+    def __init__(self, rates: Callable[[], UnitLearningRates | None]):
+        super().__init__()
+        self.rates = rates
+
+    def _on_step(self) -> bool:
+        return True
+
+    def _on_rollout_start(self) -> None:
+        # the optimiser steps between two rollouts are the previous rollout's update
+        rates = self.rates()
+        if rates is not None and self.model.num_timesteps > 0:
+            means = rates.mean_updates(reset=True)
+            if means["selected_tailor"] > 0:
+                self.logger.record("transfer/update_ratio", means["learngene"] / means["selected_tailor"])
+                self.logger.record("transfer/update_selected_tailor", means["selected_tailor"])
+
+
 def transfer_run(profile: Profile, out: Path, task: str, arm: str, progress_bar: bool = True) -> TrainingRun:
     if task not in NOVEL_TASKS:
         raise ConfigError(f"transfer targets a novel task; {task!r} is not one of {list(NOVEL_TASKS)}")
@@ -81,6 +107,7 @@ def transfer_run(profile: Profile, out: Path, task: str, arm: str, progress_bar:
         return make_vec_env(env_name, entry.n_envs, seed, profile.max_episode_steps, **env_kwargs)
 
     prepare = None
+    callbacks: list[BaseCallback] = []
     if arm == "scratch":
         policy_kwargs = {**entry.policy_kwargs, **profile.teachers.policy_kwargs}
 
@@ -106,15 +133,19 @@ def transfer_run(profile: Profile, out: Path, task: str, arm: str, progress_bar:
             model.policy.load_state_dict(student.policy.state_dict())
             return model
 
+        installed: dict[str, UnitLearningRates] = {}
+
         def prepare(model):
             with th.no_grad():
                 selection = gate_selection(model.policy, selection_obs, model.get_vec_normalize_env())
             # the hooks live on the optimiser; they are installed again whenever the run is loaded
-            prepare_transfer(model.policy, selection, cfg.learngene_lr_scale)
+            installed["rates"] = prepare_transfer(model.policy, selection, cfg.learngene_lr_scale)
+
+        callbacks.append(UpdateRatioLogger(lambda: installed.get("rates")))
 
     return TrainingRun(
         transfer_folder(out, task, arm), cfg.n_timesteps, cfg.checkpoint_every, make_model, make_env,
-        prepare=prepare, device=device, progress_bar=progress_bar,
+        prepare=prepare, callbacks=callbacks, device=device, progress_bar=progress_bar,
     )
 
 
