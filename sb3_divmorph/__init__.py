@@ -1,7 +1,7 @@
-"""Stable-Baselines3 policies for universal morphology control: MetaMorph and DivMorph.
+"""Stable-Baselines3 policies for universal morphology control: MetaMorph, ModuMorph and DivMorph.
 
-Importing the package registers ``"MetaMorphPolicy"`` and ``"DivMorphPolicy"`` as PPO policy
-aliases, so ``PPO("DivMorphPolicy", env)`` and rl-zoo configs with ``policy: DivMorphPolicy``
+Importing the package registers ``"MetaMorphPolicy"``, ``"ModuMorphPolicy"``, ``"DivMorphPolicy"``
+and ``"HyperDistillPolicy"`` as PPO policy aliases, so ``PPO("DivMorphPolicy", env)`` and rl-zoo configs with ``policy: DivMorphPolicy``
 (with ``--gym-packages sb3_divmorph``) work.
 """
 
@@ -11,6 +11,7 @@ from sb3_divmorph.distributions import MaskedDiagGaussianDistribution
 from sb3_divmorph.extractors import MorphologyTransformerExtractor
 from sb3_divmorph.gates import DiversionRouter, GateActivations, MorphologyEncoder, TopKSoftGate
 from sb3_divmorph.layers import DenseLinear, FactorizedLinear, Factorization, LinearBuilder
+from sb3_divmorph.modumorph import MODUMORPH_PRESETS, ModuMorphActor, ModuMorphPolicy
 from sb3_divmorph.policies import (
     DIVMORPH_PRESETS,
     PRESETS,
@@ -22,6 +23,7 @@ from sb3_divmorph.transformer import MultiHeadSelfAttention, TransformerEncoder,
 
 PPO.policy_aliases["MetaMorphPolicy"] = MetaMorphPolicy
 PPO.policy_aliases["DivMorphPolicy"] = DivMorphPolicy
+PPO.policy_aliases["ModuMorphPolicy"] = ModuMorphPolicy
 
 __all__ = [
     "DIVMORPH_PRESETS",
@@ -33,8 +35,11 @@ __all__ = [
     "Factorization",
     "GateActivations",
     "LinearBuilder",
+    "MODUMORPH_PRESETS",
     "MaskedDiagGaussianDistribution",
     "MetaMorphPolicy",
+    "ModuMorphActor",
+    "ModuMorphPolicy",
     "MorphologyEncoder",
     "MorphologyTransformerExtractor",
     "MorphologyTransformerPolicy",
