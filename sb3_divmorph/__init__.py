@@ -10,6 +10,7 @@ from stable_baselines3 import PPO
 from sb3_divmorph.distributions import MaskedDiagGaussianDistribution
 from sb3_divmorph.extractors import MorphologyTransformerExtractor
 from sb3_divmorph.gates import DiversionRouter, GateActivations, MorphologyEncoder, TopKSoftGate
+from sb3_divmorph.hyperdistill import HYPERDISTILL_PRESETS, HyperDistillMLP, HyperDistillPolicy
 from sb3_divmorph.layers import DenseLinear, FactorizedLinear, Factorization, LinearBuilder
 from sb3_divmorph.modumorph import MODUMORPH_PRESETS, ModuMorphActor, ModuMorphPolicy
 from sb3_divmorph.policies import (
@@ -24,6 +25,7 @@ from sb3_divmorph.transformer import MultiHeadSelfAttention, TransformerEncoder,
 PPO.policy_aliases["MetaMorphPolicy"] = MetaMorphPolicy
 PPO.policy_aliases["DivMorphPolicy"] = DivMorphPolicy
 PPO.policy_aliases["ModuMorphPolicy"] = ModuMorphPolicy
+PPO.policy_aliases["HyperDistillPolicy"] = HyperDistillPolicy
 
 __all__ = [
     "DIVMORPH_PRESETS",
@@ -34,6 +36,9 @@ __all__ = [
     "FactorizedLinear",
     "Factorization",
     "GateActivations",
+    "HYPERDISTILL_PRESETS",
+    "HyperDistillMLP",
+    "HyperDistillPolicy",
     "LinearBuilder",
     "MODUMORPH_PRESETS",
     "MaskedDiagGaussianDistribution",

@@ -90,12 +90,25 @@ class RobotBatch(NamedTuple):
     restore: th.Tensor
 
     @classmethod
-    def from_context(cls, context: th.Tensor, encoder: nn.Module) -> RobotBatch:
-        """Group a (B, L, C) context batch (padded rows already zeroed) by robot and encode each robot once."""
-        unique, inverse = th.unique(context.flatten(1), dim=0, return_inverse=True)
+    def from_context(cls, context: th.Tensor, encoder, padding: th.Tensor | None = None) -> RobotBatch:
+        """Group a (B, L, C) context batch (padded rows already zeroed) by robot and encode each robot once.
+
+        :param context: (B, L, C) static per-token features.
+        :param encoder: called as ``encoder(context)`` on the (U, L, C) distinct robots, or as
+            ``encoder(context, padding)`` when ``padding`` is given.
+        :param padding: (B, L) True = padded token, or ``None``; part of what makes robots distinct.
+        """
+        key = context.flatten(1) if padding is None else th.cat([context.flatten(1), padding.to(context.dtype)], dim=1)
+        unique, inverse = th.unique(key, dim=0, return_inverse=True)
         order = th.argsort(inverse, stable=True)
         counts = th.bincount(inverse, minlength=len(unique)).tolist()
-        return cls(encoder(unique.view(-1, *context.shape[1:])), order, counts, th.argsort(order))
+        width = context.shape[1] * context.shape[2]
+        unique_context = unique[:, :width].view(-1, *context.shape[1:])
+        if padding is None:
+            embedding = encoder(unique_context)
+        else:
+            embedding = encoder(unique_context, unique[:, width:] > 0.5)
+        return cls(embedding, order, counts, th.argsort(order))
 
     def apply(self, x: th.Tensor, weight: th.Tensor, bias: th.Tensor) -> th.Tensor:
         """``y[b, l] = x[b, l] @ weight[robot(b), l] + bias[robot(b), l]`` without building per-sample weights.
