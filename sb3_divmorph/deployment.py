@@ -82,7 +82,8 @@ def export_onnx(actor: nn.Module, example: tuple[th.Tensor, ...], path: str | Pa
     """Write ``actor`` as ONNX (dynamic batch axis; inputs ``proprioceptive, hfield, goal, object``,
     output ``actions``), atomically; ``metadata`` goes into the model's ``metadata_props``.
 
-    The file runs with ``onnxruntime`` alone (no torch).
+    The file runs with ``onnxruntime`` alone (no torch). Inputs the task does not use (e.g. ``hfield``
+    on FT) are not in the graph: feed the names ``session.get_inputs()`` lists.
 
     :param actor: a deployed actor (e.g. :class:`~sb3_divmorph.hyperdistill.HyperDistillMLP`).
     :param example: one batch of its positional inputs (``compact.actor_inputs``).

@@ -191,18 +191,28 @@ class HyperDistillNetwork(nn.Module):
             return None
         return th.cat([enc(observations[k].flatten(1)) for k, enc in self.exteroception.items()], dim=-1)
 
+    def real_indices(self, real_tokens: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        """Rows of the flat proprioception and columns of the flat action of the given real tokens."""
+        rows = (real_tokens[:, None] * self.proprio_dim + th.arange(self.proprio_dim, device=real_tokens.device)).flatten()
+        cols = (real_tokens[:, None] * self.slots + th.arange(self.slots, device=real_tokens.device)).flatten()
+        return rows, cols
+
     @staticmethod
-    def run_mlp(weights: MLPWeights, index: int, proprio: th.Tensor, extero: th.Tensor | None) -> th.Tensor:
-        """Robot ``index``'s MLP on (n, L*P) flat proprioception (+ (n, E) exteroception) -> (n, L*S)."""
-        h = th.relu(proprio @ weights.w_in[index] + weights.b_in[index])
+    def run_mlp(weights: MLPWeights, index: int, proprio: th.Tensor, extero: th.Tensor | None, rows: th.Tensor, cols: th.Tensor) -> th.Tensor:
+        """Robot ``index``'s MLP on its real limbs: (n, L*P) flat proprioception (+ (n, E)) -> (n, len(cols)).
+
+        Only the real limbs' rows and columns are multiplied, exactly as in the deployed
+        :class:`HyperDistillMLP` (same operations in the same order, so both agree to float rounding).
+        """
+        h = th.relu(proprio[:, rows] @ weights.w_in[index][rows] + weights.b_in[index])
         if extero is not None:
             h = th.cat([h, extero], dim=-1)
         for w, b in weights.hidden:
             h = th.relu(h @ w[index] + b[index])
-        return h @ weights.w_out[index] + weights.b_out[index]
+        return h @ weights.w_out[index][:, cols] + weights.b_out[index][cols]
 
     def forward(self, observations: Mapping[str, th.Tensor]) -> th.Tensor:
-        """(B, L * slots) action means from a preprocessed observation dict."""
+        """(B, L * slots) action means (0 on padded tokens' slots) from a preprocessed observation dict."""
         proprio = observations[PROPRIOCEPTIVE]
         self.check_tokens(proprio.shape[1])
         self.check_tokens(observations[CONTEXT].shape[1], "context")
@@ -215,8 +225,14 @@ class HyperDistillNetwork(nn.Module):
         extero = self.encode_extero(observations)
         groups = proprio[robots.order].split(robots.counts)
         extero_groups = extero[robots.order].split(robots.counts) if extero is not None else [None] * len(groups)
-        out = [self.run_mlp(weights, u, p, x) for u, (p, x) in enumerate(zip(groups, extero_groups))]
-        return th.cat(out)[robots.restore]
+        out = proprio.new_zeros(len(proprio), self.n_tokens * self.slots)
+        start = 0
+        for u, (p, x) in enumerate(zip(groups, extero_groups)):
+            rows, cols = self.real_indices(th.nonzero(robots.embedding[u, :, -1] > 0.5).flatten())
+            samples = robots.order[start : start + len(p)]
+            out[samples[:, None], cols[None, :]] = self.run_mlp(weights, u, p, x, rows, cols)
+            start += len(p)
+        return out
 
 
 class HyperDistillPolicy(ActorCriticPolicy):
@@ -295,7 +311,8 @@ class HyperDistillPolicy(ActorCriticPolicy):
         return self.action_dist.proba_distribution(self.network(obs), self.log_std, obs[ACT_PADDING_MASK])
 
     def _values(self, obs: Mapping[str, th.Tensor]) -> th.Tensor:
-        return self.value_constant.expand(obs[PROPRIOCEPTIVE].shape[0], 1)
+        # a product, not a view: a view of a parameter keeps requires_grad even under no_grad
+        return obs[PROPRIOCEPTIVE].new_ones(obs[PROPRIOCEPTIVE].shape[0], 1) * self.value_constant
 
     def forward(self, obs: PyTorchObs, deterministic: bool = False):
         obs = self._preprocess(obs)
@@ -511,9 +528,8 @@ class HyperDistillMLP(DeployedActor):
 
         context = th.where(padding[..., None], th.zeros(()), obs[CONTEXT])
         weights = net.generate(net._encode(context, padding))
-        P, S = net.proprio_dim, net.slots
-        rows = (real[:, None] * P + th.arange(P)).flatten()
-        cols = (real[:, None] * S + th.arange(S)).flatten()
+        S = net.slots
+        rows, cols = net.real_indices(real)
         self.input = _linear(weights.w_in[0][rows], weights.b_in[0])
         # the layer after the input layer reads [h, extero]: fold the absent observations' encodings
         extero_layers = [(k, e) for k, e in net.exteroception.items()]
