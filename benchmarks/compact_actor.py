@@ -24,7 +24,6 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import gymnasium as gym  # noqa: E402
 import torch as th  # noqa: E402
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize  # noqa: E402
-from torch.utils.flop_counter import FlopCounterMode  # noqa: E402
 
 import sb3_divmorph  # noqa: E402,F401
 import unimal_envs  # noqa: E402,F401
@@ -36,6 +35,7 @@ from sb3_divmorph.compact import (  # noqa: E402
     metamorph_twin,
     size_comparison,
 )
+from sb3_divmorph.deployment import matmul_flops  # noqa: E402
 from sb3_divmorph.policies import DivMorphPolicy  # noqa: E402
 from unimal_envs.morphology.loader import morphology_files  # noqa: E402
 from unimal_envs.tasks import TASKS  # noqa: E402
@@ -44,13 +44,6 @@ from unimal_envs.tasks import TASKS  # noqa: E402
 CONFIGS = ("default", "deploy-g4k2", "deploy-g2k1", "deploy-g1k1")
 #: structural targets of the deployment issue (random-init students)
 TARGETS = {"flat": 20.0, "height map": 12.0}
-
-
-def flops(actor: th.nn.Module, inputs: tuple) -> int:
-    """FLOPs of one forward pass (matrix products and attention; 2 per multiply-add)."""
-    with th.no_grad(), FlopCounterMode(display=False) as counter:
-        actor(*inputs)
-    return counter.get_total_flops()
 
 
 def measure(config: str, task: str, repeats: int, folder: Path) -> dict:
@@ -73,7 +66,7 @@ def measure(config: str, task: str, repeats: int, folder: Path) -> dict:
         diff = (policy.get_distribution(obs).distribution.mean - loaded(*inputs)).abs().max().item()
     return dict(
         config=config, task=task, kind="height map" if "hfield" in keys else "flat", **sizes, diff=diff,
-        flops=flops(actor, inputs), flops_metamorph=flops(reference, inputs),
+        flops=matmul_flops(actor, inputs), flops_metamorph=matmul_flops(reference, inputs),
         compact_ms=batch1_latency(loaded, inputs, repeats) * 1e3, metamorph_ms=batch1_latency(loaded_reference, inputs, repeats) * 1e3,
         tokens=int(len(actor.real_tokens)),
     )

@@ -3,6 +3,7 @@
     divmorph pipeline --profile demo                 # every stage, in order (runs/demo)
     divmorph teachers --profile demo [--task FT]     # one MetaMorph teacher per training task
     divmorph distill  --profile demo                 # DAgger into the DivMorph student
+    divmorph hyperdistill --profile demo             # baseline: HyperDistill student + per-robot MLPs
     divmorph transfer --profile demo --task Escape [--no-scratch]
     divmorph export   --profile demo --morphology train-000 --task FT
     divmorph evaluate --profile demo
@@ -42,6 +43,7 @@ def _parser() -> argparse.ArgumentParser:
     p = command("teachers", "train one MetaMorph teacher per training task (PPO)")
     p.add_argument("--task", action="append", help="only this training task (repeatable)")
     command("distill", "DAgger distillation of the teachers into a DivMorph student")
+    command("hyperdistill", "HyperDistill baseline: distil the teachers into a hypernetwork student, export per-robot MLPs")
     p = command("transfer", "transfer the student to a novel task (and train MetaMorph from scratch)")
     p.add_argument("--task", action="append", help="novel task (repeatable; default: the profile's)")
     p.add_argument("--no-scratch", action="store_true", help="skip the from-scratch comparison")
@@ -95,6 +97,10 @@ def main(argv: list[str] | None = None) -> int:
             P.train_teachers(profile, out, args.task, progress)
         elif args.command == "distill":
             P.distill(profile, out, progress)
+        elif args.command == "hyperdistill":
+            for r in P.hyperdistill(profile, out, progress):
+                print(f"{r['robot']} x {r['task']}: MLP of {r['mlp_weights']:,} weights, max |diff| {r['max_abs_diff']:.1e}, "
+                      f"latency {r['latency_mlp_ms']:.3f} ms -> {Path(out) / 'hyperdistill' / 'export'}")
         elif args.command == "transfer":
             P.transfer(profile, out, args.task, False if args.no_scratch else None, progress)
         elif args.command == "export":
@@ -109,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"returns -> {P.evaluate(profile, out) / 'returns.csv'}")
         elif args.command == "report":
             print(P.report(profile, out, command_line))
-    except (P.ConfigError, FileNotFoundError, ValueError, KeyError) as error:
+    except (P.ConfigError, FileNotFoundError, ValueError, KeyError, TypeError) as error:
         print(f"divmorph {args.command}: {error}", file=sys.stderr)
         return 2
     print(f"[divmorph] {args.command} finished in {time.perf_counter() - start:.0f} s (threads: {th.get_num_threads()}); outputs in {out}")

@@ -20,10 +20,8 @@ from __future__ import annotations
 import copy
 import io
 import json
-import math
 import statistics
 import time
-import warnings
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -33,11 +31,11 @@ import torch as th
 from torch import nn
 from torch.nn import functional as F
 
-from sb3_divmorph.extractors import ACT_PADDING_MASK, CONTEXT, EXTEROCEPTION_KEYS, OBS_PADDING_MASK, PROPRIOCEPTIVE
+from sb3_divmorph.deployment import ACTOR_INPUTS, DeployedActor, actor_inputs, export_onnx
+from sb3_divmorph.extractors import ACT_PADDING_MASK, CONTEXT, OBS_PADDING_MASK, PROPRIOCEPTIVE
 from sb3_divmorph.layers import DenseLinear, FactorizedLinear
 
-#: Inputs of the exported actor, in its ``forward`` order.
-ACTOR_INPUTS = (PROPRIOCEPTIVE, *EXTEROCEPTION_KEYS)
+__all__ = ["ACTOR_INPUTS", "CompactActor", "actor_inputs", "export_onnx", "export_torchscript", "size_comparison"]
 
 
 class LowRankLinear(nn.Module):
@@ -136,7 +134,7 @@ class CompactBlock(nn.Module):
         return x + self.ff_out(hidden)
 
 
-class CompactActor(nn.Module):
+class CompactActor(DeployedActor):
     """Deterministic actor of one DivMorph student for one robot and one task.
 
     ``forward(proprioceptive, hfield, goal, object)`` takes the env's *raw* observation arrays,
@@ -186,19 +184,7 @@ class CompactActor(nn.Module):
 
         # Normalisation of the inputs that stay inputs (baked VecNormalize statistics).
         self.used_extero = [k for k in extractor.exteroception.keys() if k in observation_keys]
-        self.normalized_keys: list[str] = []
-        norm_keys = set(getattr(normalizer, "norm_obs_keys", None) or []) if normalizer is not None else set()
-        for key in (PROPRIOCEPTIVE, *self.used_extero):
-            if key in norm_keys:
-                rms = normalizer.obs_rms[key]
-                mean = th.as_tensor(rms.mean, dtype=th.float32)
-                inv_std = th.as_tensor(1.0 / np.sqrt(rms.var + normalizer.epsilon), dtype=th.float32)
-                if key == PROPRIOCEPTIVE:
-                    mean, inv_std = mean[real], inv_std[real]
-                self.register_buffer(f"{key}_mean", mean)
-                self.register_buffer(f"{key}_inv_std", inv_std)
-                self.normalized_keys.append(key)
-        self.clip_obs = float(getattr(normalizer, "clip_obs", math.inf)) if normalizer is not None else math.inf
+        self.bake_normalization(normalizer, real, self.used_extero)
 
         # Token embedding: the context rows, bias and position embedding are constants.
         embedding = extractor.embedding
@@ -247,12 +233,6 @@ class CompactActor(nn.Module):
         self.requires_grad_(False)
         return self.eval()
 
-    def _normalize(self, key: str, x: th.Tensor) -> th.Tensor:
-        if key not in self.normalized_keys:
-            return x
-        x = (x - getattr(self, f"{key}_mean")) * getattr(self, f"{key}_inv_std")
-        return x.clamp(-self.clip_obs, self.clip_obs) if math.isfinite(self.clip_obs) else x
-
     def forward(self, proprioceptive: th.Tensor, hfield: th.Tensor, goal: th.Tensor, object: th.Tensor) -> th.Tensor:  # noqa: A002
         inputs = {"hfield": hfield, "goal": goal, "object": object}
         tokens = self._normalize(PROPRIOCEPTIVE, proprioceptive.index_select(1, self.real_tokens))
@@ -269,12 +249,6 @@ class CompactActor(nn.Module):
         out = out.index_copy(1, self.real_tokens, actions)
         return out.flatten(1)
 
-    def stored_numbers(self) -> dict[str, int]:
-        """Numbers stored: ``weights`` (parameters incl. folded constants) and ``normalization``."""
-        weights = sum(p.numel() for p in self.parameters())
-        normalization = sum(b.numel() for name, b in self.named_buffers() if name.endswith(("_mean", "_inv_std")))
-        return {"weights": weights, "normalization": normalization}
-
 
 def actor_parameter_count(policy: nn.Module) -> int:
     """Numbers a policy's actor needs at inference (extractor, decoder, head, router, std, and the
@@ -285,11 +259,6 @@ def actor_parameter_count(policy: nn.Module) -> int:
     if policy.share_features_extractor:
         total += counts["actor/decoder"] + counts["actor/log_std"]
     return total
-
-
-def actor_inputs(observation: Mapping[str, np.ndarray], batch: bool = False) -> tuple[th.Tensor, ...]:
-    """The exported actor's positional inputs from an observation dict (adds a batch axis unless ``batch``)."""
-    return tuple(th.as_tensor(np.asarray(observation[k], dtype=np.float32) if batch else np.asarray(observation[k], dtype=np.float32)[None]) for k in ACTOR_INPUTS)
 
 
 def export_torchscript(actor: CompactActor, example: Mapping[str, np.ndarray], path: str | Path, metadata: Mapping[str, Any]) -> Path:
@@ -303,40 +272,6 @@ def export_torchscript(actor: CompactActor, example: Mapping[str, np.ndarray], p
     th.jit.save(traced, buffer, _extra_files={"metadata.json": json.dumps(dict(metadata), indent=1)})
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_bytes(buffer.getvalue())
-    tmp.replace(path)
-    return path
-
-
-def export_onnx(actor: CompactActor, example: Mapping[str, np.ndarray], path: str | Path, metadata: Mapping[str, Any]) -> Path:
-    """Write ``actor`` as ONNX to ``path`` atomically, for ``onnxruntime`` + ``numpy`` alone.
-
-    The graph keeps only the inputs the actor reads (e.g. FT's actor has no ``hfield`` input), with
-    a free batch axis; ``metadata`` (robot, task, ...) is stored in the model's ``metadata_props``,
-    together with the inputs' names and shapes and the robot's ``obs_padding_mask``, which
-    :class:`sb3_divmorph.onnx_actor.OnnxActor` checks observations against.
-    """
-    import onnx
-
-    path = Path(path)
-    names = list(ACTOR_INPUTS)
-    buffer = io.BytesIO()
-    with th.no_grad(), warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the TorchScript-based exporter's deprecation notice
-        th.onnx.export(
-            actor, actor_inputs(example), buffer, input_names=names, output_names=["actions"],
-            dynamic_axes={name: {0: "batch"} for name in [*names, "actions"]}, dynamo=False,
-        )
-    model = onnx.load_from_string(buffer.getvalue())
-    kept = [i.name for i in model.graph.input]
-    padding = np.asarray(example[OBS_PADDING_MASK], dtype=np.float32).reshape(-1) if OBS_PADDING_MASK in example else None
-    props = {
-        **{k: v if isinstance(v, str) else json.dumps(v) for k, v in metadata.items()},
-        "inputs": json.dumps({k: list(np.asarray(example[k]).shape) for k in kept}),
-        **({OBS_PADDING_MASK: json.dumps(padding.tolist())} if padding is not None else {}),
-    }
-    onnx.helper.set_model_props(model, props)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(model.SerializeToString())
     tmp.replace(path)
     return path
 

@@ -162,6 +162,23 @@ def _teacher_for(teachers: Mapping[int, Teacher], task_index: int) -> Teacher:
     return teachers[task_index]
 
 
+def teacher_labels(
+    teachers: Mapping[int, Teacher], raw_obs: ObsDict, action_dim: int, chunk: int = 1024
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Means, stds (B, A) and task indices (B,) of a batch of raw states, each by its own task's teacher."""
+    tasks = _task_indices(raw_obs)
+    mean = np.zeros((len(tasks), action_dim), dtype=np.float32)
+    std = np.ones((len(tasks), action_dim), dtype=np.float32)
+    for task in np.unique(tasks):
+        teacher = _teacher_for(teachers, int(task))
+        rows = np.flatnonzero(tasks == task)
+        for start in range(0, len(rows), chunk):
+            part = rows[start : start + chunk]
+            m, s = teacher.action_distribution(index_obs(raw_obs, part))
+            mean[part], std[part] = m.cpu().numpy(), s.cpu().numpy()
+    return mean, std, tasks
+
+
 class TeacherMixingVecEnv(VecEnvWrapper):
     """Executes each state's teacher action instead of the agent's with probability ``beta``.
 
@@ -370,18 +387,7 @@ class DAggerCallback(BaseCallback):
     # -- distillation --------------------------------------------------------------------------
     def label(self, raw_obs: ObsDict, chunk: int = 1024) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Teacher means and stds for a batch of raw states, each by its own task's teacher."""
-        tasks = _task_indices(raw_obs)
-        n, action_dim = len(tasks), int(np.prod(self.model.action_space.shape))
-        mean = np.zeros((n, action_dim), dtype=np.float32)
-        std = np.ones((n, action_dim), dtype=np.float32)
-        for task in np.unique(tasks):
-            teacher = _teacher_for(self.teachers, int(task))
-            rows = np.flatnonzero(tasks == task)
-            for start in range(0, len(rows), chunk):
-                part = rows[start : start + chunk]
-                m, s = teacher.action_distribution(index_obs(raw_obs, part))
-                mean[part], std[part] = m.cpu().numpy(), s.cpu().numpy()
-        return mean, std, tasks
+        return teacher_labels(self.teachers, raw_obs, int(np.prod(self.model.action_space.shape)), chunk)
 
     def _student_obs(self, raw_obs: ObsDict) -> ObsDict:
         return raw_obs if self._normalizer is None else self._normalizer.normalize_obs(raw_obs)

@@ -59,12 +59,18 @@ def _check_tasks(tasks: list[str], allowed: tuple[str, ...], where: str) -> None
         raise ConfigError(f"{where}: unknown or unsuitable task(s) {bad or tasks}; choose from {list(allowed)}")
 
 
+#: Policies a teacher may be (``teachers.policy``, ``hyperdistill.teacher_policy``).
+TEACHER_POLICIES = ("MetaMorphPolicy", "ModuMorphPolicy", "DivMorphPolicy")
+
+
 @dataclass
 class TeachersConfig:
-    """One MetaMorph teacher per training task, trained with PPO."""
+    """One teacher per training task (MetaMorph unless ``policy`` says otherwise), trained with PPO."""
 
     tasks: list[str]
     n_timesteps: int
+    #: the teachers' policy (default: the rl-zoo entry's, MetaMorphPolicy)
+    policy: str | None = None
     hyperparams: str = "zoo_configs/ppo.yml"
     overrides: dict[str, Any] = field(default_factory=dict)
     policy_kwargs: dict[str, Any] = field(default_factory=dict)
@@ -122,6 +128,28 @@ class ExportConfig:
 
 
 @dataclass
+class HyperDistillConfig:
+    """HyperDistill: a hypernetwork student distilled from per-task teachers into per-robot MLPs."""
+
+    #: teachers to distil: the run's own (``teachers/``) when their policy is this one, otherwise
+    #: teachers of this policy are trained with the ``teachers`` settings into ``hyperdistill/teachers/``
+    teacher_policy: str = "ModuMorphPolicy"
+    policy_kwargs: dict[str, Any] = field(default_factory=dict)
+    #: teacher-rollout states for the offline phase (authors: ~16k per robot); 0 = no offline phase
+    rollout_samples: int = 16384
+    loss: str = "nll"
+    epochs: int = 50
+    batch_size: int = 5120
+    learning_rate: float = 3e-4
+    #: DAgger steps after the offline phase (0 = none)
+    dagger_timesteps: int = 0
+    dagger_epochs: int = 2
+    n_envs: int = 4
+    n_steps: int = 256
+    buffer_size: int = 50_000
+
+
+@dataclass
 class EvaluateConfig:
     """Per-morphology evaluation."""
 
@@ -151,6 +179,8 @@ class Profile:
     train_robots: int | None = None
     novel_robots: int | None = None
     max_episode_steps: int = 1000
+    #: the HyperDistill baseline; the pipeline runs it only when the profile has this section
+    hyperdistill: HyperDistillConfig | None = None
 
     @classmethod
     def from_dict(cls, name: str, values: dict[str, Any]) -> Profile:
@@ -164,10 +194,18 @@ class Profile:
         }
         values = dict(values)
         parsed = {key: _from_dict(section, values.pop(key, None), f"profile {name!r}, section {key!r}") for key, section in sections.items()}
+        if values.get("hyperdistill") is not None:
+            parsed["hyperdistill"] = _from_dict(HyperDistillConfig, values.pop("hyperdistill"), f"profile {name!r}, section 'hyperdistill'")
         profile = _from_dict(cls, {**values, **parsed, "name": name}, f"profile {name!r}")
         _check_tasks(profile.teachers.tasks, TRAIN_TASKS, f"profile {name!r}, teachers.tasks")
         _check_tasks(profile.transfer.tasks, NOVEL_TASKS, f"profile {name!r}, transfer.tasks")
         _check_tasks(profile.export.tasks, TASK_NAMES, f"profile {name!r}, export.tasks")
+        for where, policy in (("teachers.policy", profile.teachers.policy),
+                              ("hyperdistill.teacher_policy", profile.hyperdistill.teacher_policy if profile.hyperdistill else None)):
+            if policy is not None and policy not in TEACHER_POLICIES:
+                raise ConfigError(f"profile {name!r}: unknown teacher policy {policy!r} in {where}; choose from {list(TEACHER_POLICIES)}")
+        if profile.hyperdistill is not None and profile.hyperdistill.loss not in ("nll", "kl"):
+            raise ConfigError(f"profile {name!r}: hyperdistill.loss must be 'nll' or 'kl', got {profile.hyperdistill.loss!r}")
         stray = sorted(set(profile.transfer.instructions) - set(profile.transfer.tasks))
         if stray:
             raise ConfigError(f"profile {name!r}: transfer.instructions for {stray}, which are not in transfer.tasks {profile.transfer.tasks}")

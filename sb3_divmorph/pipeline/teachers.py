@@ -27,15 +27,28 @@ from sb3_divmorph.pipeline.runs import (
 from unimal_envs.contract import TASK_NAMES, observation_space
 
 
-def teacher_folder(out: Path, task: str) -> Path:
-    return Path(out) / "teachers" / task
+def teacher_folder(out: Path, task: str, root: str = "teachers") -> Path:
+    return Path(out) / root / task
 
 
-def teacher_run(profile: Profile, out: Path, task: str, progress_bar: bool = True) -> TrainingRun:
-    """The (resumable) PPO run of one task's teacher."""
+def teacher_policy(profile: Profile, task: str) -> str:
+    """The policy of the run's teacher of ``task``: ``teachers.policy``, else the zoo entry's."""
+    cfg = profile.teachers
+    return cfg.policy or load_zoo_entry(cfg.hyperparams, task_env_name(task), cfg.overrides).policy
+
+
+def teacher_run(
+    profile: Profile, out: Path, task: str, progress_bar: bool = True, policy: str | None = None, root: str = "teachers"
+) -> TrainingRun:
+    """The (resumable) PPO run of one task's teacher.
+
+    :param policy: the teacher's policy (default: :func:`teacher_policy`).
+    :param root: folder of the teachers inside the run (another policy's teachers live elsewhere).
+    """
     cfg = profile.teachers
     env_name = task_env_name(task)
     entry = load_zoo_entry(cfg.hyperparams, env_name, cfg.overrides)
+    entry.policy = policy or teacher_policy(profile, task)
     policy_kwargs = {**entry.policy_kwargs, **cfg.policy_kwargs}
     robots = profile_robots(profile, "train")
     seed = profile.seed + 1000 * (TASK_NAMES.index(task) + 1)
@@ -49,30 +62,36 @@ def teacher_run(profile: Profile, out: Path, task: str, progress_bar: bool = Tru
         return PPO(entry.policy, venv, policy_kwargs=policy_kwargs, seed=seed, device=device, verbose=0, **entry.ppo_kwargs)
 
     return TrainingRun(
-        teacher_folder(out, task), cfg.n_timesteps, cfg.checkpoint_every, make_model, make_env,
+        teacher_folder(out, task, root), cfg.n_timesteps, cfg.checkpoint_every, make_model, make_env,
         device=device, progress_bar=progress_bar,
     )
 
 
-def train_teachers(profile: Profile, out: Path, tasks: list[str] | None = None, progress_bar: bool = True) -> list[Path]:
-    """Train (or resume, or skip when done) the teachers of ``tasks`` (default: the profile's)."""
+def train_teachers(
+    profile: Profile, out: Path, tasks: list[str] | None = None, progress_bar: bool = True, policy: str | None = None, root: str = "teachers"
+) -> list[Path]:
+    """Train (or resume, or skip when done) the teachers of ``tasks`` (default: the profile's).
+
+    :param policy: train teachers of this policy instead of the profile's (into ``root``).
+    :param root: their folder inside the run.
+    """
     done = []
     for task in tasks or profile.teachers.tasks:
         if task not in profile.teachers.tasks:
             raise ConfigError(f"task {task!r} has no teacher in profile {profile.name!r}: {profile.teachers.tasks}")
-        folder = teacher_folder(out, task)
+        folder = teacher_folder(out, task, root)
         if not is_done(folder):
-            print(f"[teachers] {task}: PPO for {profile.teachers.n_timesteps} steps -> {folder}")
-            teacher_run(profile, out, task, progress_bar).run()
+            print(f"[teachers] {task}: {policy or teacher_policy(profile, task)} PPO for {profile.teachers.n_timesteps} steps -> {folder}")
+            teacher_run(profile, out, task, progress_bar, policy, root).run()
         done.append(folder)
     return done
 
 
-def load_teachers(profile: Profile, out: Path) -> dict[int, Teacher]:
-    """``{task index: Teacher}`` for every teacher of the profile; a missing one is an error."""
+def load_teachers(profile: Profile, out: Path, root: str = "teachers") -> dict[int, Teacher]:
+    """``{task index: Teacher}`` for every teacher of the profile (in ``root``); a missing one is an error."""
     teachers = {}
     for task in profile.teachers.tasks:
-        folder = teacher_folder(out, task)
+        folder = teacher_folder(out, task, root)
         if not is_done(folder):
             raise FileNotFoundError(
                 f"teacher for {task} not found in {folder} (no done.json); run `divmorph teachers --out {out}` first"

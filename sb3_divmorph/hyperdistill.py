@@ -1,0 +1,597 @@
+"""HyperDistill (Xiong et al., ICML 2024): a hypernetwork that writes a small MLP controller per robot.
+
+The student maps a robot's ``context`` to the weights of an MLP:
+
+* **input layer**: per limb ``l`` a generated ``W_l`` (limb proprioception -> hidden) and ``b_l``;
+  ``h = ReLU(sum_l mask_l (W_l x_l + b_l))`` (a sum over the robot's real limbs);
+* the exteroception encodings (``hfield``, ``goal``, ``object`` MLPs, shared by all robots) are
+  concatenated to ``h`` (the authors' public code drops the height-map embedding; here it is fused);
+* ``n_layers - 1`` hidden ``hidden x hidden`` layers generated from the mean-pooled context;
+* **output layer**: per limb generated weights (hidden -> 2 action slots) and bias.
+
+Three context encoders (input, hidden, output layer), each ``Linear(C -> e)`` plus one pre-LN
+Transformer layer over the limbs with the padding mask. Every generator starts with a zero weight
+matrix; the generated weights start ~N(0, 1/fan_in) (the generator's bias), generated biases at 0.
+
+Training is distillation from a teacher (ModuMorph by default, any teacher of the pipeline), with
+the project's machinery: offline from teacher rollouts (:func:`collect_teacher_rollouts` +
+:func:`fit_offline`, loss = NLL of the teacher's sampled action, the authors' default, or the KL
+of :func:`~sb3_divmorph.distillation.gaussian_kl`) and/or DAgger
+(:class:`~sb3_divmorph.distillation.DAggerCallback` with :class:`~sb3_divmorph.distillation.ImitationPPO`).
+
+Deployment: for one robot the MLP is generated once (:meth:`HyperDistillMLP.from_policy`), a plain
+``nn.Module`` with the compact actor's inputs, the observation normalisation baked in.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3 import PPO
+from stable_baselines3.common.policies import ActorCriticPolicy
+from stable_baselines3.common.preprocessing import preprocess_obs
+from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
+from stable_baselines3.common.vec_env import VecEnv, VecNormalize
+from torch import nn
+
+from sb3_divmorph.deployment import DeployedActor
+from sb3_divmorph.distillation import (
+    DistillationDataset,
+    ObsDict,
+    SpaceMismatchError,
+    Teacher,
+    check_spaces,
+    find_vec_wrapper,
+    gaussian_kl,
+    teacher_labels,
+)
+from sb3_divmorph.distributions import MaskedDiagGaussianDistribution
+from sb3_divmorph.extractors import ACT_PADDING_MASK, CONTEXT, OBS_PADDING_MASK, PROPRIOCEPTIVE, ExteroceptionEncoder, token_padding
+from sb3_divmorph.gates import masked_mean
+from sb3_divmorph.layers import LinearBuilder
+from sb3_divmorph.modumorph import RobotBatch
+from sb3_divmorph.transformer import TransformerEncoderLayer, attention_mask
+
+#: Sizes per preset: ``paper`` is the authors' reported setting (2 layers of width 256,
+#: context encoders of width 128 with a 2-head Transformer layer of FFN 256).
+HYPERDISTILL_PRESETS: dict[str, dict[str, Any]] = {
+    "small": dict(hidden_dim=64, n_layers=2, embed_dim=32, n_heads=2, encoder_ff_dim=64,
+                  exteroception=dict(hfield=[32, 32], goal=[16], object=[16])),
+    "paper": dict(hidden_dim=256, n_layers=2, embed_dim=128, n_heads=2, encoder_ff_dim=256,
+                  exteroception=dict(hfield=[64, 64], goal=[32], object=[32])),
+}
+LOSSES = ("nll", "kl")
+
+
+class LimbContextEncoder(nn.Module):
+    """``Linear(C -> e)`` then one pre-LN Transformer layer over the limbs (padding masked).
+
+    :param context_dim: per-token context features.
+    :param embed_dim: output width.
+    :param n_heads: attention heads.
+    :param ff_dim: FFN width.
+    """
+
+    def __init__(self, context_dim: int, embed_dim: int, n_heads: int, ff_dim: int):
+        super().__init__()
+        self.linear = nn.Linear(context_dim, embed_dim)
+        self.layer = TransformerEncoderLayer(embed_dim, n_heads, ff_dim, LinearBuilder())
+
+    def forward(self, context: th.Tensor, padding: th.Tensor) -> th.Tensor:
+        return self.layer(self.linear(context), attention_mask(padding))
+
+
+def _generator(embed_dim: int, numel: int, std: float) -> nn.Linear:
+    layer = nn.Linear(embed_dim, numel)
+    nn.init.zeros_(layer.weight)
+    nn.init.normal_(layer.bias, 0.0, std) if std > 0 else nn.init.zeros_(layer.bias)
+    return layer
+
+
+class MLPWeights(NamedTuple):
+    """The generated MLP of U robots (padded limbs contribute zero rows / columns).
+
+    ``w_in`` (U, L*P, H), ``b_in`` (U, H), ``hidden`` [(U, in, out), (U, out)] per hidden layer,
+    ``w_out`` (U, in, L*S), ``b_out`` (U, L*S).
+    """
+
+    w_in: th.Tensor
+    b_in: th.Tensor
+    hidden: list[tuple[th.Tensor, th.Tensor]]
+    w_out: th.Tensor
+    b_out: th.Tensor
+
+
+class HyperDistillNetwork(nn.Module):
+    """The HN-MLP student: context -> MLP weights, and the MLP run on the robot's observations.
+
+    :param observation_space: the UNIMAL ``spaces.Dict``.
+    :param slots_per_token: action slots per token (2).
+    :param hidden_dim: MLP width.
+    :param n_layers: MLP layers before the output layer (input layer + ``n_layers - 1`` hidden).
+    :param embed_dim: width of the three context encoders.
+    :param n_heads: heads of their Transformer layer.
+    :param encoder_ff_dim: FFN width of their Transformer layer.
+    :param exteroception: ``{obs key: MLP widths}`` of the fused global encoders.
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Dict,
+        slots_per_token: int,
+        hidden_dim: int,
+        n_layers: int,
+        embed_dim: int,
+        n_heads: int,
+        encoder_ff_dim: int,
+        exteroception: Mapping[str, Sequence[int]] | None,
+    ):
+        super().__init__()
+        if n_layers < 1:
+            raise ValueError(f"n_layers must be >= 1, got {n_layers}")
+        self.n_tokens, self.proprio_dim = observation_space[PROPRIOCEPTIVE].shape
+        self.context_dim = observation_space[CONTEXT].shape[1]
+        self.slots, self.hidden_dim, self.embed_dim = slots_per_token, hidden_dim, embed_dim
+        extero = {k: list(v) for k, v in sorted((exteroception or {}).items()) if k in observation_space.spaces and len(v) > 0}
+        self.exteroception = nn.ModuleDict(
+            {k: ExteroceptionEncoder(int(np.prod(observation_space[k].shape)), dims) for k, dims in extero.items()}
+        )
+        extero_dim = sum(e.out_dim for e in self.exteroception.values())
+        self.encoders = nn.ModuleList(LimbContextEncoder(self.context_dim, embed_dim, n_heads, encoder_ff_dim) for _ in range(3))
+        P, H, S = self.proprio_dim, hidden_dim, slots_per_token
+        self.in_weight = _generator(embed_dim, P * H, 1 / math.sqrt(P))
+        self.in_bias = _generator(embed_dim, H, 0.0)
+        sizes = [H + extero_dim] + [H] * (n_layers - 1)  # inputs of every layer after the input layer
+        self.hidden_sizes = list(zip(sizes[:-1], sizes[1:]))
+        self.hidden_weight = nn.ModuleList(_generator(embed_dim, a * b, 1 / math.sqrt(a)) for a, b in self.hidden_sizes)
+        self.hidden_bias = nn.ModuleList(_generator(embed_dim, b, 0.0) for _, b in self.hidden_sizes)
+        self.out_in = sizes[-1]
+        self.out_weight = _generator(embed_dim, self.out_in * S, 1 / math.sqrt(self.out_in))
+        self.out_bias = _generator(embed_dim, S, 0.0)
+
+    def check_tokens(self, tokens: int, what: str = "robot") -> None:
+        if tokens > self.n_tokens:
+            raise ValueError(
+                f"{what} has {tokens} tokens (torso + limbs); this HyperDistill student supports at most {self.n_tokens}"
+            )
+        if tokens != self.n_tokens:
+            raise ValueError(f"{what} has {tokens} token rows; pad it to the student's {self.n_tokens} (obs_padding_mask)")
+
+    def _encode(self, context: th.Tensor, padding: th.Tensor) -> th.Tensor:
+        # one tensor per robot for RobotBatch: the three encodings and the real-limb mask
+        encodings = [encoder(context, padding) for encoder in self.encoders]
+        return th.cat([*encodings, (~padding).to(context.dtype)[..., None]], dim=-1)
+
+    def generate(self, robot_encoding: th.Tensor) -> MLPWeights:
+        """(U, L, 3e + 1) robot encodings -> the U robots' MLP weights."""
+        e = self.embed_dim
+        enc_in, enc_hidden, enc_out = (robot_encoding[..., i * e : (i + 1) * e] for i in range(3))
+        real = robot_encoding[..., -1:]  # (U, L, 1)
+        U, L = robot_encoding.shape[:2]
+        P, H, S = self.proprio_dim, self.hidden_dim, self.slots
+        w_in = (self.in_weight(enc_in).view(U, L, P, H) * real[..., None]).reshape(U, L * P, H)
+        b_in = (self.in_bias(enc_in) * real).sum(1)
+        pooled = masked_mean(enc_hidden, real[..., 0] < 0.5)
+        hidden = [
+            (wg(pooled).view(U, a, b), bg(pooled)) for (a, b), wg, bg in zip(self.hidden_sizes, self.hidden_weight, self.hidden_bias)
+        ]
+        w_out = self.out_weight(enc_out).view(U, L, self.out_in, S) * real[..., None]
+        w_out = w_out.permute(0, 2, 1, 3).reshape(U, self.out_in, L * S)
+        b_out = (self.out_bias(enc_out) * real).reshape(U, L * S)
+        return MLPWeights(w_in, b_in, hidden, w_out, b_out)
+
+    def encode_extero(self, observations: Mapping[str, th.Tensor]) -> th.Tensor | None:
+        if not len(self.exteroception):
+            return None
+        return th.cat([enc(observations[k].flatten(1)) for k, enc in self.exteroception.items()], dim=-1)
+
+    def real_indices(self, real_tokens: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        """Rows of the flat proprioception and columns of the flat action of the given real tokens."""
+        rows = (real_tokens[:, None] * self.proprio_dim + th.arange(self.proprio_dim, device=real_tokens.device)).flatten()
+        cols = (real_tokens[:, None] * self.slots + th.arange(self.slots, device=real_tokens.device)).flatten()
+        return rows, cols
+
+    @staticmethod
+    def run_mlp(weights: MLPWeights, index: int, proprio: th.Tensor, extero: th.Tensor | None, rows: th.Tensor, cols: th.Tensor) -> th.Tensor:
+        """Robot ``index``'s MLP on its real limbs: (n, L*P) flat proprioception (+ (n, E)) -> (n, len(cols)).
+
+        Only the real limbs' rows and columns are multiplied, exactly as in the deployed
+        :class:`HyperDistillMLP` (same operations in the same order, so both agree to float rounding).
+        """
+        h = th.relu(proprio[:, rows] @ weights.w_in[index][rows] + weights.b_in[index])
+        if extero is not None:
+            h = th.cat([h, extero], dim=-1)
+        for w, b in weights.hidden:
+            h = th.relu(h @ w[index] + b[index])
+        return h @ weights.w_out[index][:, cols] + weights.b_out[index][cols]
+
+    def forward(self, observations: Mapping[str, th.Tensor]) -> th.Tensor:
+        """(B, L * slots) action means (0 on padded tokens' slots) from a preprocessed observation dict."""
+        proprio = observations[PROPRIOCEPTIVE]
+        self.check_tokens(proprio.shape[1])
+        self.check_tokens(observations[CONTEXT].shape[1], "context")
+        padding = token_padding(observations)
+        zero = th.zeros((), dtype=proprio.dtype, device=proprio.device)
+        proprio = th.where(padding[..., None], zero, proprio).flatten(1)  # NaN-safe: padded rows never read
+        context = th.where(padding[..., None], zero, observations[CONTEXT])
+        robots = RobotBatch.from_context(context, self._encode, padding)
+        weights = self.generate(robots.embedding)
+        extero = self.encode_extero(observations)
+        groups = proprio[robots.order].split(robots.counts)
+        extero_groups = extero[robots.order].split(robots.counts) if extero is not None else [None] * len(groups)
+        out = proprio.new_zeros(len(proprio), self.n_tokens * self.slots)
+        start = 0
+        for u, (p, x) in enumerate(zip(groups, extero_groups)):
+            rows, cols = self.real_indices(th.nonzero(robots.embedding[u, :, -1] > 0.5).flatten())
+            samples = robots.order[start : start + len(p)]
+            out[samples[:, None], cols[None, :]] = self.run_mlp(weights, u, p, x, rows, cols)
+            start += len(p)
+        return out
+
+
+class HyperDistillPolicy(ActorCriticPolicy):
+    """The HyperDistill student as an SB3 policy (for :class:`~sb3_divmorph.distillation.ImitationPPO`
+    rollouts and :class:`~sb3_divmorph.distillation.DAggerCallback`).
+
+    Actor: :class:`HyperDistillNetwork`, masked Gaussian with a fixed std (``action_std``). The student
+    is trained by imitation only, so its critic is a single learnable constant: SB3's rollout
+    buffer needs values, nothing here learns from them.
+
+    :param observation_space: the UNIMAL ``spaces.Dict``.
+    :param action_space: ``Box(-1, 1, (L * slots,))``.
+    :param lr_schedule: learning-rate schedule (SB3's optimiser; distillation uses its own).
+    :param preset: ``"small"`` (default) or ``"paper"``; explicit keywords override it.
+    :param hidden_dim: MLP width.
+    :param n_layers: MLP layers before the output layer.
+    :param embed_dim: context-encoder width.
+    :param n_heads: context-encoder heads.
+    :param encoder_ff_dim: context-encoder FFN width.
+    :param exteroception: ``{obs key: MLP widths}``.
+    :param action_std: std of the Gaussian (MetaMorph's teachers: 0.9).
+    :param kwargs: other ``ActorCriticPolicy`` arguments (optimizer).
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Dict,
+        action_space: spaces.Box,
+        lr_schedule: Schedule,
+        preset: str = "small",
+        hidden_dim: int | None = None,
+        n_layers: int | None = None,
+        embed_dim: int | None = None,
+        n_heads: int | None = None,
+        encoder_ff_dim: int | None = None,
+        exteroception: Mapping[str, Sequence[int]] | None = None,
+        action_std: float = 0.9,
+        **kwargs: Any,
+    ):
+        if preset not in HYPERDISTILL_PRESETS:
+            raise ValueError(f"Unknown preset {preset!r}; choose from {sorted(HYPERDISTILL_PRESETS)}")
+        explicit = dict(hidden_dim=hidden_dim, n_layers=n_layers, embed_dim=embed_dim, n_heads=n_heads,
+                        encoder_ff_dim=encoder_ff_dim, exteroception=exteroception)
+        self.preset = preset
+        self.config = {**HYPERDISTILL_PRESETS[preset], **{k: v for k, v in explicit.items() if v is not None}}
+        self.action_std = float(action_std)
+        if not isinstance(observation_space, spaces.Dict) or not {PROPRIOCEPTIVE, CONTEXT, OBS_PADDING_MASK, ACT_PADDING_MASK} <= set(observation_space.spaces):
+            raise ValueError("HyperDistillPolicy needs the UNIMAL Dict observation space")
+        n_tokens = observation_space[PROPRIOCEPTIVE].shape[0]
+        if len(action_space.shape) != 1 or action_space.shape[0] % n_tokens:
+            raise ValueError(f"Action size {action_space.shape} is not a multiple of the {n_tokens} tokens")
+        self.n_tokens, self.slots_per_token = n_tokens, action_space.shape[0] // n_tokens
+        for key in ("net_arch", "features_extractor_class", "share_features_extractor", "use_sde"):
+            kwargs.pop(key, None)
+        super().__init__(observation_space, action_space, lr_schedule, **kwargs)
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        for key in ("net_arch", "features_extractor_class", "features_extractor_kwargs", "share_features_extractor", "use_sde",
+                    "log_std_init", "squash_output", "full_std", "use_expln", "ortho_init", "activation_fn"):
+            data.pop(key, None)
+        data.update(self.config, preset=self.preset, action_std=self.action_std)
+        return data
+
+    def _build(self, lr_schedule: Schedule) -> None:
+        self.action_dist = MaskedDiagGaussianDistribution(int(np.prod(self.action_space.shape)))
+        self.network = HyperDistillNetwork(self.observation_space, self.slots_per_token, **self.config)
+        self.value_constant = nn.Parameter(th.zeros(1))
+        self.register_buffer("log_std", th.full((self.action_dist.action_dim,), math.log(self.action_std)))
+        self.optimizer = self.optimizer_class(self.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs)  # type: ignore[call-arg]
+
+    def _preprocess(self, obs: PyTorchObs) -> dict[str, th.Tensor]:
+        return preprocess_obs(obs, self.observation_space, normalize_images=False)  # type: ignore[return-value]
+
+    def _distribution(self, obs: Mapping[str, th.Tensor]) -> MaskedDiagGaussianDistribution:
+        return self.action_dist.proba_distribution(self.network(obs), self.log_std, obs[ACT_PADDING_MASK])
+
+    def _values(self, obs: Mapping[str, th.Tensor]) -> th.Tensor:
+        # a product, not a view: a view of a parameter keeps requires_grad even under no_grad
+        return obs[PROPRIOCEPTIVE].new_ones(obs[PROPRIOCEPTIVE].shape[0], 1) * self.value_constant
+
+    def forward(self, obs: PyTorchObs, deterministic: bool = False):
+        obs = self._preprocess(obs)
+        distribution = self._distribution(obs)
+        actions = distribution.get_actions(deterministic=deterministic)
+        return actions.reshape((-1, *self.action_space.shape)), self._values(obs), distribution.log_prob(actions)
+
+    def evaluate_actions(self, obs: PyTorchObs, actions: th.Tensor):
+        obs = self._preprocess(obs)
+        distribution = self._distribution(obs)
+        return self._values(obs), distribution.log_prob(actions), distribution.entropy()
+
+    def get_distribution(self, obs: PyTorchObs):
+        return self._distribution(self._preprocess(obs))
+
+    def predict_values(self, obs: PyTorchObs) -> th.Tensor:
+        return self._values(self._preprocess(obs))
+
+    def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        return self.get_distribution(observation).get_actions(deterministic=deterministic)
+
+    def parameter_counts(self) -> dict[str, int]:
+        """Student parameters: context encoders, generators, exteroception encoders."""
+        n = self.network
+
+        def count(*modules: nn.Module) -> int:
+            return sum(p.numel() for m in modules for p in m.parameters())
+
+        return {
+            "context_encoders": count(n.encoders),
+            "generators": count(n.in_weight, n.in_bias, n.hidden_weight, n.hidden_bias, n.out_weight, n.out_bias),
+            "exteroception": count(n.exteroception),
+            "total": count(self),
+        }
+
+
+def load_student(path: str | Path, observation_space: spaces.Space | None = None, device: str = "cpu") -> HyperDistillPolicy:
+    """A saved HyperDistill student (``model.zip``); its observation space must equal ``observation_space``.
+
+    :raises SpaceMismatchError: the checkpoint was trained on another observation space.
+    :raises TypeError: the checkpoint holds another policy.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"HyperDistill checkpoint {path} does not exist")
+    policy = PPO.load(path, device=device).policy
+    if not isinstance(policy, HyperDistillPolicy):
+        raise TypeError(f"{path} holds a {type(policy).__name__}, not a HyperDistill student")
+    if observation_space is not None:
+        check_spaces(f"HyperDistill checkpoint {path}", policy.observation_space, observation_space)
+    return policy.eval()
+
+
+# -- offline distillation from teacher rollouts ------------------------------------------------------
+class TeacherRollouts(DistillationDataset):
+    """Teacher-labelled states of teacher rollouts, with the teacher's *sampled* action (for the NLL loss)."""
+
+    def __init__(self, capacity: int):
+        super().__init__(capacity)
+        self.actions: np.ndarray | None = None
+
+    def add_with_actions(self, obs: ObsDict, mean: np.ndarray, std: np.ndarray, task: np.ndarray, actions: np.ndarray) -> None:
+        if self.actions is None:
+            self.actions = np.zeros((self.capacity, actions.shape[1]), dtype=np.float32)
+        rows = (self._next + np.arange(len(task))) % self.capacity
+        self.actions[rows] = actions
+        self.add(obs, mean, std, task)
+
+    def batches_with_actions(self, batch_size: int, rng: np.random.Generator):
+        """Shuffled minibatches ``(obs, mean, std, task, action)``."""
+        order = rng.permutation(self.size)
+        for start in range(0, self.size, batch_size):
+            rows = order[start : start + batch_size]
+            yield {k: v[rows] for k, v in self.obs.items()}, self.mean[rows], self.std[rows], self.task[rows], self.actions[rows]
+
+
+def collect_teacher_rollouts(
+    teachers: Mapping[int, Teacher], venv: VecEnv, n_samples: int, seed: int = 0, capacity: int | None = None
+) -> TeacherRollouts:
+    """Roll out the teachers (each state acted on by its own task's teacher, sampling from its Gaussian).
+
+    :param teachers: ``{task index: teacher}``.
+    :param venv: the student's env stack, observations with ``task_index``; a ``VecNormalize`` in it
+        keeps updating its statistics (the student's normalisation), raw states are stored.
+    :param n_samples: states to collect (rounded up to whole vector steps).
+    :param seed: seed of the action noise.
+    :param capacity: dataset capacity (default ``n_samples`` rounded up).
+    """
+    rng = np.random.default_rng(seed)
+    normalizer = find_vec_wrapper(venv, VecNormalize)
+    steps = math.ceil(n_samples / venv.num_envs)
+    dataset = TeacherRollouts(capacity or steps * venv.num_envs)
+    obs = venv.reset()
+    low, high = venv.action_space.low, venv.action_space.high
+    action_dim = int(np.prod(venv.action_space.shape))
+    for _ in range(steps):
+        raw = normalizer.get_original_obs() if normalizer is not None else {k: np.array(v) for k, v in obs.items()}
+        mean, std, tasks = teacher_labels(teachers, raw, action_dim)
+        actions = (mean + std * rng.standard_normal(mean.shape)).astype(np.float32)
+        dataset.add_with_actions(raw, mean, std, tasks, actions)
+        obs, _, _, _ = venv.step(np.clip(actions, low, high))
+    return dataset
+
+
+def gaussian_nll(mean: th.Tensor, std: th.Tensor, actions: th.Tensor, real: th.Tensor) -> th.Tensor:
+    """Negative log-likelihood of ``actions`` under ``N(mean, std)``, summed over real slots: (B,)."""
+    per_slot = -th.distributions.Normal(mean, std).log_prob(actions)
+    return th.where(real, per_slot, th.zeros((), dtype=per_slot.dtype, device=per_slot.device)).sum(-1)
+
+
+def distillation_loss(
+    policy: HyperDistillPolicy, obs: Mapping[str, th.Tensor], t_mean: th.Tensor, t_std: th.Tensor, t_action: th.Tensor | None, loss: str
+) -> th.Tensor:
+    """Mean over the batch of the NLL of the teacher's action (``"nll"``) or ``KL(teacher || student)`` (``"kl"``)."""
+    if loss not in LOSSES:
+        raise ValueError(f"unknown distillation loss {loss!r}; choose from {list(LOSSES)}")
+    student = policy.get_distribution(obs).distribution
+    real = obs[ACT_PADDING_MASK] < 0.5
+    s_std = student.stddev.expand_as(student.mean)
+    if loss == "nll":
+        return gaussian_nll(student.mean, s_std, t_action, real).mean()
+    return gaussian_kl(t_mean, t_std, student.mean, s_std, real).mean()
+
+
+def fit_offline(
+    policy: HyperDistillPolicy,
+    dataset: TeacherRollouts,
+    normalizer: VecNormalize | None = None,
+    loss: str = "nll",
+    epochs: int = 10,
+    batch_size: int = 5120,
+    learning_rate: float = 3e-4,
+    max_grad_norm: float | None = None,
+    seed: int = 0,
+) -> list[float]:
+    """Fit the student to teacher rollouts by minibatch Adam; returns the mean loss of every epoch.
+
+    :param policy: the student.
+    :param dataset: from :func:`collect_teacher_rollouts`.
+    :param normalizer: the student's observation normalisation (applied to the stored raw states).
+    :param loss: ``"nll"`` (authors' default) or ``"kl"``.
+    :param epochs: passes over the dataset.
+    :param batch_size: minibatch size (authors: 5120).
+    :param learning_rate: Adam learning rate (authors: 1e-3 / 3e-4 / 1e-4).
+    :param max_grad_norm: gradient clipping (``None``: none).
+    :param seed: shuffling seed.
+    """
+    if loss not in LOSSES:
+        raise ValueError(f"unknown distillation loss {loss!r}; choose from {list(LOSSES)}")
+    optimizer = th.optim.Adam(policy.parameters(), lr=learning_rate)
+    rng = np.random.default_rng(seed)
+    device = policy.device
+    history = []
+    policy.set_training_mode(True)
+    for _ in range(epochs):
+        losses = []
+        for raw, t_mean, t_std, _, t_action in dataset.batches_with_actions(batch_size, rng):
+            obs, _ = policy.obs_to_tensor(raw if normalizer is None else normalizer.normalize_obs(raw))
+            value = distillation_loss(
+                policy, obs, th.as_tensor(t_mean, device=device), th.as_tensor(t_std, device=device),
+                th.as_tensor(t_action, device=device), loss,
+            )
+            optimizer.zero_grad()
+            value.backward()
+            if max_grad_norm is not None:
+                th.nn.utils.clip_grad_norm_(policy.parameters(), max_grad_norm)
+            optimizer.step()
+            losses.append(value.item())
+        history.append(float(np.mean(losses)))
+    policy.set_training_mode(False)
+    return history
+
+
+# -- deployment ------------------------------------------------------------------------------------
+class HyperDistillMLP(DeployedActor):
+    """The MLP a HyperDistill student writes for one robot: a plain ``nn.Module``, generated once.
+
+    ``forward(proprioceptive, hfield, goal, object)`` on raw (B, 12, 52), (B, 1410), (B, 3), (B, 12)
+    arrays -> (B, 24) action means (0 on padded slots), like
+    :class:`~sb3_divmorph.compact.CompactActor`. Layers: ``Linear(n*52 -> H)`` over the robot's real
+    limbs (the per-limb input weights stacked), ReLU, exteroception encoders of the task's
+    observations concatenated (those of absent observations folded into the next bias),
+    ``n_layers - 1`` x (``Linear(H -> H)``, ReLU), ``Linear(H -> n*2)``.
+    """
+
+    @classmethod
+    @th.no_grad()
+    def from_policy(
+        cls, policy: HyperDistillPolicy, observation: Mapping[str, np.ndarray], observation_keys: tuple[str, ...], normalizer: Any | None = None
+    ) -> HyperDistillMLP:
+        """
+        :param policy: the trained student.
+        :param observation: one raw (unbatched) observation of the robot doing the task.
+        :param observation_keys: the task's observations; encoders of the others are folded away.
+        :param normalizer: the student's ``VecNormalize`` (statistics baked in), or ``None``.
+        :raises ValueError: the robot has more tokens than the student supports.
+        """
+        if not isinstance(policy, HyperDistillPolicy):
+            raise TypeError(f"HyperDistillMLP needs a HyperDistillPolicy, got {type(policy).__name__}")
+        net: HyperDistillNetwork = policy.network
+        for key in (PROPRIOCEPTIVE, CONTEXT):
+            net.check_tokens(np.shape(observation[key])[0], f"the robot's {key}")
+        self = cls()
+        policy = policy.cpu().eval()
+        raw = {k: np.asarray(v, dtype=np.float32)[None] for k, v in observation.items()}
+        obs = {k: th.as_tensor(v) for k, v in (raw if normalizer is None else normalizer.normalize_obs(raw)).items()}
+        padding = token_padding(obs)
+        real = th.nonzero(~padding[0]).flatten()
+        self.register_buffer("real_tokens", real)
+        self.n_tokens, self.slots = net.n_tokens, net.slots
+        self.used_extero = [k for k in net.exteroception.keys() if k in observation_keys]
+        self.bake_normalization(normalizer, real, self.used_extero)
+
+        context = th.where(padding[..., None], th.zeros(()), obs[CONTEXT])
+        weights = net.generate(net._encode(context, padding))
+        S = net.slots
+        rows, cols = net.real_indices(real)
+        self.input = _linear(weights.w_in[0][rows], weights.b_in[0])
+        # the layer after the input layer reads [h, extero]: fold the absent observations' encodings
+        extero_layers = [(k, e) for k, e in net.exteroception.items()]
+        after = list(weights.hidden) + [(weights.w_out, weights.b_out)]
+        w_next, b_next = after[0][0][0], after[0][1][0].clone()
+        keep, offset = [th.arange(net.hidden_dim)], net.hidden_dim
+        for key, encoder in extero_layers:
+            if key in self.used_extero:
+                keep.append(th.arange(offset, offset + encoder.out_dim))
+            else:
+                b_next += encoder(obs[key].flatten(1))[0] @ w_next[offset : offset + encoder.out_dim]
+            offset += encoder.out_dim
+        w_next = w_next[th.cat(keep)]
+        layers = [(w_next, b_next)] + [(w[0], b[0]) for w, b in after[1:]]
+        layers[-1] = (layers[-1][0][:, cols], layers[-1][1][cols])
+        self.layers = nn.ModuleList(_linear(w, b) for w, b in layers)
+        self.exteroception = nn.ModuleDict({k: _frozen_copy(net.exteroception[k]) for k in self.used_extero})
+        slot_real = (obs[ACT_PADDING_MASK][0] < 0.5).float().view(self.n_tokens, S)[real].flatten()
+        self.register_buffer("action_scale", slot_real)
+        return self.eval()
+
+    def forward(self, proprioceptive: th.Tensor, hfield: th.Tensor, goal: th.Tensor, object: th.Tensor) -> th.Tensor:  # noqa: A002
+        inputs = {"hfield": hfield, "goal": goal, "object": object}
+        x = self._normalize(PROPRIOCEPTIVE, proprioceptive.index_select(1, self.real_tokens))
+        h = th.relu(self.input(x.flatten(1)))
+        if self.used_extero:
+            h = th.cat([h] + [self.exteroception[k](self._normalize(k, inputs[k].flatten(1))) for k in self.used_extero], dim=-1)
+        for i, layer in enumerate(self.layers):
+            h = layer(h)
+            if i < len(self.layers) - 1:
+                h = th.relu(h)
+        actions = (h * self.action_scale).view(h.shape[0], -1, self.slots)
+        out = h.new_zeros(h.shape[0], self.n_tokens, self.slots)
+        return out.index_copy(1, self.real_tokens, actions).flatten(1)
+
+
+def _linear(weight_in_out: th.Tensor, bias: th.Tensor) -> nn.Linear:
+    layer = nn.Linear(weight_in_out.shape[0], weight_in_out.shape[1])
+    layer.weight = nn.Parameter(weight_in_out.T.detach().clone().contiguous(), requires_grad=False)
+    layer.bias = nn.Parameter(bias.detach().clone(), requires_grad=False)
+    return layer
+
+
+def _frozen_copy(module: nn.Module) -> nn.Module:
+    import copy
+
+    module = copy.deepcopy(module)
+    for p in module.parameters():
+        p.requires_grad_(False)
+    return module
+
+
+__all__ = [
+    "HYPERDISTILL_PRESETS",
+    "HyperDistillMLP",
+    "HyperDistillNetwork",
+    "HyperDistillPolicy",
+    "SpaceMismatchError",
+    "TeacherRollouts",
+    "collect_teacher_rollouts",
+    "distillation_loss",
+    "fit_offline",
+    "gaussian_nll",
+    "load_student",
+]

@@ -1,0 +1,195 @@
+"""HyperDistill baseline stage: distil the teachers into a hypernetwork student, export per-robot MLPs.
+
+Runs when the profile has a ``hyperdistill`` section (``divmorph hyperdistill`` runs it alone):
+
+1. teachers of ``hyperdistill.teacher_policy`` (ModuMorph by default): the run's own teachers when
+   they are of that policy, else trained with the ``teachers`` settings into ``hyperdistill/teachers/``;
+2. the student (``hyperdistill/student/``): offline from ``rollout_samples`` teacher-rollout states on
+   ``Unimal-MultiTask-v0`` over the training robots (loss ``nll`` or ``kl``), then optionally
+   ``dagger_timesteps`` of DAgger on the states the student visits; ``model.zip`` + ``vecnormalize.pkl``;
+3. per (robot, task) of the ``export`` section: the MLP generated once for that robot, written as
+   TorchScript (``mlp.pt``) and ONNX (``mlp.onnx``), checked against the student (max |diff| <= 1e-5)
+   and reported with its size against the teacher's actor (``hyperdistill/export/<robot>-<task>/``).
+
+The student is saved once, at the end of training (no mid-run checkpoints: the offline phase is short).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+from stable_baselines3.common.logger import configure
+from stable_baselines3.common.vec_env import VecNormalize
+
+from sb3_divmorph.compact import actor_inputs, actor_parameter_count, batch1_latency, export_torchscript
+from sb3_divmorph.deployment import export_onnx
+from sb3_divmorph.distillation import DAggerCallback, ImitationPPO, Teacher, load_normalizer
+from sb3_divmorph.hyperdistill import HyperDistillMLP, HyperDistillPolicy, collect_teacher_rollouts, fit_offline, load_student
+from sb3_divmorph.pipeline.config import ConfigError, Profile
+from sb3_divmorph.pipeline.runs import (
+    MODEL,
+    NORMALIZER,
+    atomic_save,
+    atomic_write_json,
+    is_done,
+    make_vec_env,
+    mark_done,
+    profile_robots,
+    resolve_device,
+    task_env_name,
+)
+from sb3_divmorph.pipeline.teachers import load_teachers, teacher_policy, train_teachers
+from unimal_envs.contract import TASK_NAMES, observation_space
+from unimal_envs.tasks import TASKS
+
+NORM_OBS_KEYS = ["proprioceptive"]
+#: Largest accepted difference between an exported MLP and the student.
+TOLERANCE = 1e-5
+
+
+def hyperdistill_folder(out: Path) -> Path:
+    return Path(out) / "hyperdistill"
+
+
+def _config(profile: Profile):
+    if profile.hyperdistill is None:
+        raise ConfigError(f"profile {profile.name!r} has no 'hyperdistill' section")
+    return profile.hyperdistill
+
+
+def hyperdistill_teachers(profile: Profile, out: Path, progress_bar: bool = True) -> dict[int, Teacher]:
+    """The teachers to distil: the run's own if they are ``teacher_policy``, else trained for it."""
+    wanted = _config(profile).teacher_policy
+    if all(teacher_policy(profile, task) == wanted for task in profile.teachers.tasks):
+        train_teachers(profile, out, progress_bar=progress_bar)
+        return load_teachers(profile, out)
+    train_teachers(profile, out, progress_bar=progress_bar, policy=wanted, root="hyperdistill/teachers")
+    return load_teachers(profile, out, root="hyperdistill/teachers")
+
+
+def train_student(profile: Profile, out: Path, progress_bar: bool = True) -> Path:
+    """Train (or skip when done) the HyperDistill student; returns its folder."""
+    cfg = _config(profile)
+    folder = hyperdistill_folder(out) / "student"
+    if is_done(folder):
+        return folder
+    teachers = hyperdistill_teachers(profile, out, progress_bar)
+    robots = profile_robots(profile, "train")
+    seed = profile.seed + 7
+    venv = make_vec_env("Unimal-MultiTask-v0", cfg.n_envs, seed, profile.max_episode_steps,
+                        tasks=list(profile.teachers.tasks), morphologies=robots)
+    venv = VecNormalize(venv, norm_obs_keys=NORM_OBS_KEYS, norm_reward=False)
+    th.manual_seed(seed)
+    model = ImitationPPO(HyperDistillPolicy, venv, policy_kwargs=dict(cfg.policy_kwargs), n_steps=cfg.n_steps,
+                         batch_size=min(cfg.batch_size, cfg.n_steps * cfg.n_envs), seed=seed, device=resolve_device(profile.device))
+    model.set_logger(configure(str(folder / "logs"), ["csv", "tensorboard"]))
+    info: dict[str, Any] = {"teacher_policy": cfg.teacher_policy, "loss": cfg.loss}
+    if cfg.rollout_samples > 0:
+        print(f"[hyperdistill] {cfg.rollout_samples} teacher-rollout states, {cfg.epochs} epochs of {cfg.loss} -> {folder}")
+        dataset = collect_teacher_rollouts(teachers, venv, cfg.rollout_samples, seed=seed)
+        history = fit_offline(model.policy, dataset, venv, cfg.loss, cfg.epochs, cfg.batch_size, cfg.learning_rate, seed=seed)
+        info.update(offline_loss_first=history[0], offline_loss_last=history[-1], offline_samples=dataset.size)
+        for epoch, value in enumerate(history):
+            model.logger.record("hyperdistill/offline_loss", value)
+            model.logger.dump(epoch)
+    if cfg.dagger_timesteps > 0:
+        print(f"[hyperdistill] DAgger for {cfg.dagger_timesteps} steps")
+        callback = DAggerCallback(teachers, TASK_NAMES, learning_rate=cfg.learning_rate, epochs=cfg.dagger_epochs,
+                                  batch_size=cfg.batch_size, buffer_size=cfg.buffer_size, seed=seed)
+        model.learn(cfg.dagger_timesteps, callback=callback, progress_bar=progress_bar)
+    venv.training = False
+    atomic_save(folder / MODEL, model.save)
+    atomic_save(folder / NORMALIZER, lambda p: venv.save(str(p)))
+    mark_done(folder, **info)
+    return folder
+
+
+def export_mlp(profile: Profile, out: Path, robot_file: Path, task: str, steps: int = 32) -> dict[str, Any]:
+    """Generate, export and check the MLP of one robot x task; returns (and writes) its report."""
+    if task not in TASK_NAMES:
+        raise ConfigError(f"unknown task {task!r}; choose from {list(TASK_NAMES)}")
+    robot_file = Path(robot_file)
+    folder = hyperdistill_folder(out) / "export" / f"{robot_file.stem}-{task}"
+    if is_done(folder):
+        return json.loads((folder / "report.json").read_text())
+    source = hyperdistill_folder(out) / "student"
+    if not is_done(source):
+        raise FileNotFoundError(f"no HyperDistill student in {source}; run `divmorph hyperdistill --out {out}` first")
+    policy = load_student(source / MODEL, observation_space())
+    normalizer = load_normalizer(source / NORMALIZER)
+    env = gym.make(task_env_name(task), morphologies=[robot_file], max_episode_steps=profile.max_episode_steps)
+    rng = np.random.default_rng(profile.seed)
+    try:
+        first, _ = env.reset(seed=profile.seed)
+        mlp = HyperDistillMLP.from_policy(policy, first, TASKS[task].observation_keys, normalizer)
+        observations, obs = [first], first
+        with th.no_grad():
+            for _ in range(steps - 1):
+                action = np.clip(mlp(*actor_inputs(obs))[0].numpy() + rng.normal(0, 0.3, 24), -1, 1).astype(np.float32)
+                obs, _, terminated, truncated, _ = env.step(action)
+                observations.append(obs)
+                if terminated or truncated:
+                    break
+    finally:
+        env.close()
+    batch = {k: np.stack([o[k] for o in observations]) for k in first}
+    folder.mkdir(parents=True, exist_ok=True)
+    metadata = {"robot": robot_file.stem, "task": task, "source": str(source / MODEL),
+                "inputs": ["proprioceptive (B,12,52)", "hfield (B,1410)", "goal (B,3)", "object (B,12)"],
+                "output": "action means (B,24), 0 on padded slots; clip to [-1, 1] before env.step"}
+    path = export_torchscript(mlp, first, folder / "mlp.pt", metadata)
+    try:
+        onnx_path: Path | None = export_onnx(mlp, first, folder / "mlp.onnx", metadata)
+    except ImportError:  # the optional "deploy" extra (onnx) is not installed
+        onnx_path = None
+    with th.no_grad():
+        reference = policy.get_distribution(policy.obs_to_tensor(normalizer.normalize_obs(batch))[0]).distribution.mean
+        exported = th.jit.load(str(path))(*actor_inputs(batch, batch=True))
+    max_diff = float((reference - exported).abs().max())
+    if not max_diff <= TOLERANCE:
+        path.unlink()
+        if onnx_path is not None:
+            onnx_path.unlink()
+        raise RuntimeError(f"exported MLP differs from the student by {max_diff:.2e} > {TOLERANCE} ({robot_file.stem}, {task}; "
+                           f"largest action mean {float(reference.abs().max()):.3g})")
+    teacher_folder = next(p for p in (Path(out) / "hyperdistill" / "teachers" / task, Path(out) / "teachers" / task) if (p / MODEL).is_file()) \
+        if task in profile.teachers.tasks else None
+    teacher_actor = None
+    if teacher_folder is not None:
+        from stable_baselines3 import PPO
+
+        teacher_actor = actor_parameter_count(PPO.load(teacher_folder / MODEL, device="cpu").policy)
+    weights = mlp.stored_numbers()["weights"]
+    report = {
+        **metadata,
+        "mlp_weights": weights,
+        "student_parameters": policy.parameter_counts()["total"],
+        "teacher_actor_parameters": teacher_actor,
+        "reduction_vs_teacher": None if teacher_actor is None else teacher_actor / weights,
+        "onnx": str(onnx_path) if onnx_path is not None else "not written (pip install 'divmorph[deploy]')",
+        "max_abs_diff": max_diff,
+        "checked_observations": len(observations),
+        "latency_mlp_ms": batch1_latency(mlp, actor_inputs(first), profile.export.latency_repeats) * 1e3,
+        "torch_threads": th.get_num_threads(),
+    }
+    atomic_write_json(folder / "report.json", report)
+    mark_done(folder)
+    return report
+
+
+def hyperdistill(profile: Profile, out: Path, progress_bar: bool = True) -> list[dict[str, Any]]:
+    """The whole stage: teachers (if needed), student, and the per-robot MLPs of the export section."""
+    train_student(profile, out, progress_bar)
+    n = profile.export.robots_per_split
+    robots = profile_robots(profile, "train")[:n] + profile_robots(profile, "novel")[:n]
+    reports = []
+    for task in profile.export.tasks:
+        for robot in robots:
+            reports.append(export_mlp(profile, out, robot, task))
+    mark_done(hyperdistill_folder(out), exported=len(reports))
+    return reports

@@ -1,0 +1,246 @@
+"""HyperDistill: imitation from a fixed teacher, DAgger, per-robot MLP export (TorchScript, ONNX), bad input, pipeline."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+import yaml
+from stable_baselines3 import PPO
+from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+import sb3_divmorph  # noqa: F401
+from sb3_divmorph.compact import actor_inputs, export_torchscript
+from sb3_divmorph.deployment import export_onnx
+from sb3_divmorph.distillation import DAggerCallback, ImitationPPO, SpaceMismatchError, Teacher
+from sb3_divmorph.hyperdistill import (
+    HyperDistillMLP,
+    HyperDistillPolicy,
+    collect_teacher_rollouts,
+    distillation_loss,
+    fit_offline,
+    load_student,
+)
+from unimal_envs import contract
+from unimal_envs.contract import TASK_NAMES
+from unimal_envs.morphology.loader import morphology_files
+from unimal_envs.tasks import TASKS
+
+th.set_num_threads(1)
+ROBOTS = morphology_files("train")[:3]
+STUDENT = dict(hidden_dim=32, n_layers=2, embed_dim=16, encoder_ff_dim=32, exteroception=dict(hfield=[8], goal=[4], object=[4]))
+TEACHER = dict(d_model=16, n_layers=1, ff_dim=32, hypernet_dim=8, net_arch=dict(pi=[16], vf=[16]), exteroception={})
+
+
+def multitask_venv(n_envs=2, tasks=("FT",)):
+    venv = DummyVecEnv([lambda: gym.make("Unimal-MultiTask-v0", tasks=list(tasks), morphologies=ROBOTS, max_episode_steps=60)] * n_envs)
+    venv.seed(0)
+    return VecNormalize(venv, norm_obs_keys=["proprioceptive"], norm_reward=False)
+
+
+@pytest.fixture(scope="module")
+def teacher():
+    """A fixed, non-trivial ModuMorph teacher: random weights scaled so its action means are O(0.5)
+    and depend on the state and on the robot."""
+    th.manual_seed(3)
+    policy = ModuMorph = sb3_divmorph.ModuMorphPolicy(contract.observation_space(), contract.action_space(), lambda _: 0.0, **TEACHER)
+    g = th.Generator().manual_seed(3)
+    with th.no_grad():
+        for p in ModuMorph.parameters():
+            p.add_(th.randn(p.shape, generator=g) * 0.12)
+    policy.set_training_mode(False)
+    # the teacher's own observation normalisation, as a trained teacher would have
+    normalizer = multitask_venv(tasks=("FT", "VT", "ManipulateBox"))
+    normalizer.reset()
+    for _ in range(100):
+        normalizer.step(np.random.default_rng(0).uniform(-1, 1, (2, 24)).astype(np.float32))
+    normalizer.training = False
+    return {TASK_NAMES.index("FT"): Teacher(policy, normalizer, "FT")}
+
+
+def imitation_error(policy, dataset, normalizer) -> float:
+    obs, _ = policy.obs_to_tensor(normalizer.normalize_obs({k: v[: dataset.size] for k, v in dataset.obs.items()}))
+    with th.no_grad():
+        mean = policy.get_distribution(obs).distribution.mean
+    real = obs["act_padding_mask"] < 0.5
+    return float((mean - th.as_tensor(dataset.mean[: dataset.size])).abs()[real].mean())
+
+
+# NLL fits the teacher's *sampled* actions (std 0.9 noise around the means): on 600 states the
+# student partly fits that noise, so its error to the teacher's means falls less than with the KL.
+@pytest.mark.parametrize("loss, fraction", [("kl", 0.25), ("nll", 0.4)])
+def test_offline_imitation_error_falls_to_a_small_fraction(teacher, loss, fraction):
+    venv = multitask_venv()
+    dataset = collect_teacher_rollouts(teacher, venv, 600, seed=0)
+    assert dataset.size == 600 and len({tuple(c.ravel()) for c in dataset.obs["context"]}) >= 2  # several robots
+    teacher_scale = float(np.abs(dataset.mean[dataset.obs["act_padding_mask"] < 0.5]).mean())
+    assert 0.2 < teacher_scale < 5  # the teacher is not trivially ~0, nor degenerate
+    th.manual_seed(0)
+    student = HyperDistillPolicy(venv.observation_space, venv.action_space, lambda _: 0.0, **STUDENT)
+    before = imitation_error(student, dataset, venv)
+    history = fit_offline(student, dataset, venv, loss=loss, epochs=60, batch_size=150, learning_rate=3e-3)
+    after = imitation_error(student, dataset, venv)
+    assert history[-1] < history[0]
+    assert after < fraction * before, (before, after)
+
+
+def test_dagger_trains_the_student(teacher):
+    venv = multitask_venv()
+    th.manual_seed(0)
+    model = ImitationPPO("HyperDistillPolicy", venv, n_steps=64, batch_size=64, seed=0, policy_kwargs=STUDENT)
+    callback = DAggerCallback(teacher, TASK_NAMES, learning_rate=3e-3, epochs=6, batch_size=64, buffer_size=2000, seed=0)
+    callback.init_callback(model)
+    before = {k: v.clone() for k, v in model.policy.state_dict().items()}
+    model.learn(384, callback=callback)
+    probe = {k: v[: callback.dataset.size] for k, v in callback.dataset.obs.items()}
+    mean, std, _ = callback.label(probe)
+    obs, _ = model.policy.obs_to_tensor(venv.normalize_obs(probe))
+
+    def kl() -> float:
+        with th.no_grad():
+            return float(distillation_loss(model.policy, obs, th.as_tensor(mean), th.as_tensor(std), None, "kl"))
+
+    after_kl = kl()
+    trained = {k: v.clone() for k, v in model.policy.state_dict().items()}
+    model.policy.load_state_dict(before)
+    assert after_kl < 0.5 * kl()
+    model.policy.load_state_dict(trained)
+
+
+@pytest.fixture(scope="module")
+def trained_student(teacher):
+    tasks = ("FT", "VT", "ManipulateBox")  # statistics of the tasks it is exported for
+    venv = multitask_venv(tasks=tasks)
+    one = next(iter(teacher.values()))
+    dataset = collect_teacher_rollouts({TASK_NAMES.index(t): one for t in tasks}, venv, 600, seed=1)
+    th.manual_seed(1)
+    student = HyperDistillPolicy(venv.observation_space, venv.action_space, lambda _: 0.0, **STUDENT)
+    fit_offline(student, dataset, venv, epochs=3, batch_size=200, learning_rate=3e-3)
+    with th.no_grad():  # move the generators off zero so each robot's MLP differs (the raw height
+        # map of VT is large, so its encoder, trained on FT's zeros only, is scaled down to keep means O(1))
+        for name, p in student.named_parameters():
+            p.add_(th.randn_like(p) * 0.01) if "exteroception" not in name else p.mul_(0.01)
+    venv.training = False
+    return student, venv
+
+
+@pytest.mark.parametrize("task", ["VT", "ManipulateBox"])
+def test_exported_mlp_equals_the_student_and_onnx_runs_without_torch(trained_student, task, tmp_path):
+    student, normalizer = trained_student
+    env = gym.make(f"Unimal-{task}-v0", morphologies=ROBOTS[1:2], max_episode_steps=50)
+    obs, _ = env.reset(seed=0)
+    observations = [obs]
+    for _ in range(7):
+        obs, *_ = env.step(env.action_space.sample())
+        observations.append(obs)
+    batch = {k: np.stack([o[k] for o in observations]) for k in obs}
+    first = {k: v[0] for k, v in batch.items()}
+    mlp = HyperDistillMLP.from_policy(student, first, TASKS[task].observation_keys, normalizer)
+    with th.no_grad():
+        reference = student.get_distribution(student.obs_to_tensor(normalizer.normalize_obs(batch))[0]).distribution.mean
+        got = mlp(*actor_inputs(batch, batch=True))
+    assert 0.05 < reference.abs().max() < 20  # realistic action means, not a degenerate 0
+    assert (reference - got).abs().max() <= 1e-5
+    assert th.all(got[:, batch["act_padding_mask"][0] > 0.5] == 0)
+    # a plain MLP: Linear layers only, no context encoder or generator, far smaller than the student
+    assert not any(n.startswith(("encoders", "in_weight", "hidden_weight", "out_weight")) for n, _ in mlp.named_parameters())
+    assert mlp.stored_numbers()["weights"] < student.parameter_counts()["total"] / 2
+    # another robot gets another MLP
+    other = HyperDistillMLP.from_policy(student, {**first, **{k: v for k, v in _robot_obs(task, 2).items() if k in ("context", "obs_padding_mask", "act_padding_mask")}},
+                                        TASKS[task].observation_keys, normalizer)
+    assert not th.allclose(other(*actor_inputs(first)), mlp(*actor_inputs(first)))
+
+    path = export_torchscript(mlp, first, tmp_path / "mlp.pt", {"task": task})
+    assert (th.jit.load(str(path))(*actor_inputs(batch, batch=True)) - reference).abs().max() <= 1e-5
+    onnx_path = export_onnx(mlp, first, tmp_path / "mlp.onnx", {"task": task})
+    np.savez(tmp_path / "inputs.npz", reference=reference.numpy(), **{k: batch[k] for k in ("proprioceptive", "hfield", "goal", "object")})
+    script = (
+        "import sys\n"
+        "class Block:\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        "        if name.split('.')[0] in ('torch', 'sb3_divmorph', 'stable_baselines3', 'unimal_envs'):\n"
+        "            raise ImportError('blocked: ' + name)\n"
+        "sys.meta_path.insert(0, Block())\n"
+        "import numpy as np, onnxruntime as ort\n"
+        "d = np.load(sys.argv[2]); s = ort.InferenceSession(sys.argv[1], providers=['CPUExecutionProvider'])\n"
+        "names = [i.name for i in s.get_inputs()]\n"
+        "assert set(names) <= {'proprioceptive', 'hfield', 'goal', 'object'} and 'proprioceptive' in names\n"
+        "out = s.run(['actions'], {k: d[k] for k in names})[0]\n"
+        "assert not any(m.split('.')[0] == 'torch' for m in sys.modules)\n"
+        "print(float(np.abs(out - d['reference']).max()))\n"
+    )
+    result = subprocess.run([sys.executable, "-c", script, str(onnx_path), str(tmp_path / "inputs.npz")], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert float(result.stdout.strip()) <= 1e-5
+
+
+def _robot_obs(task: str, index: int) -> dict[str, np.ndarray]:
+    env = gym.make(f"Unimal-{task}-v0", morphologies=ROBOTS[index : index + 1], max_episode_steps=10)
+    return env.reset(seed=0)[0]
+
+
+def test_bad_input_gives_clear_errors(trained_student, tmp_path):
+    student, normalizer = trained_student
+    obs = _robot_obs("FT", 0)
+    too_many = {**obs, "context": np.zeros((13, obs["context"].shape[1]), np.float32),
+                "proprioceptive": np.zeros((13, obs["proprioceptive"].shape[1]), np.float32)}
+    with pytest.raises(ValueError, match="13 tokens.*at most 12"):
+        HyperDistillMLP.from_policy(student, too_many, ("hfield",), normalizer)
+    batch = {k: th.as_tensor(v[None]) for k, v in too_many.items()}
+    with pytest.raises(ValueError, match="at most 12"):
+        student.network(batch)
+    with pytest.raises(ValueError, match="unknown distillation loss 'mse'"):
+        fit_offline(student, None, loss="mse")  # type: ignore[arg-type]
+    # a checkpoint used with another observation space
+    model = ImitationPPO("HyperDistillPolicy", multitask_venv(n_envs=1), n_steps=16, batch_size=16, policy_kwargs=STUDENT)
+    model.save(tmp_path / "student.zip")
+    assert isinstance(load_student(tmp_path / "student.zip", model.observation_space), HyperDistillPolicy)
+    other = gym.spaces.Dict({**model.observation_space.spaces, "proprioceptive": gym.spaces.Box(-1, 1, (12, 50))})
+    with pytest.raises(SpaceMismatchError, match="proprioceptive"):
+        load_student(tmp_path / "student.zip", other)
+    PPO("MetaMorphPolicy", multitask_venv(n_envs=1), n_steps=16, policy_kwargs=dict(d_model=8, n_layers=1, ff_dim=8)).save(tmp_path / "meta.zip")
+    with pytest.raises(TypeError, match="not a HyperDistill student"):
+        load_student(tmp_path / "meta.zip")
+
+
+def test_pipeline_trains_modumorph_teachers_distils_and_exports(tmp_path):
+    from test_pipeline import TINY, write_profiles
+
+    from sb3_divmorph.cli import main as cli
+    from sb3_divmorph.pipeline.config import ConfigError, load_profile
+
+    profile = json.loads(json.dumps(TINY))
+    profile["teachers"].update(tasks=["FT"], n_timesteps=64, policy_kwargs=dict(TINY["teachers"]["policy_kwargs"], hypernet_dim=8))
+    profile["export"] = {"tasks": ["FT"], "robots_per_split": 1, "latency_repeats": 3}
+    profile["hyperdistill"] = {"policy_kwargs": STUDENT, "rollout_samples": 128, "epochs": 30, "batch_size": 64, "learning_rate": 0.003,
+                               "dagger_timesteps": 64, "n_envs": 2, "n_steps": 32, "buffer_size": 256}
+    path = tmp_path / "profiles.yml"
+    path.write_text(yaml.safe_dump({"tiny": profile}))
+    out = tmp_path / "run"
+    assert cli(["hyperdistill", "--profile", "tiny", "--profiles", str(path), "--out", str(out), "--no-progress"]) == 0
+    # the run's teachers are MetaMorph (zoo default), so ModuMorph teachers were trained for HyperDistill
+    teacher = PPO.load(out / "hyperdistill" / "teachers" / "FT" / "model.zip", device="cpu")
+    assert type(teacher.policy).__name__ == "ModuMorphPolicy"
+    assert not (out / "teachers" / "FT").exists()
+    reports = [json.loads(p.read_text()) for p in (out / "hyperdistill" / "export").glob("*/report.json")]
+    assert len(reports) == 2 and all(r["max_abs_diff"] <= 1e-5 and r["mlp_weights"] > 0 for r in reports)
+    assert all((p / "mlp.pt").is_file() and (p / "mlp.onnx").is_file() for p in (out / "hyperdistill" / "export").iterdir())
+    # teachers.policy picks the run's teachers' policy; unknown names are refused, naming the choices
+    profile["teachers"]["policy"] = "ModuMorphPolicy"
+    path.write_text(yaml.safe_dump({"tiny": profile}))
+    from sb3_divmorph.pipeline.teachers import teacher_run
+
+    run = teacher_run(load_profile("tiny", path), tmp_path / "other", "FT", progress_bar=False)
+    assert type(run.make_model().policy).__name__ == "ModuMorphPolicy"
+    for where in ("teachers", "hyperdistill"):
+        bad = json.loads(json.dumps(profile))
+        bad[where]["teacher_policy" if where == "hyperdistill" else "policy"] = "TransformerPolicy"
+        path.write_text(yaml.safe_dump({"tiny": bad}))
+        with pytest.raises(ConfigError, match="unknown teacher policy 'TransformerPolicy'.*ModuMorphPolicy"):
+            load_profile("tiny", path)
+    del write_profiles
