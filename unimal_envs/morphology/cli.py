@@ -6,6 +6,8 @@ Examples::
     unimal-morphologies generate --set train --out /tmp/sets
     unimal-morphologies generate --check              # verify the shipped files, write nothing
     unimal-morphologies stats --compare /path/to/unimals_100/train
+    unimal-morphologies fetch                         # the official sets into $UNIMAL_DATA
+    unimal-morphologies fetch --sets train --source /path/to/archive.tar.gz
 
 Also runnable as ``python -m unimal_envs.morphology``.
 """
@@ -19,6 +21,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+from unimal_envs.morphology import official as O
 from unimal_envs.morphology import sets as S
 from unimal_envs.morphology.loader import MorphologyError, morphology_files
 
@@ -45,7 +48,23 @@ def _parser() -> argparse.ArgumentParser:
         "--compare", type=Path, action="append", default=[], metavar="DIR",
         help="also show a robot directory (e.g. unimals_100/train with xml/ inside); repeatable",
     )  # fmt: skip
+    fetch = sub.add_parser("fetch", help="download the official unimals_100 sets into the cache ($UNIMAL_DATA)")
+    fetch.add_argument(
+        "--source", default=None,
+        help="URL, .tar.gz archive or directory (default: the authors' repository archive pinned to "
+             f"commit {O.PINNED_COMMIT[:10]})",
+    )  # fmt: skip
+    fetch.add_argument("--sets", nargs="+", choices=list(O.SHORT_NAMES), default=list(O.SHORT_NAMES), help="which sets")
+    fetch.add_argument("--cache", type=Path, default=None, help="cache folder (default $UNIMAL_DATA or ~/.cache/unimal_envs)")
+    fetch.add_argument("--force", action="store_true", help="fetch again even if already cached")
     return parser
+
+
+def _fetch(args: argparse.Namespace) -> int:
+    folders = O.fetch(args.source, args.sets, cache=args.cache, force=args.force, progress=True)
+    for name, folder in folders.items():
+        print(f"{name}: {O.OFFICIAL_SETS[name].count} robots in {folder}  (morphologies=\"{name}\")")
+    return 0
 
 
 def _generate(args: argparse.Namespace) -> int:
@@ -124,6 +143,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     """
     args = _parser().parse_args(argv)
     try:
+        if args.command == "fetch":
+            return _fetch(args)
         return _generate(args) if args.command == "generate" else _stats(args)
     except MorphologyError as err:
         print(f"unimal-morphologies: {err}", file=sys.stderr)
