@@ -35,7 +35,7 @@ def teacher_run(profile: Profile, out: Path, task: str, progress_bar: bool = Tru
     """The (resumable) PPO run of one task's teacher."""
     cfg = profile.teachers
     env_name = task_env_name(task)
-    entry = load_zoo_entry(cfg.hyperparams, env_name, cfg.overrides)
+    entry = load_zoo_entry(cfg.hyperparams, f"{env_name}-{cfg.recipe}" if cfg.recipe else env_name, cfg.overrides)
     policy_kwargs = {**entry.policy_kwargs, **cfg.policy_kwargs}
     robots = profile_robots(profile, "train")
     seed = profile.seed + 1000 * (TASK_NAMES.index(task) + 1)
@@ -48,9 +48,12 @@ def teacher_run(profile: Profile, out: Path, task: str, progress_bar: bool = Tru
         venv = normalizer_for(make_env(), entry.normalize, entry.ppo_kwargs.get("gamma", 0.99))
         return PPO(entry.policy, venv, policy_kwargs=policy_kwargs, seed=seed, device=device, verbose=0, **entry.ppo_kwargs)
 
+    from sb3_divmorph.recipe import BalancedRobotSampler  # the only callback a zoo entry may name
+
+    callbacks = [BalancedRobotSampler(**kwargs) for _, kwargs in entry.callbacks]
     return TrainingRun(
         teacher_folder(out, task), cfg.n_timesteps, cfg.checkpoint_every, make_model, make_env,
-        device=device, progress_bar=progress_bar,
+        callbacks=callbacks, device=device, progress_bar=progress_bar,
     )
 
 

@@ -15,7 +15,8 @@ class FlatTerrain(Task):
     """**FT** — walk forward on flat ground (MetaMorph ``ft.yaml``).
 
     ==============  ===========================================================================
-    arena           :class:`~unimal_envs.arenas.Floor` (surface at z = 0)
+    arena           :class:`~unimal_envs.arenas.Floor`: a 200 x 200 m floor box (surface at z = 0)
+                    that ends at x = +-100 m like MetaMorph's (a fast robot can walk off it and fall)
     start           torso at (0, 0, spawn height of the morphology file), upright
     reward          ``forward`` = (x_after - x_before) / 0.02 (torso forward speed, m/s)
     termination     fall: torso height <= 0.5 x standing height
@@ -29,7 +30,7 @@ class FlatTerrain(Task):
     name = "FT"
 
     def make_arena(self) -> Arena:
-        return Floor()
+        return Floor(half_size=100.0, bounded=True)
 
     def reward_terms(self, robot: Robot, torso_before: np.ndarray) -> dict[str, float]:
         return {"forward": (robot.torso_x - float(torso_before[0])) / CONTROL_DT}
