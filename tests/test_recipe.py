@@ -78,12 +78,19 @@ def test_env_rejects_bad_probabilities(train_files):
     assert {env.reset()[1]["morphology"] for _ in range(10)} == {env.morphology_names[1]}
 
 
-def test_metamorph_zoo_entries_load_with_the_recipe():
+def test_metamorph_zoo_entries_load_with_the_recipe(train_files):
     entry = load_zoo_entry("zoo_configs/ppo.yml", "Unimal-FT-v0-metamorph")
     assert isinstance(entry.ppo_kwargs["learning_rate"], CosineWarmupSchedule)
     assert entry.ppo_kwargs["target_kl"] * 1.5 == pytest.approx(0.2, abs=1e-3)
     assert entry.policy_kwargs["optimizer_kwargs"] == {"eps": 1e-5}
     assert entry.normalize["clip_obs"] == 10.0 and entry.normalize["clip_reward"] == 10.0
     assert entry.callbacks == [(BALANCED_SAMPLER, {})]
+    # The policy hands the optimizer its eps (MetaMorph's Adam eps 1e-5).
+    from stable_baselines3 import PPO
+
+    import sb3_divmorph  # noqa: F401  (policy aliases)
+
+    model = PPO(entry.policy, make_vec_env("Unimal-FT-v0", n_envs=1, env_kwargs=dict(morphologies=train_files[:1])), policy_kwargs=entry.policy_kwargs, n_steps=16, batch_size=16, device="cpu")
+    assert model.policy.optimizer.defaults["eps"] == 1e-5
     with pytest.raises(ConfigError, match="supports only callback"):
         load_zoo_entry("zoo_configs/ppo.yml", "Unimal-FT-v0", {"callback": "some.OtherCallback"})

@@ -94,8 +94,10 @@ class UnimalEnv(gym.Env):
     U(-0.005, 0.005) on every robot qpos and qvel entry.
 
     :param task: task name (``"FT"``, ...) or a :class:`~unimal_envs.tasks.Task` instance.
-    :param morphologies: ``"train"`` / ``"novel"`` (shipped generated sets, 100 each), a directory
-        in the unimals_100 layout (``DIR/xml/*.xml``), or a list of MJCF paths.
+    :param morphologies: ``"train"`` / ``"novel"`` (shipped generated sets, 100 each),
+        ``"unimals100-train"`` / ``"unimals100-test"`` / ``"unimals100-mutants"`` (the official sets,
+        fetched once with ``python -m unimal_envs.morphology fetch``), a directory in the unimals_100
+        layout (``DIR/xml/*.xml``), or a list of MJCF paths.
     :param instruction: replaces the task's instruction; embedded with ``text_encoder``.
     :param text_encoder: encoder for a custom ``instruction`` (``"minilm"`` or ``"hash"``).
     :param ctrl_cost_weight: weight of the control cost (0.0 as in MetaMorph; DERL used 1e-3).

@@ -91,7 +91,8 @@ class ObstacleTask(_Corridor):
     start           torso at (0, 0, spawn height), upright
     reward          ``forward`` = torso forward speed (m/s)
     termination     fall (0.5 x standing height); ``edge``: |y| >= 19 m
-    observations    ``hfield``: the height map shows the blocks and walls (4 m)
+    observations    ``hfield``: the height map shows the blocks at +2 m and the walls at +3 m
+                    (the reference's values; both are physically 4 m tall), -11 m off the course
     info            ``x_position``
     ==============  ===========================================================================
 
