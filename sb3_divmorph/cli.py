@@ -77,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     import torch as th
 
     from sb3_divmorph import pipeline as P
-    from sb3_divmorph.pipeline.runs import seed_everything
+    from sb3_divmorph.pipeline.runs import record_robot_sets, seed_everything
 
     try:
         profile = P.load_profile(args.profile, args.profiles)
@@ -91,6 +91,7 @@ def main(argv: list[str] | None = None) -> int:
     command_line = "divmorph " + shlex.join(argv if argv is not None else sys.argv[1:])
     start = time.perf_counter()
     try:
+        record_robot_sets(profile, out)  # out/robot_sets.json: which robots this run uses
         if args.command == "pipeline":
             print(P.run_pipeline(profile, out, progress, command_line))
         elif args.command == "teachers":

@@ -75,6 +75,10 @@ class TeachersConfig:
     overrides: dict[str, Any] = field(default_factory=dict)
     policy_kwargs: dict[str, Any] = field(default_factory=dict)
     checkpoint_every: int = 50_000
+    #: ``""``: the zoo entry ``Unimal-<task>-v0``; ``"metamorph"``: ``Unimal-<task>-v0-metamorph``,
+    #: MetaMorph's training recipe (cosine lr with warm-up, Adam eps 1e-5, KL stop at 0.2,
+    #: normalisation clipped at 10, balanced robot sampler; see ``sb3_divmorph.recipe``)
+    recipe: str = ""
 
 
 @dataclass
@@ -252,6 +256,8 @@ class ZooEntry:
     policy_kwargs: dict[str, Any]
     normalize: dict[str, Any] | None
     ppo_kwargs: dict[str, Any]
+    #: ``(class path, kwargs)`` of rl-zoo callbacks (only MetaMorph's balanced robot sampler)
+    callbacks: list[tuple[str, dict[str, Any]]] = field(default_factory=list)
 
 
 def _zoo_eval(text: str, where: str) -> Any:
@@ -265,9 +271,33 @@ def _schedule(value: Any, where: str) -> Any:
     if isinstance(value, str) and value.startswith("lin_"):
         start = float(value[4:])
         return LinearSchedule(start, 0.0, 1.0)
+    if isinstance(value, str) and value.startswith("cosine_"):
+        # MetaMorph's recipe: cosine decay to 0 with a short linear warm-up (sb3_divmorph.recipe).
+        from sb3_divmorph.recipe import CosineWarmupSchedule
+
+        try:
+            return CosineWarmupSchedule(float(value[7:]))
+        except ValueError as error:
+            raise ConfigError(f"{where}: bad cosine schedule {value!r}: {error}") from None
     if isinstance(value, str):
-        raise ConfigError(f"{where}: only numbers and 'lin_<value>' schedules are supported, got {value!r}")
+        raise ConfigError(f"{where}: only numbers, 'lin_<value>' and 'cosine_<value>' schedules are supported, got {value!r}")
     return value
+
+
+#: The one rl-zoo ``callback`` the pipeline understands: MetaMorph's balanced robot sampler.
+BALANCED_SAMPLER = "sb3_divmorph.recipe.BalancedRobotSampler"
+
+
+def _callbacks(value: Any, where: str) -> list[tuple[str, dict[str, Any]]]:
+    """rl-zoo's ``callback`` value (a class path, a ``{path: kwargs}`` dict, or a list of them)."""
+    items = value if isinstance(value, list) else [value]
+    parsed = []
+    for item in items:
+        path, kwargs = (next(iter(item.items())) if isinstance(item, dict) and len(item) == 1 else (item, {}))
+        if path != BALANCED_SAMPLER:
+            raise ConfigError(f"{where}: the divmorph pipeline supports only callback {BALANCED_SAMPLER!r}, got {item!r}")
+        parsed.append((path, dict(kwargs or {})))
+    return parsed
 
 
 def load_zoo_entry(path: str | Path, env_id: str, overrides: dict[str, Any] | None = None) -> ZooEntry:
@@ -287,7 +317,8 @@ def load_zoo_entry(path: str | Path, env_id: str, overrides: dict[str, Any] | No
     unknown = sorted(set(entry) - _ZOO_ONLY - _PPO_ARGS)
     if unknown:
         raise ConfigError(f"{where}: unknown key(s) {unknown}; valid: {sorted(_ZOO_ONLY | _PPO_ARGS)}")
-    for key in ("env_wrapper", "frame_stack", "callback", "vec_env_wrapper"):
+    callbacks = _callbacks(entry.pop("callback"), where) if "callback" in entry else []
+    for key in ("env_wrapper", "frame_stack", "vec_env_wrapper"):
         if key in entry:
             raise ConfigError(f"{where}: {key!r} is not supported by the divmorph pipeline")
     policy_kwargs = entry.pop("policy_kwargs", {}) or {}
@@ -313,4 +344,5 @@ def load_zoo_entry(path: str | Path, env_id: str, overrides: dict[str, Any] | No
         policy_kwargs=dict(policy_kwargs),
         normalize=normalize,
         ppo_kwargs=ppo_kwargs,
+        callbacks=callbacks,
     )

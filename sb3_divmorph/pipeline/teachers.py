@@ -31,10 +31,16 @@ def teacher_folder(out: Path, task: str, root: str = "teachers") -> Path:
     return Path(out) / root / task
 
 
+def zoo_entry_id(profile: Profile, task: str) -> str:
+    """The rl-zoo entry of ``task``'s teacher: ``Unimal-<task>-v0``, or its ``-<recipe>`` variant."""
+    env_name = task_env_name(task)
+    return f"{env_name}-{profile.teachers.recipe}" if profile.teachers.recipe else env_name
+
+
 def teacher_policy(profile: Profile, task: str) -> str:
     """The policy of the run's teacher of ``task``: ``teachers.policy``, else the zoo entry's."""
     cfg = profile.teachers
-    return cfg.policy or load_zoo_entry(cfg.hyperparams, task_env_name(task), cfg.overrides).policy
+    return cfg.policy or load_zoo_entry(cfg.hyperparams, zoo_entry_id(profile, task), cfg.overrides).policy
 
 
 def teacher_run(
@@ -47,7 +53,7 @@ def teacher_run(
     """
     cfg = profile.teachers
     env_name = task_env_name(task)
-    entry = load_zoo_entry(cfg.hyperparams, env_name, cfg.overrides)
+    entry = load_zoo_entry(cfg.hyperparams, zoo_entry_id(profile, task), cfg.overrides)
     entry.policy = policy or teacher_policy(profile, task)
     policy_kwargs = {**entry.policy_kwargs, **cfg.policy_kwargs}
     robots = profile_robots(profile, "train")
@@ -61,9 +67,12 @@ def teacher_run(
         venv = normalizer_for(make_env(), entry.normalize, entry.ppo_kwargs.get("gamma", 0.99))
         return PPO(entry.policy, venv, policy_kwargs=policy_kwargs, seed=seed, device=device, verbose=0, **entry.ppo_kwargs)
 
+    from sb3_divmorph.recipe import BalancedRobotSampler  # the only callback a zoo entry may name
+
+    callbacks = [BalancedRobotSampler(**kwargs) for _, kwargs in entry.callbacks]
     return TrainingRun(
         teacher_folder(out, task, root), cfg.n_timesteps, cfg.checkpoint_every, make_model, make_env,
-        device=device, progress_bar=progress_bar,
+        callbacks=callbacks, device=device, progress_bar=progress_bar,
     )
 
 
