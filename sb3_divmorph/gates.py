@@ -229,7 +229,21 @@ def _unique_rows(key: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
     if batch < _DEDUPLICATE_FROM:
         index = th.arange(batch, device=key.device)
         return index, index
-    _, inverse = th.unique(key.detach(), dim=0, return_inverse=True)
+    key = key.detach()
+    # ``th.unique(dim=0)`` compares rows one by one (hundreds of small ops per batch); a random
+    # float64 projection turns each row into one number, which a 1-D unique groups in one sort.
+    # Identical rows get identical numbers; the check below catches the (measure-zero) collision of
+    # two different rows and falls back to the exact row-wise unique.
+    _, inverse = th.unique((key.double() * _row_projection(key.shape[1], key.device)).sum(-1), return_inverse=True)
     first = th.full((int(inverse.max()) + 1,), batch, dtype=inverse.dtype, device=key.device)
     first = first.scatter_reduce(0, inverse, th.arange(batch, device=key.device), reduce="amin")
+    if not th.equal(key[first][inverse], key):
+        _, inverse = th.unique(key, dim=0, return_inverse=True)
+        first = th.full((int(inverse.max()) + 1,), batch, dtype=inverse.dtype, device=key.device)
+        first = first.scatter_reduce(0, inverse, th.arange(batch, device=key.device), reduce="amin")
     return first, inverse
+
+
+def _row_projection(width: int, device: th.device) -> th.Tensor:
+    """A fixed random float64 vector (its own generator: deduplication never shifts the global RNG)."""
+    return th.randn(width, dtype=th.float64, generator=th.Generator().manual_seed(0)).to(device)
