@@ -29,10 +29,18 @@ class ConfigError(ValueError):
 
 
 def resolve_path(path: str | Path) -> Path:
-    """``path`` as given if it exists, else relative to the repository root."""
+    """``path`` as given if it exists; else a ``zoo_configs/...`` path among the shipped
+    configuration files (found from any working directory, installed or not); else relative to
+    the repository root."""
     path = Path(path)
     if path.exists() or path.is_absolute():
         return path
+    if path.parts and path.parts[0] == "zoo_configs":
+        from sb3_divmorph.zoo import zoo_configs_dir
+
+        shipped = zoo_configs_dir().joinpath(*path.parts[1:])
+        if shipped.exists():
+            return shipped
     candidate = REPO_ROOT / path
     return candidate if candidate.exists() else path
 
@@ -224,7 +232,9 @@ def load_profiles(path: str | Path = DEFAULT_PROFILES) -> dict[str, dict[str, An
     """The raw profile entries of a profiles file."""
     resolved = resolve_path(path)
     if not resolved.is_file():
-        raise ConfigError(f"profiles file {path} not found (looked in . and {REPO_ROOT})")
+        from sb3_divmorph.zoo import zoo_configs_dir
+
+        raise ConfigError(f"profiles file {path} not found (looked in {Path.cwd()}, in the shipped {zoo_configs_dir()} and in {REPO_ROOT})")
     with open(resolved) as f:
         data = yaml.safe_load(f) or {}
     if not isinstance(data, dict):
