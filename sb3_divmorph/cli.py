@@ -152,7 +152,7 @@ def main(argv: list[str] | None = None) -> int:
                       f"max |diff| {r['max_abs_diff']:.1e}, "
                       f"latency {r['latency_compact_ms']:.3f} ms vs {r['latency_student_ms']:.3f} ms -> {Path(out) / 'export'}")
         elif args.command == "evaluate":
-            print(f"returns -> {P.evaluate(profile, out) / 'returns.csv'}")
+            print(f"returns -> {P.evaluate(profile, out, progress) / 'returns.csv'}")
         elif args.command == "report":
             print(P.report(profile, out, command_line))
     except (P.ConfigError, FileNotFoundError, ValueError, KeyError, TypeError) as error:

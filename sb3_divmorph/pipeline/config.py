@@ -218,6 +218,8 @@ class Profile:
                 raise ConfigError(f"profile {name!r}: unknown teacher policy {policy!r} in {where}; choose from {list(TEACHER_POLICIES)}")
         if profile.hyperdistill is not None and profile.hyperdistill.loss not in ("nll", "kl"):
             raise ConfigError(f"profile {name!r}: hyperdistill.loss must be 'nll' or 'kl', got {profile.hyperdistill.loss!r}")
+        for section in ("teachers", "transfer"):
+            check_ppo_keys(getattr(profile, section).overrides, f"profile {name!r}, {section}.overrides")
         stray = sorted(set(profile.transfer.instructions) - set(profile.transfer.tasks))
         if stray:
             raise ConfigError(f"profile {name!r}: transfer.instructions for {stray}, which are not in transfer.tasks {profile.transfer.tasks}")
@@ -246,14 +248,38 @@ def load_profile(name: str, path: str | Path = DEFAULT_PROFILES) -> Profile:
     """Load and validate one profile; unknown names list the available ones."""
     profiles = load_profiles(path)
     if name not in profiles:
-        raise ConfigError(f"unknown profile {name!r}; profiles in {path}: {sorted(profiles)}")
-    return Profile.from_dict(name, profiles[name])
+        raise ConfigError(f"unknown profile {name!r}; profiles in {resolve_path(path)}: {sorted(profiles)}")
+    try:
+        return Profile.from_dict(name, profiles[name])
+    except ConfigError as error:  # name the file: the same profile name may live in several
+        raise ConfigError(f"{resolve_path(path)}: {error}") from None
 
 
 # -- rl-zoo hyperparameter entries -----------------------------------------------------------
 #: Keys of an rl-zoo entry that are not PPO constructor arguments.
 _ZOO_ONLY = {"n_timesteps", "policy", "n_envs", "normalize", "env_wrapper", "frame_stack", "callback", "vec_env_wrapper"}
 _PPO_ARGS = set(inspect.signature(PPO.__init__).parameters) - {"self", "env", "policy"}
+#: PPO arguments the pipeline sets itself (from the profile's ``seed`` and ``device``, or not at all)
+_SET_BY_PIPELINE = {"seed", "device", "verbose", "tensorboard_log", "_init_setup_model"}
+#: What an entry or a profile's ``overrides`` may hold: PPO's hyperparameters and the rl-zoo keys
+#: the pipeline reads.
+PPO_HYPERPARAMETERS = sorted(_PPO_ARGS - _SET_BY_PIPELINE)
+ZOO_KEYS = sorted(_ZOO_ONLY - {"env_wrapper", "frame_stack", "vec_env_wrapper"})
+
+
+def check_ppo_keys(keys, where: str) -> None:
+    """Refuse keys that are neither PPO hyperparameters nor rl-zoo keys the pipeline reads.
+
+    :param keys: the keys of a zoo entry or of a profile's ``overrides``.
+    :param where: what holds them, for the message (file, profile, section).
+    :raises ConfigError: naming the unknown keys and listing only the valid ones.
+    """
+    managed = sorted(set(keys) & _SET_BY_PIPELINE)
+    if managed:
+        raise ConfigError(f"{where}: {managed} are set by the pipeline (the profile's seed and device), not by a zoo entry or overrides")
+    unknown = sorted(set(keys) - set(PPO_HYPERPARAMETERS) - _ZOO_ONLY)
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {unknown}; PPO hyperparameters: {PPO_HYPERPARAMETERS}; rl-zoo keys: {ZOO_KEYS}")
 
 
 @dataclass
@@ -324,9 +350,8 @@ def load_zoo_entry(path: str | Path, env_id: str, overrides: dict[str, Any] | No
         raise ConfigError(f"{resolved} has no entry for {env_id}; entries: {sorted(data)}")
     entry = {**data[env_id], **(overrides or {})}
     where = f"{resolved} [{env_id}]"
-    unknown = sorted(set(entry) - _ZOO_ONLY - _PPO_ARGS)
-    if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {unknown}; valid: {sorted(_ZOO_ONLY | _PPO_ARGS)}")
+    check_ppo_keys(data[env_id], where)
+    check_ppo_keys(overrides or {}, f"overrides of {where}")
     callbacks = _callbacks(entry.pop("callback"), where) if "callback" in entry else []
     for key in ("env_wrapper", "frame_stack", "vec_env_wrapper"):
         if key in entry:
