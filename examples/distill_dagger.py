@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import torch as th
 from stable_baselines3 import PPO
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.utils import LinearSchedule
@@ -58,6 +59,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, default=Path("runs/example"))
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
+    th.set_num_threads(1)  # small models: a second thread only contends with the simulation
 
     teachers = {TASK_NAMES.index(task): train_teacher(task, args.steps, args.out / "teachers" / task, args.seed) for task in TASKS}
 

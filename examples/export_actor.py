@@ -37,6 +37,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--robot", default="train-000", help="robot of the shipped train set")
     parser.add_argument("--out", type=Path, default=Path("exported"))
     args = parser.parse_args(argv)
+    th.set_num_threads(1)  # batch-1 inference of a small model: one thread is fastest
 
     robot = next((f for f in morphology_files("train") if f.stem == args.robot), None)
     if robot is None:
