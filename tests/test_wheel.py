@@ -4,6 +4,7 @@ and rl-zoo hyperparameters are found, rl-zoo trains with them, and ``divmorph re
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -25,7 +26,12 @@ def _run(command: list[str], cwd: Path, site: Path, timeout: int = 300) -> subpr
 def installed(tmp_path_factory) -> tuple[Path, Path]:
     """``(site folder, another working folder)``: the wheel built from this checkout, installed."""
     root = tmp_path_factory.mktemp("wheel")
-    build = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(root / "dist"), str(REPO)],
+    # Build from a clean copy: pip builds in the source folder, and a build/ left there would both
+    # litter the checkout and carry files into later wheels after they are deleted here.
+    source = root / "source"
+    shutil.copytree(REPO, source, ignore=shutil.ignore_patterns(
+        ".git", ".venv", "build", "runs", "logs", "results", "tests", "benchmarks", "*.egg-info", "__pycache__", ".*cache", ".hypothesis"))
+    build = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(root / "dist"), str(source)],
                            capture_output=True, text=True, timeout=300)
     assert build.returncode == 0, build.stderr[-3000:]
     wheel = next((root / "dist").glob("divmorph-*.whl"))
