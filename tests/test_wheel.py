@@ -55,7 +55,13 @@ def test_installed_cli_finds_its_profiles_from_any_folder(installed):
     assert listed.returncode == 0, listed.stderr
     assert str(site / "sb3_divmorph" / "zoo_configs" / "divmorph.yml") in listed.stdout
     assert {"demo", "gpu", "cpu"} <= set(listed.stdout.split())
-    # a stage reads the profile and the zoo file, and stops only because there is no teacher yet
+    # the profile's `hyperparams: zoo_configs/ppo.yml` resolves to the installed file
+    code = ("from sb3_divmorph.pipeline.config import load_profile, load_zoo_entry, resolve_path; p = load_profile('demo'); "
+            "print(resolve_path(p.teachers.hyperparams), load_zoo_entry(p.teachers.hyperparams, 'Unimal-FT-v0').n_envs)")
+    entry = _run([sys.executable, "-c", code], elsewhere, site)
+    assert entry.returncode == 0, entry.stderr
+    assert entry.stdout.split() == [str(site / "sb3_divmorph" / "zoo_configs" / "ppo.yml"), "4"]
+    # a stage reads the profile, and stops only because there is no teacher yet
     stage = _run([*divmorph, "distill", "--profile", "demo", "--out", "run", "--no-progress"], elsewhere, site)
     assert stage.returncode == 2
     assert "profiles file" not in stage.stderr and "teacher for FT not found" in stage.stderr
