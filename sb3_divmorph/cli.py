@@ -8,9 +8,12 @@
     divmorph export   --profile demo --morphology train-000 --task FT
     divmorph evaluate --profile demo
     divmorph report   --profile demo
+    divmorph record   runs/demo/teachers/FT              # MP4 of a pipeline or rl-zoo model, headless
+    divmorph profiles [--profile demo]                   # the profiles and where they are read from
 
-Every command reads the profile (``zoo_configs/divmorph.yml``) and works in ``--out`` (default
-``runs/<profile>``); finished stages are skipped, interrupted ones resume.
+Every stage reads the profile (``zoo_configs/divmorph.yml``, shipped with the package, so any
+working directory will do) and works in ``--out`` (default ``runs/<profile>``); finished stages
+are skipped, interrupted ones resume.
 """
 
 from __future__ import annotations
@@ -34,7 +37,7 @@ def _parser() -> argparse.ArgumentParser:
     def command(name: str, help_text: str) -> argparse.ArgumentParser:
         p = sub.add_parser(name, help=help_text, description=help_text)
         p.add_argument("--profile", default="demo", help="profile name in the profiles file (default: demo)")
-        p.add_argument("--profiles", default="zoo_configs/divmorph.yml", help="profiles file")
+        p.add_argument("--profiles", default="zoo_configs/divmorph.yml", help="profiles file (default: the shipped one)")
         p.add_argument("--out", default=None, help="run folder (default: runs/<profile>)")
         p.add_argument("--no-progress", action="store_true", help="no progress bars")
         return p
@@ -54,7 +57,37 @@ def _parser() -> argparse.ArgumentParser:
                    help="onnx (runs with onnxruntime + numpy), torchscript (torch alone), or all (default)")
     command("evaluate", "per-morphology returns on train and novel robots")
     command("report", "plots and a markdown summary of the run")
+
+    # Commands that read no run: they take no --out and create nothing but what they write.
+    from sb3_divmorph.record import add_arguments as record_arguments
+
+    help_text = "record a trained model (pipeline stage or rl-zoo run) to MP4, headless"
+    record_arguments(sub.add_parser("record", help=help_text, description=help_text))
+    help_text = "list the profiles (or print one, validated) and the file they are read from"
+    p = sub.add_parser("profiles", help=help_text, description=help_text)
+    p.add_argument("--profile", help="print this profile's settings")
+    p.add_argument("--profiles", default="zoo_configs/divmorph.yml", help="profiles file (default: the shipped one)")
     return parser
+
+
+def _profiles(args: argparse.Namespace) -> int:
+    """``divmorph profiles``: the profile names (or one profile, validated) and their file."""
+    import dataclasses
+
+    import yaml
+
+    from sb3_divmorph.pipeline.config import ConfigError, load_profile, load_profiles, resolve_path
+
+    try:
+        names = sorted(load_profiles(args.profiles))
+        if args.profile is not None:
+            settings = dataclasses.asdict(load_profile(args.profile, args.profiles))
+    except ConfigError as error:
+        print(f"divmorph: {error}", file=sys.stderr)
+        return 2
+    print(f"# {resolve_path(args.profiles).resolve()}")
+    print(yaml.safe_dump({args.profile: settings}, sort_keys=False) if args.profile is not None else "\n".join(names))
+    return 0
 
 
 def _robot_path(name: str) -> Path:
@@ -74,6 +107,12 @@ def _robot_path(name: str) -> Path:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    if args.command == "record":
+        from sb3_divmorph.record import run as record
+
+        return record(args)
+    if args.command == "profiles":
+        return _profiles(args)
     import torch as th
 
     from sb3_divmorph import pipeline as P
@@ -113,7 +152,7 @@ def main(argv: list[str] | None = None) -> int:
                       f"max |diff| {r['max_abs_diff']:.1e}, "
                       f"latency {r['latency_compact_ms']:.3f} ms vs {r['latency_student_ms']:.3f} ms -> {Path(out) / 'export'}")
         elif args.command == "evaluate":
-            print(f"returns -> {P.evaluate(profile, out) / 'returns.csv'}")
+            print(f"returns -> {P.evaluate(profile, out, progress) / 'returns.csv'}")
         elif args.command == "report":
             print(P.report(profile, out, command_line))
     except (P.ConfigError, FileNotFoundError, ValueError, KeyError, TypeError) as error:

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import os
+import sys
 from collections import OrderedDict
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -30,6 +32,17 @@ _SUBSTEP = CONTROL_DT / _SUBSTEPS
 _ZEROS_HFIELD = np.zeros(C.HFIELD_DIM, dtype=np.float32)
 _ZEROS_GOAL = np.zeros(C.GOAL_DIM, dtype=np.float32)
 _ZEROS_OBJECT = np.zeros(C.OBJECT_DIM, dtype=np.float32)
+
+
+def _check_display() -> None:
+    """Refuse ``render_mode="human"`` up front where no window can open: on Linux without an X11
+    or Wayland display, MuJoCo's viewer would otherwise fail deep inside GLFW on the first step."""
+    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        raise RuntimeError(
+            "render_mode='human' needs a display, and neither DISPLAY nor WAYLAND_DISPLAY is set; "
+            "use render_mode='rgb_array' for frames without a display (MUJOCO_GL=egl), e.g. "
+            "unimal_envs.rendering.record_episode(env) and write_video(frames, 'clip.mp4')"
+        )
 
 
 @dataclass
@@ -126,6 +139,8 @@ class UnimalEnv(gym.Env):
     ):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
+        if render_mode == "human":
+            _check_display()
         self.task = make_task(task)
         self.morphologies: list[Morphology] = load_morphologies(morphologies)
         self.arena = self.task.arena

@@ -29,7 +29,7 @@ def run_pipeline(profile: Profile, out, progress_bar: bool = True, command: str 
         hyperdistill(profile, out, progress_bar=progress_bar)
     transfer(profile, out, progress_bar=progress_bar)
     export_all(profile, out)
-    evaluate(profile, out)
+    evaluate(profile, out, progress_bar=progress_bar)
     return report(profile, out, command)
 
 

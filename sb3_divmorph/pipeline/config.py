@@ -29,10 +29,18 @@ class ConfigError(ValueError):
 
 
 def resolve_path(path: str | Path) -> Path:
-    """``path`` as given if it exists, else relative to the repository root."""
+    """``path`` as given if it exists; else a ``zoo_configs/...`` path among the shipped
+    configuration files (found from any working directory, installed or not); else relative to
+    the repository root."""
     path = Path(path)
     if path.exists() or path.is_absolute():
         return path
+    if path.parts and path.parts[0] == "zoo_configs":
+        from sb3_divmorph.zoo import zoo_configs_dir
+
+        shipped = zoo_configs_dir().joinpath(*path.parts[1:])
+        if shipped.exists():
+            return shipped
     candidate = REPO_ROOT / path
     return candidate if candidate.exists() else path
 
@@ -210,6 +218,8 @@ class Profile:
                 raise ConfigError(f"profile {name!r}: unknown teacher policy {policy!r} in {where}; choose from {list(TEACHER_POLICIES)}")
         if profile.hyperdistill is not None and profile.hyperdistill.loss not in ("nll", "kl"):
             raise ConfigError(f"profile {name!r}: hyperdistill.loss must be 'nll' or 'kl', got {profile.hyperdistill.loss!r}")
+        for section in ("teachers", "transfer"):
+            check_ppo_keys(getattr(profile, section).overrides, f"profile {name!r}, {section}.overrides")
         stray = sorted(set(profile.transfer.instructions) - set(profile.transfer.tasks))
         if stray:
             raise ConfigError(f"profile {name!r}: transfer.instructions for {stray}, which are not in transfer.tasks {profile.transfer.tasks}")
@@ -224,7 +234,9 @@ def load_profiles(path: str | Path = DEFAULT_PROFILES) -> dict[str, dict[str, An
     """The raw profile entries of a profiles file."""
     resolved = resolve_path(path)
     if not resolved.is_file():
-        raise ConfigError(f"profiles file {path} not found (looked in . and {REPO_ROOT})")
+        from sb3_divmorph.zoo import zoo_configs_dir
+
+        raise ConfigError(f"profiles file {path} not found (looked in {Path.cwd()}, in the shipped {zoo_configs_dir()} and in {REPO_ROOT})")
     with open(resolved) as f:
         data = yaml.safe_load(f) or {}
     if not isinstance(data, dict):
@@ -236,14 +248,38 @@ def load_profile(name: str, path: str | Path = DEFAULT_PROFILES) -> Profile:
     """Load and validate one profile; unknown names list the available ones."""
     profiles = load_profiles(path)
     if name not in profiles:
-        raise ConfigError(f"unknown profile {name!r}; profiles in {path}: {sorted(profiles)}")
-    return Profile.from_dict(name, profiles[name])
+        raise ConfigError(f"unknown profile {name!r}; profiles in {resolve_path(path)}: {sorted(profiles)}")
+    try:
+        return Profile.from_dict(name, profiles[name])
+    except ConfigError as error:  # name the file: the same profile name may live in several
+        raise ConfigError(f"{resolve_path(path)}: {error}") from None
 
 
 # -- rl-zoo hyperparameter entries -----------------------------------------------------------
 #: Keys of an rl-zoo entry that are not PPO constructor arguments.
 _ZOO_ONLY = {"n_timesteps", "policy", "n_envs", "normalize", "env_wrapper", "frame_stack", "callback", "vec_env_wrapper"}
 _PPO_ARGS = set(inspect.signature(PPO.__init__).parameters) - {"self", "env", "policy"}
+#: PPO arguments the pipeline sets itself (from the profile's ``seed`` and ``device``, or not at all)
+_SET_BY_PIPELINE = {"seed", "device", "verbose", "tensorboard_log", "_init_setup_model"}
+#: What an entry or a profile's ``overrides`` may hold: PPO's hyperparameters and the rl-zoo keys
+#: the pipeline reads.
+PPO_HYPERPARAMETERS = sorted(_PPO_ARGS - _SET_BY_PIPELINE)
+ZOO_KEYS = sorted(_ZOO_ONLY - {"env_wrapper", "frame_stack", "vec_env_wrapper"})
+
+
+def check_ppo_keys(keys, where: str) -> None:
+    """Refuse keys that are neither PPO hyperparameters nor rl-zoo keys the pipeline reads.
+
+    :param keys: the keys of a zoo entry or of a profile's ``overrides``.
+    :param where: what holds them, for the message (file, profile, section).
+    :raises ConfigError: naming the unknown keys and listing only the valid ones.
+    """
+    managed = sorted(set(keys) & _SET_BY_PIPELINE)
+    if managed:
+        raise ConfigError(f"{where}: {managed} are set by the pipeline (the profile's seed and device), not by a zoo entry or overrides")
+    unknown = sorted(set(keys) - set(PPO_HYPERPARAMETERS) - _ZOO_ONLY)
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {unknown}; PPO hyperparameters: {PPO_HYPERPARAMETERS}; rl-zoo keys: {ZOO_KEYS}")
 
 
 @dataclass
@@ -314,9 +350,8 @@ def load_zoo_entry(path: str | Path, env_id: str, overrides: dict[str, Any] | No
         raise ConfigError(f"{resolved} has no entry for {env_id}; entries: {sorted(data)}")
     entry = {**data[env_id], **(overrides or {})}
     where = f"{resolved} [{env_id}]"
-    unknown = sorted(set(entry) - _ZOO_ONLY - _PPO_ARGS)
-    if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {unknown}; valid: {sorted(_ZOO_ONLY | _PPO_ARGS)}")
+    check_ppo_keys(data[env_id], where)
+    check_ppo_keys(overrides or {}, f"overrides of {where}")
     callbacks = _callbacks(entry.pop("callback"), where) if "callback" in entry else []
     for key in ("env_wrapper", "frame_stack", "vec_env_wrapper"):
         if key in entry:

@@ -74,6 +74,7 @@ def distill_run(profile: Profile, out: Path, progress_bar: bool = True) -> Train
 def distill(profile: Profile, out: Path, progress_bar: bool = True):
     """Distil the profile's teachers into a DivMorph student (resumes; skips when done)."""
     if is_done(student_folder(out)):
+        print(f"[distill] skipped, already distilled in {student_folder(out)}")
         return None
     print(f"[distill] DAgger into a DivMorph student for {profile.distill.n_timesteps} steps -> {student_folder(out)}")
     return distill_run(profile, out, progress_bar).run()

@@ -42,11 +42,20 @@ NORMALIZER = "vecnormalize.pkl"
 
 
 # -- atomic files ----------------------------------------------------------------------------
+def _umask() -> int:
+    """The process umask (reading it means setting it; it is put back at once)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     """Write ``data`` to ``path`` so that readers see the old file or the new one, never a part."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
+        # mkstemp creates the file 0600; results are for sharing, so give it the mode open() would
+        os.fchmod(fd, 0o666 & ~_umask())
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             f.flush()
@@ -238,6 +247,7 @@ class TrainingRun:
         resume = latest_checkpoint(checkpoints)
         if resume is not None:
             model = self._load(resume)
+            print(f"[resume] {self.folder}: resuming from step {model.num_timesteps} of {self.total_timesteps} (checkpoint {resume.name})")
         else:
             model = self.make_model()
         if self.prepare is not None:

@@ -85,11 +85,16 @@ def train_teachers(
     :param root: their folder inside the run.
     """
     done = []
-    for task in tasks or profile.teachers.tasks:
-        if task not in profile.teachers.tasks:
-            raise ConfigError(f"task {task!r} has no teacher in profile {profile.name!r}: {profile.teachers.tasks}")
+    tasks = tasks or profile.teachers.tasks
+    # every name is checked before the first one is announced and trained
+    unknown = [task for task in tasks if task not in profile.teachers.tasks]
+    if unknown:
+        raise ConfigError(f"task(s) {unknown} have no teacher in profile {profile.name!r}: {profile.teachers.tasks}")
+    for task in tasks:
         folder = teacher_folder(out, task, root)
-        if not is_done(folder):
+        if is_done(folder):
+            print(f"[teachers] {task}: skipped, already trained in {folder}")
+        else:
             print(f"[teachers] {task}: {policy or teacher_policy(profile, task)} PPO for {profile.teachers.n_timesteps} steps -> {folder}")
             teacher_run(profile, out, task, progress_bar, policy, root).run()
         done.append(folder)

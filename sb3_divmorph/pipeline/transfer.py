@@ -152,9 +152,16 @@ def transfer_run(profile: Profile, out: Path, task: str, arm: str, progress_bar:
 def transfer(profile: Profile, out: Path, tasks: list[str] | None = None, compare_scratch: bool | None = None, progress_bar: bool = True):
     """Transfer the student to ``tasks`` (default: the profile's) and, if asked, train MetaMorph from scratch."""
     compare = profile.transfer.compare_scratch if compare_scratch is None else compare_scratch
-    for task in tasks or profile.transfer.tasks:
+    tasks = tasks or profile.transfer.tasks
+    # every name is checked before the first one is announced and trained
+    unknown = [task for task in tasks if task not in NOVEL_TASKS]
+    if unknown:
+        raise ConfigError(f"transfer targets a novel task; {unknown} not one of {list(NOVEL_TASKS)}")
+    for task in tasks:
         for arm in ARMS if compare else ARMS[:1]:
             folder = transfer_folder(out, task, arm)
-            if not is_done(folder):
+            if is_done(folder):
+                print(f"[transfer] {task} ({arm}): skipped, already trained in {folder}")
+            else:
                 print(f"[transfer] {task} ({arm}): PPO for {profile.transfer.n_timesteps} steps -> {folder}")
                 transfer_run(profile, out, task, arm, progress_bar).run()

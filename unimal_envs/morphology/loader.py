@@ -127,6 +127,11 @@ class Morphology:
         """A fresh, editable :class:`mujoco.MjSpec` of the robot file."""
         return mujoco.MjSpec.from_string(self.xml)
 
+    def __repr__(self) -> str:
+        # One line: the dataclass repr would print the whole MJCF text and every token name.
+        where = f", path={str(self.path)!r}" if self.path is not None else ""
+        return f"Morphology(name={self.name!r}, limbs={self.num_limbs}, dof={self.dof}{where})"
+
 
 def _fail(source: str, problem: str) -> MorphologyError:
     return MorphologyError(f"{source}: {problem}")
@@ -378,10 +383,13 @@ def morphology_files(morphologies: str | Path | Iterable[str | Path]) -> list[Pa
             return files
         if path.suffix == ".xml":
             return morphology_files([path])
-        raise MorphologyError(
-            f"unknown morphology set '{morphologies}'; use one of {list(SHIPPED_SETS + OFFICIAL_SET_NAMES)}, "
-            "a directory of MJCF files (DIR/xml/*.xml), or a list of .xml paths"
-        )
+        choices = f"use one of {list(SHIPPED_SETS + OFFICIAL_SET_NAMES)}, a directory of MJCF files (DIR/xml/*.xml), or a list of .xml paths"
+        if isinstance(morphologies, Path) or len(path.parts) > 1 or str(morphologies).startswith((".", "~")):
+            # written as a path: say so, rather than calling it an unknown set name
+            kind = "not a directory" if path.exists() else "no such directory"
+            where = "" if path.expanduser().is_absolute() else f" (relative to {Path.cwd()})"
+            raise MorphologyError(f"{kind}: {path}{where}; {choices}")
+        raise MorphologyError(f"unknown morphology set '{morphologies}' (and no such directory in {Path.cwd()}); {choices}")
     files = [Path(p) for p in morphologies]
     if not files:
         raise MorphologyError("the list of morphology files is empty")
