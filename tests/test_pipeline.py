@@ -18,6 +18,7 @@ import torch as th
 import yaml
 
 from sb3_divmorph.cli import main as cli
+from sb3_divmorph.pipeline.arms import ARMS
 from sb3_divmorph.pipeline.config import ConfigError, load_profile, load_profiles, load_zoo_entry
 from sb3_divmorph.policies import DivMorphPolicy, MetaMorphPolicy
 from sb3_divmorph.pipeline.runs import latest_checkpoint, read_done
@@ -43,7 +44,8 @@ TINY = {
     "student": {"policy_kwargs": {**TINY_POLICY, "n_morph_tailors": 6, "n_task_tailors": 6, "top_k_morph": 2, "top_k_task": 2}},
     "distill": {"n_timesteps": 128, "n_envs": 2, "n_steps": 32, "epochs": 1, "batch_size": 32, "buffer_size": 256, "checkpoint_every": 64},
     "transfer": {"tasks": ["Escape"], "n_timesteps": 128, "overrides": {"n_envs": 1, "n_steps": 64, "batch_size": 64, "n_epochs": 1},
-                 "checkpoint_every": 64},
+                 "checkpoint_every": 64, "arms": list(ARMS), "seeds": [0], "eval_every": 64, "eval_episodes": 1},
+    "grl": {"population": 2, "generations": 2, "steps_per_agent": 64, "learngene_layers": 2, "tournament": 2, "mutation": 0.5},
     "export": {"tasks": ["FT", "Escape"], "latency_repeats": 5},
     "evaluate": {"episodes": 1},
 }

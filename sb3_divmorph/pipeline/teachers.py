@@ -68,17 +68,32 @@ def teacher_run(
 
 
 def train_teachers(
-    profile: Profile, out: Path, tasks: list[str] | None = None, progress_bar: bool = True, policy: str | None = None, root: str = "teachers"
+    profile: Profile, out: Path, tasks: list[str] | None = None, progress_bar: bool = True, policy: str | None = None,
+    root: str = "teachers", backend=None,
 ) -> list[Path]:
     """Train (or resume, or skip when done) the teachers of ``tasks`` (default: the profile's).
 
     :param policy: train teachers of this policy instead of the profile's (into ``root``).
     :param root: their folder inside the run.
+    :param backend: a :mod:`~sb3_divmorph.pipeline.grid` backend for the run's own teachers (default: local).
+    :raises GridError: some teachers failed (the others finished).
     """
-    done = []
-    for task in tasks or profile.teachers.tasks:
+    from sb3_divmorph.pipeline.grid import Job, run_grid
+
+    tasks = list(tasks or profile.teachers.tasks)
+    for task in tasks:
         if task not in profile.teachers.tasks:
             raise ConfigError(f"task {task!r} has no teacher in profile {profile.name!r}: {profile.teachers.tasks}")
+    if policy is None and root == "teachers":
+        # the run's own teachers: independent jobs of a grid (in this process, or on Ray)
+        jobs = [Job("teacher", (task,), teacher_folder(out, task), f"teacher {task}") for task in tasks]
+        for job in jobs:
+            if not is_done(job.folder):
+                print(f"[teachers] {job.args[0]}: {teacher_policy(profile, job.args[0])} PPO for {profile.teachers.n_timesteps} steps -> {job.folder}")
+        run_grid(profile, out, jobs, backend, progress_bar).raise_on_failure()
+        return [job.folder for job in jobs]
+    done = []
+    for task in tasks:
         folder = teacher_folder(out, task, root)
         if not is_done(folder):
             print(f"[teachers] {task}: {policy or teacher_policy(profile, task)} PPO for {profile.teachers.n_timesteps} steps -> {folder}")
