@@ -173,9 +173,9 @@ def report(profile: Profile, out: Path, command: str = "") -> str:
     for task in profile.transfer.tasks:
         for arm in ARMS:
             for seed in profile.transfer.seeds:
-                folder = out / "transfer" / task / arm / f"seed-{seed}"
-                if (folder / "done.json").is_file():
-                    lines.append(f"| transfer {task} ({arm}, seed {seed}) | `{folder.relative_to(out)}/model.zip` | {_fmt_steps(read_progress(folder))} |")
+                run = out / "transfer" / task / arm / f"seed-{seed}"
+                if (run / "done.json").is_file():
+                    lines.append(f"| transfer {task} ({arm}, seed {seed}) | `{run.relative_to(out)}/model.zip` | {_fmt_steps(read_progress(run))} |")
 
     plot_curves(profile, out, folder / "curves.png")
     lines += ["", "## Learning curves", "", "![curves](report/curves.png)", ""]
