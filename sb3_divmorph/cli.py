@@ -49,6 +49,7 @@ def _parser() -> argparse.ArgumentParser:
         p.add_argument("--address", default=None, help="Ray cluster address (host:port, ray://host:port or auto); default: a local Ray")
         p.add_argument("--cpus-per-run", type=float, default=1, help="CPUs Ray reserves per run (default 1)")
         p.add_argument("--gpus-per-run", type=float, default=0, help="GPUs (fractions allowed) Ray reserves per run (default 0)")
+        p.add_argument("--ray-cpus", type=int, default=None, help="CPUs of the local Ray instance (default: all of this machine's)")
         return p
 
     def arms_list(text: str) -> list[str]:
@@ -117,9 +118,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         backend = None
         if getattr(args, "backend", None) is not None:
-            if args.backend == "local" and (args.cpus_per_run != 1 or args.gpus_per_run != 0):
-                raise P.ConfigError("--cpus-per-run / --gpus-per-run need --backend ray")
-            backend = P.make_backend(args.backend, args.address, args.cpus_per_run, args.gpus_per_run)
+            if args.backend == "local" and (args.cpus_per_run != 1 or args.gpus_per_run != 0 or args.ray_cpus is not None):
+                raise P.ConfigError("--cpus-per-run / --gpus-per-run / --ray-cpus need --backend ray")
+            backend = P.make_backend(args.backend, args.address, args.cpus_per_run, args.gpus_per_run, args.ray_cpus)
         if args.command == "pipeline":
             print(P.run_pipeline(profile, out, progress, command_line, backend))
         elif args.command == "teachers":

@@ -358,3 +358,22 @@ def test_a_transfer_instruction_reaches_the_gates_input():
     custom = robot_observations("Unimal-Escape-v0", robots, instruction="Climb out of the crater as fast as you can.")
     assert not np.allclose(default["task_embedding"], custom["task_embedding"])
     assert np.isclose(np.linalg.norm(custom["task_embedding"]), 1.0, atol=1e-4)
+
+
+def test_closest_by_return_picks_the_best_zero_shot_teacher(finished_run):
+    from sb3_divmorph.pipeline.evaluate import evaluate_model
+    from sb3_divmorph.pipeline.runs import profile_robots
+    from sb3_divmorph.pipeline.transfer import closest_task
+
+    out, profiles = finished_run
+    profile = load_profile("tiny", profiles)
+    choice = closest_task(profile, out, "Escape", by="return")
+    robots = profile_robots(profile, "train")
+    returns = {t: np.mean([r["return"] for r in evaluate_model(out / "teachers" / t, "Escape", robots, 1, 40, profile.seed)])
+               for t in ("FT", "Patrol")}
+    assert choice["scores"] == pytest.approx(returns)
+    assert choice["closest"] == max(returns, key=returns.get)
+    # a finished closest run begun from another teacher is never silently replaced
+    if choice["closest"] != json.loads((out / "transfer" / "Escape" / "closest-by-embedding.json").read_text())["closest"]:
+        assert cli(["transfer", "--profile", "tiny", "--profiles", str(profiles), "--out", str(out), "--arms", "closest",
+                    "--closest-by", "return", "--no-progress"]) == 2

@@ -66,11 +66,14 @@ def _save(fig, path: Path) -> None:
 
 def seed_curves(out: Path, task: str, arm: str, split: str) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """``{seed: (steps, mean return)}`` of every seed of an arm with an evaluation curve."""
+    base = Path(out) / "transfer" / task / arm
+    folders = {int(folder.name.split("-")[1]): folder for folder in base.glob("seed-*")}
+    folders.setdefault(0, base)  # a run from before seeds existed is seed 0
     curves = {}
-    for folder in sorted((Path(out) / "transfer" / task / arm).glob("seed-*")):
+    for seed, folder in sorted(folders.items()):
         steps, returns = eval_curve(read_eval(folder / EVAL_FILE), split)
         if len(steps):
-            curves[int(folder.name.split("-")[1])] = (steps, returns)
+            curves[seed] = (steps, returns)
     return curves
 
 

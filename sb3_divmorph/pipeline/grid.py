@@ -269,8 +269,9 @@ class RayBackend:
                 ray.shutdown()
 
 
-def make_backend(name: str = "local", address: str | None = None, cpus_per_run: float = 1, gpus_per_run: float = 0):
-    """The backend called ``name`` (``local`` or ``ray``).
+def make_backend(name: str = "local", address: str | None = None, cpus_per_run: float = 1, gpus_per_run: float = 0,
+                 num_cpus: int | None = None):
+    """The backend called ``name`` (``local`` or ``ray``; the other arguments: see :class:`RayBackend`).
 
     :raises ConfigError: unknown backend, Ray options without ``ray``, Ray missing or not answering.
     """
@@ -280,7 +281,9 @@ def make_backend(name: str = "local", address: str | None = None, cpus_per_run: 
         if address is not None:
             raise ConfigError("--address needs --backend ray")
         return LocalBackend()
-    return RayBackend(address, cpus_per_run, gpus_per_run)
+    if num_cpus is not None and address is not None:
+        raise ConfigError("--ray-cpus sizes a local Ray instance; a cluster given with --address has its own")
+    return RayBackend(address, cpus_per_run, gpus_per_run, num_cpus)
 
 
 def run_grid(profile: Profile, out: Path, jobs: Sequence[Job], backend=None, progress_bar: bool = True) -> GridReport:

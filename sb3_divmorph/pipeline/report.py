@@ -27,6 +27,7 @@ from sb3_divmorph.pipeline.config import Profile  # noqa: E402
 from sb3_divmorph.pipeline.distill import STUDENTS  # noqa: E402
 from sb3_divmorph.pipeline.figures import make_figures, metrics_table, write_metrics  # noqa: E402
 from sb3_divmorph.pipeline.runs import atomic_save, atomic_write_text, read_progress  # noqa: E402
+from sb3_divmorph.pipeline.transfer import transfer_folder  # noqa: E402
 
 
 def _curve(ax, progress: dict[str, np.ndarray], key: str, label: str) -> bool:
@@ -55,7 +56,7 @@ def plot_curves(profile: Profile, out: Path, target: Path) -> None:
     for ax, task in zip(axes[2:], tasks):
         seed = profile.transfer.seeds[0]
         for arm in profile.transfer.arm_list():
-            _curve(ax, read_progress(out / "transfer" / task / arm / f"seed-{seed}"), "rollout/ep_rew_mean", ARMS[arm].label)
+            _curve(ax, read_progress(transfer_folder(out, task, arm, seed)), "rollout/ep_rew_mean", ARMS[arm].label)
         ax.set_title(f"transfer to {task}: training-episode return (seed {seed})")
     for ax in axes:
         ax.set_xlabel("env steps")
@@ -173,7 +174,7 @@ def report(profile: Profile, out: Path, command: str = "") -> str:
     for task in profile.transfer.tasks:
         for arm in ARMS:
             for seed in profile.transfer.seeds:
-                run = out / "transfer" / task / arm / f"seed-{seed}"
+                run = transfer_folder(out, task, arm, seed)
                 if (run / "done.json").is_file():
                     lines.append(f"| transfer {task} ({arm}, seed {seed}) | `{run.relative_to(out)}/model.zip` | {_fmt_steps(read_progress(run))} |")
 

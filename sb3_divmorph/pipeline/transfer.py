@@ -54,7 +54,12 @@ from unimal_envs.instructions import INSTRUCTIONS, embed_instruction, shipped_em
 
 
 def transfer_folder(out: Path, task: str, arm: str, seed: int = 0) -> Path:
-    return Path(out) / "transfer" / task / arm / f"seed-{seed}"
+    """``transfer/<task>/<arm>/seed-<seed>/``; a run begun before seeds existed (in the arm's folder
+    itself) stays seed 0, so an older run folder resumes rather than starting again."""
+    base = Path(out) / "transfer" / task / arm
+    if seed == 0 and ((base / "done.json").is_file() or (base / "checkpoints").is_dir()):
+        return base
+    return base / f"seed-{seed}"
 
 
 def robot_observations(env_name: str, robots: list[Path], seed: int = 0, instruction: str | None = None) -> dict[str, np.ndarray]:
