@@ -373,7 +373,15 @@ def test_closest_by_return_picks_the_best_zero_shot_teacher(finished_run):
                for t in ("FT", "Patrol")}
     assert choice["scores"] == pytest.approx(returns)
     assert choice["closest"] == max(returns, key=returns.get)
-    # a finished closest run begun from another teacher is never silently replaced
-    if choice["closest"] != json.loads((out / "transfer" / "Escape" / "closest-by-embedding.json").read_text())["closest"]:
+
+    # a run folder begun from another teacher is refused, never silently replaced or mixed
+    other = out / "transfer" / "Escape" / "closest" / "seed-7"
+    other.mkdir()
+    (other / "source.json").write_text(json.dumps({"arm": "closest", "seed": 7, "source": "teachers/Elsewhere"}))
+    try:
         assert cli(["transfer", "--profile", "tiny", "--profiles", str(profiles), "--out", str(out), "--arms", "closest",
-                    "--closest-by", "return", "--no-progress"]) == 2
+                    "--seeds", "7", "--no-progress"]) == 2
+        assert list(other.iterdir()) == [other / "source.json"]
+    finally:
+        (other / "source.json").unlink()
+        other.rmdir()

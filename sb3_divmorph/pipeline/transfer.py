@@ -143,9 +143,14 @@ def closest_task(profile: Profile, out: Path, task: str, by: str | None = None) 
     chosen = max(teachers, key=lambda t: scores[t])
     choice = {"task": task, "closest": chosen, "by": by, "criterion": what, "scores": scores}
     atomic_write_json(path, choice)
-    ranked = ", ".join(f"{t} {scores[t]:.3f}" for t in sorted(scores, key=scores.get, reverse=True))
-    print(f"[transfer] {task}: closest training task {chosen} by {what} ({ranked})")
     return choice
+
+
+def describe_closest(choice: dict[str, Any]) -> str:
+    """Which teacher the ``closest`` arm starts from, and why, in one line."""
+    scores = choice["scores"]
+    ranked = ", ".join(f"{t} {scores[t]:.3f}" for t in sorted(scores, key=scores.get, reverse=True))
+    return f"{choice['task']}: closest training task {choice['closest']} by {choice['criterion']} ({ranked})"
 
 
 def arm_source(profile: Profile, out: Path, task: str, arm: str) -> Path | None:
@@ -172,24 +177,33 @@ def arm_source(profile: Profile, out: Path, task: str, arm: str) -> Path | None:
     return None
 
 
-def check_arm_prerequisites(profile: Profile, out: Path, tasks: list[str], arms: list[str]) -> None:
-    """Every arm's prerequisite exists (and the ``closest`` choices are made), before any run starts."""
+def check_arm_prerequisites(profile: Profile, out: Path, tasks: list[str], arms: list[str], seeds: list[int] = (0,)) -> None:
+    """Before any run starts: every arm's prerequisite exists, the ``closest`` choices are made (and
+    printed), and no existing run folder was begun from another source."""
     for task in tasks:
         if task not in NOVEL_TASKS:
             raise ConfigError(f"transfer targets a novel task; {task!r} is not one of {list(NOVEL_TASKS)}")
         for arm in arms:
-            arm_source(profile, out, task, arm)
+            source = arm_source(profile, out, task, arm)
+            if arm == "closest":
+                print(f"[transfer] {describe_closest(closest_task(profile, out, task))}")
+            for seed in seeds:
+                _check_source(transfer_folder(out, task, arm, seed), _source_record(out, arm, seed, source), write=False)
 
 
-def _record_source(folder: Path, source: dict[str, Any]) -> None:
+def _source_record(out: Path, arm: str, seed: int, source: Path | None) -> dict[str, Any]:
+    return {"arm": arm, "seed": seed, "source": None if source is None else str(Path(source).relative_to(out))}
+
+
+def _check_source(folder: Path, source: dict[str, Any], write: bool = True) -> None:
     """Remember what a run started from; a run folder begun from something else is refused (not overwritten)."""
     path = folder / "source.json"
     if path.is_file():
         recorded = json.loads(path.read_text())
         if recorded != source:
-            raise ConfigError(f"{folder} was started from {recorded}, not {source}; "
+            raise ConfigError(f"{folder} was started from {recorded['source']}, not {source['source']}; "
                               "use another --out (or delete that folder) to start it again")
-    else:
+    elif write:
         atomic_write_json(path, source)
 
 
@@ -268,7 +282,7 @@ def transfer_run(profile: Profile, out: Path, task: str, arm: str, seed: int = 0
 
         callbacks.append(UpdateRatioLogger(lambda: installed.get("rates")))
 
-    _record_source(folder, {"arm": arm, "seed": seed, "source": None if source is None else str(source.relative_to(out))})
+    _check_source(folder, _source_record(out, arm, seed, source))
     return TrainingRun(
         folder, cfg.n_timesteps, cfg.checkpoint_every, make_model, make_env,
         prepare=prepare, callbacks=callbacks, device=device, progress_bar=progress_bar,
@@ -316,7 +330,7 @@ def transfer(
     seeds = list(cfg.seeds if seeds is None else seeds)
     check_arms(list(arms), "--arms")
     check_seeds(seeds, "--seeds")
-    check_arm_prerequisites(profile, out, tasks, arms)
+    check_arm_prerequisites(profile, out, tasks, arms, seeds)
     report = run_grid(profile, out, transfer_jobs(profile, out, tasks, arms, seeds), backend, progress_bar)
     report.raise_on_failure()
     if cfg.eval_every > 0:
