@@ -18,6 +18,7 @@ checkpoint.
 
 from __future__ import annotations
 
+import json
 import os
 import socket
 import sys
@@ -131,20 +132,26 @@ class _Display:
         what = f"failed: {result.error}" if result.status == "failed" else f"{result.status} in {result.seconds:.0f} s"
         print(f"[grid {self.finished}/{self.total}] {result.job.label}: {what}", flush=True)
 
-    def status(self, running: Sequence[Job]) -> None:
+    def status(self, pending: Sequence[tuple[Job, float]]) -> None:
+        """:param pending: submitted jobs not finished yet, with their submission times."""
         if not self.enabled:
             return
-        steps = []
-        for job in running:
-            pointer = job.folder / "checkpoints" / "latest.json"
+        running, queued = [], 0
+        for job, submitted in pending:
             try:
-                import json
-
-                steps.append(f"{job.label} @ {json.loads(pointer.read_text())['num_timesteps']}")
+                started = json.loads((job.folder / RUNNING).read_text())["started"] >= submitted - 1
             except (OSError, ValueError, KeyError):
-                steps.append(f"{job.label} @ start")
+                started = False
+            if not started:
+                queued += 1
+                continue
+            try:
+                steps = json.loads((job.folder / "checkpoints" / "latest.json").read_text())["num_timesteps"]
+            except (OSError, ValueError, KeyError):
+                steps = 0
+            running.append(f"{job.label} @ {steps} steps")
         print(f"[grid] {self.finished}/{self.total} finished ({self.failed} failed), {len(running)} running "
-              f"[{'; '.join(steps)}], {time.perf_counter() - self.start:.0f} s", flush=True)
+              f"[{'; '.join(running)}], {queued} queued, {time.perf_counter() - self.start:.0f} s", flush=True)
 
 
 class LocalBackend:
@@ -222,11 +229,13 @@ class RayBackend:
         self.num_cpus = num_cpus
         self.status_every = status_every
 
-    def _init(self) -> bool:
+    def _init(self) -> None:
+        import atexit
+
         import ray
 
         if ray.is_initialized():
-            return False
+            return
         package_root = str(Path(__file__).resolve().parents[2])
         env = {key: os.environ[key] for key in ("MUJOCO_GL", "HF_HUB_OFFLINE", "TRANSFORMERS_OFFLINE") if key in os.environ}
         # workers import this checkout (not another install of the package)
@@ -237,36 +246,33 @@ class RayBackend:
         else:
             kwargs["address"] = self.address
         ray.init(**kwargs)
-        return True
+        # one Ray for every grid of this command (a pipeline runs several); shut down when the command ends
+        atexit.register(ray.shutdown)
 
     def run(self, profile: Profile, out: Path, jobs: Sequence[Job], display: _Display, progress_bar: bool) -> list[JobResult]:
         import ray
 
-        started_here = self._init()
-        try:
-            remote = ray.remote(num_cpus=self.cpus_per_run, num_gpus=self.gpus_per_run, max_retries=0)(_remote_job)
-            threads = max(1, int(self.cpus_per_run))
-            pending = {remote.remote(profile, Path(out).resolve(), job, threads): (job, time.perf_counter()) for job in jobs}
-            results = []
-            last_status = time.perf_counter()
-            while pending:
-                ready, _ = ray.wait(list(pending), num_returns=1, timeout=min(self.status_every, 5.0))
-                for ref in ready:
-                    job, start = pending.pop(ref)
-                    try:
-                        ray.get(ref)
-                        result = JobResult(job, "done", time.perf_counter() - start)
-                    except Exception as error:  # noqa: BLE001 - a task error or a killed worker: reported, others go on
-                        result = JobResult(job, "failed", time.perf_counter() - start, _error_text(error))
-                    display.finish(result)
-                    results.append(result)
-                if time.perf_counter() - last_status >= self.status_every:
-                    display.status([job for job, _ in pending.values()])
-                    last_status = time.perf_counter()
-            return results
-        finally:
-            if started_here:
-                ray.shutdown()
+        self._init()
+        remote = ray.remote(num_cpus=self.cpus_per_run, num_gpus=self.gpus_per_run, max_retries=0)(_remote_job)
+        threads = max(1, int(self.cpus_per_run))
+        pending = {remote.remote(profile, Path(out).resolve(), job, threads): (job, time.time()) for job in jobs}
+        results = []
+        last_status = time.perf_counter()
+        while pending:
+            ready, _ = ray.wait(list(pending), num_returns=1, timeout=min(self.status_every, 5.0))
+            for ref in ready:
+                job, submitted = pending.pop(ref)
+                try:
+                    ray.get(ref)
+                    result = JobResult(job, "done", time.time() - submitted)
+                except Exception as error:  # noqa: BLE001 - a task error or a killed worker: reported, others go on
+                    result = JobResult(job, "failed", time.time() - submitted, _error_text(error))
+                display.finish(result)
+                results.append(result)
+            if time.perf_counter() - last_status >= self.status_every:
+                display.status(list(pending.values()))
+                last_status = time.perf_counter()
+        return results
 
 
 def make_backend(name: str = "local", address: str | None = None, cpus_per_run: float = 1, gpus_per_run: float = 0,
