@@ -45,6 +45,8 @@ TINY = {
     "distill": {"n_timesteps": 128, "n_envs": 2, "n_steps": 32, "epochs": 1, "batch_size": 32, "buffer_size": 256, "checkpoint_every": 64},
     "transfer": {"tasks": ["Escape"], "n_timesteps": 128, "overrides": {"n_envs": 1, "n_steps": 64, "batch_size": 64, "n_epochs": 1},
                  "checkpoint_every": 64, "arms": list(ARMS), "seeds": [0], "eval_every": 64, "eval_episodes": 1},
+    "hyperdistill": {"teacher_policy": "MetaMorphPolicy", "policy_kwargs": {"hidden_dim": 16, "embed_dim": 8},
+                     "rollout_samples": 256, "epochs": 2, "batch_size": 64, "n_envs": 2},
     "grl": {"population": 2, "generations": 2, "steps_per_agent": 64, "learngene_layers": 2, "tournament": 2, "mutation": 0.5},
     "export": {"tasks": ["FT", "Escape"], "latency_repeats": 5},
     "evaluate": {"episodes": 1},
@@ -95,8 +97,8 @@ def test_every_stage_writes_its_outputs(finished_run):
         assert (path.parent / "actor.pt").is_file()
     with open(out / "evaluate" / "returns.csv") as f:
         rows = list(csv.DictReader(f))
-    # teachers (2 tasks) + student (2 train + 1 novel task) + 9 transfer arms, on 2 + 2 robots
-    assert len(rows) == (2 + 3 + len(ARMS)) * 4
+    # teachers (2 tasks) + student (2 train + 1 novel task) + HyperDistill (2) + 9 transfer arms, on 2 + 2 robots
+    assert len(rows) == (2 + 3 + 2 + len(ARMS)) * 4
     assert {r["split"] for r in rows} == {"train", "novel"}
     assert all(np.isfinite(float(r["return"])) for r in rows)
     with np.load(out / "evaluate" / "gates.npz") as gates:
@@ -142,6 +144,11 @@ def test_the_papers_figures_come_with_their_numbers(finished_run):
     with open(figures / "ablation.csv") as f:
         plotted = {r["arm"] for r in csv.DictReader(f)}
     assert plotted == {"divmorph", "no-kdiv-transformer", "no-kdiv-decoder", "no-orthogonality"}
+    with open(figures / "deployment.csv") as f:
+        bars = list(csv.DictReader(f))
+    assert {r["model"] for r in bars} == {"teacher", "hyperdistill", "student"}
+    sizes = {r["model"]: float(r["value"]) for r in bars if r["panel"].startswith("parameters") and r["task"] == "FT"}
+    assert sizes["student"] < sizes["teacher"]  # the compact actor, pruned
     (figures / "ablation.png").unlink()
     assert cli(["figure", "ablation", "--profile", "tiny", "--profiles", str(profiles), "--out", str(out)]) == 0
     assert (figures / "ablation.png").is_file()
