@@ -198,7 +198,11 @@ def plan_generation(profile: Profile, out: Path, generation: int, plans: dict[in
 
 
 def agent_run(profile: Profile, out: Path, generation: int, index: int, progress_bar: bool = True) -> TrainingRun:
-    """The (resumable) PPO run of one agent; a child inherits its parent's learngene when built."""
+    """The (resumable) PPO run of one agent; a child inherits its parent's learngene when built.
+
+    :param generation: the agent's generation (its plan, ``grl/gen-<g>/plan.json``, must exist).
+    :param index: the agent's index in that generation.
+    """
     plan = {a.index: a for a in read_plan(out, generation)}[index]
     env_name = task_env_name(plan.task)
     entry = load_zoo_entry(profile.teachers.hyperparams, env_name, {**profile.teachers.overrides, **profile.grl.overrides})

@@ -117,6 +117,10 @@ def closest_task(profile: Profile, out: Path, task: str, by: str | None = None) 
     teacher with the best zero-shot return on the novel task (deterministic, training robots,
     ``transfer.eval_episodes`` episodes). The choice is written to ``transfer/<task>/closest-by-<by>.json``
     once, so every seed and every later call uses the same teacher.
+
+    :param task: the novel task.
+    :param by: ``embedding`` or ``return`` (default: ``transfer.closest_by``).
+    :return: ``{"task", "closest", "by", "criterion", "scores": {training task: score}}``.
     """
     by = by or profile.transfer.closest_by
     path = closest_file(out, task, by)
@@ -213,7 +217,14 @@ def transfer_seed(profile: Profile, task: str, seed: int) -> int:
 
 
 def transfer_run(profile: Profile, out: Path, task: str, arm: str, seed: int = 0, progress_bar: bool = True) -> TrainingRun:
-    """The (resumable) PPO run of one arm and seed on a novel task (see :mod:`sb3_divmorph.pipeline.arms`)."""
+    """The (resumable) PPO run of one arm and seed on a novel task (see :mod:`sb3_divmorph.pipeline.arms`).
+
+    :param task: a novel task.
+    :param arm: a name of :data:`~sb3_divmorph.pipeline.arms.ARMS`.
+    :param seed: offsets the PPO seed (the robots, budget and evaluation are the same for every seed).
+    :raises ConfigError: not a novel task, unknown arm, or the run folder was begun from another source.
+    :raises FileNotFoundError: the arm's prerequisite stage has not run.
+    """
     if task not in NOVEL_TASKS:
         raise ConfigError(f"transfer targets a novel task; {task!r} is not one of {list(NOVEL_TASKS)}")
     check_arms([arm], "transfer")
