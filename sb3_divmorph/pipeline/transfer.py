@@ -254,8 +254,9 @@ def transfer_run(profile: Profile, out: Path, task: str, arm: str, seed: int = 0
                                            profile.max_episode_steps, profile.seed,
                                            **({"instruction": cfg.instructions[task]} if task in cfg.instructions else {})))
     if source is None:
+        # scratch and modumorph: the policy from random init, sized like the teachers
         policy = "ModuMorphPolicy" if arm == "modumorph" else "MetaMorphPolicy"
-        policy_kwargs = grl_policy_kwargs(profile) if arm == "grl" else {**entry.policy_kwargs, **profile.teachers.policy_kwargs}
+        policy_kwargs = {**entry.policy_kwargs, **profile.teachers.policy_kwargs}
 
         def make_model():
             venv = normalizer_for(make_env(), entry.normalize, gamma)
