@@ -46,6 +46,10 @@ def test_bad_arms_seeds_and_missing_stages_give_clear_errors(tmp_path, capsys):
         load_profile("tiny", write_profiles(bad, transfer__seeds=[1, 1]))
     assert cli(["transfer", *base, "--arms", "scratch", "--cpus-per-run", "2"]) == 2
     assert "need --backend ray" in capsys.readouterr().err
+    assert cli(["figure", "fig9", *base]) == 2
+    assert "unknown figure 'fig9'; figures: ['transfer-train'" in capsys.readouterr().err
+    assert cli(["figure", "ablation", *base]) == 2
+    assert "no data for figure 'ablation'" in capsys.readouterr().err
 
 
 def test_a_ray_address_that_does_not_answer_fails_fast(tmp_path, capsys):
