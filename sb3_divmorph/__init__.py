@@ -1,11 +1,11 @@
 """Stable-Baselines3 policies for universal morphology control: MetaMorph, ModuMorph and DivMorph.
 
 Importing the package registers ``"MetaMorphPolicy"``, ``"ModuMorphPolicy"``, ``"DivMorphPolicy"``
-and ``"HyperDistillPolicy"`` as PPO policy aliases, so ``PPO("DivMorphPolicy", env)`` and rl-zoo configs with ``policy: DivMorphPolicy``
-(with ``--gym-packages sb3_divmorph``) work.
+and ``"HyperDistillPolicy"`` as PPO and A2C policy aliases, so ``PPO("DivMorphPolicy", env)`` and rl-zoo configs with ``policy: DivMorphPolicy``
+(with ``--gym-packages sb3_divmorph``) work. They are actor-critic policies, for on-policy algorithms only.
 """
 
-from stable_baselines3 import PPO
+from stable_baselines3 import A2C, PPO
 
 from sb3_divmorph.distributions import MaskedDiagGaussianDistribution
 from sb3_divmorph.extractors import MorphologyTransformerExtractor
@@ -22,10 +22,10 @@ from sb3_divmorph.policies import (
 )
 from sb3_divmorph.transformer import MultiHeadSelfAttention, TransformerEncoder, TransformerEncoderLayer
 
-PPO.policy_aliases["MetaMorphPolicy"] = MetaMorphPolicy
-PPO.policy_aliases["DivMorphPolicy"] = DivMorphPolicy
-PPO.policy_aliases["ModuMorphPolicy"] = ModuMorphPolicy
-PPO.policy_aliases["HyperDistillPolicy"] = HyperDistillPolicy
+# The policies are SB3 ActorCriticPolicy subclasses: on-policy algorithms (PPO, A2C) take them.
+for _algo in (PPO, A2C):
+    _algo.policy_aliases.update(MetaMorphPolicy=MetaMorphPolicy, DivMorphPolicy=DivMorphPolicy,
+                                ModuMorphPolicy=ModuMorphPolicy, HyperDistillPolicy=HyperDistillPolicy)
 
 __all__ = [
     "DIVMORPH_PRESETS",

@@ -10,11 +10,14 @@
     divmorph evaluate --profile demo
     divmorph report   --profile demo                 # summary.md + every figure with data
     divmorph figure transfer-train --profile demo    # one figure (PNG + CSV) in report/figures/
+    divmorph record   runs/demo/teachers/FT              # MP4 of a pipeline or rl-zoo model, headless
+    divmorph profiles [--profile demo]                   # the profiles and where they are read from
 
-Every command reads the profile (``zoo_configs/divmorph.yml``) and works in ``--out`` (default
-``runs/<profile>``); finished stages are skipped, interrupted ones resume. The trainings of
-``pipeline``, ``teachers``, ``distill``, ``grl`` and ``transfer`` are independent runs of a grid:
-``--backend ray`` runs them as Ray tasks (a local Ray by default, a cluster with ``--address``).
+Every stage reads the profile (``zoo_configs/divmorph.yml``, shipped with the package, so any
+working directory will do) and works in ``--out`` (default ``runs/<profile>``); finished stages
+are skipped, interrupted ones resume. The trainings of ``pipeline``, ``teachers``, ``distill``,
+``grl`` and ``transfer`` are independent runs of a grid: ``--backend ray`` runs them as Ray tasks
+(a local Ray by default, a cluster with ``--address``).
 """
 
 from __future__ import annotations
@@ -38,7 +41,7 @@ def _parser() -> argparse.ArgumentParser:
     def command(name: str, help_text: str) -> argparse.ArgumentParser:
         p = sub.add_parser(name, help=help_text, description=help_text)
         p.add_argument("--profile", default="demo", help="profile name in the profiles file (default: demo)")
-        p.add_argument("--profiles", default="zoo_configs/divmorph.yml", help="profiles file")
+        p.add_argument("--profiles", default="zoo_configs/divmorph.yml", help="profiles file (default: the shipped one)")
         p.add_argument("--out", default=None, help="run folder (default: runs/<profile>)")
         p.add_argument("--no-progress", action="store_true", help="no progress bars")
         return p
@@ -79,7 +82,38 @@ def _parser() -> argparse.ArgumentParser:
     command("report", "plots, the paper's figures and a markdown summary of the run")
     p = command("figure", "one of the paper's figures (PNG + CSV in report/figures/)")
     p.add_argument("name", help="transfer-train, transfer-novel, deployment, ablation or gates")
+
+
+    # Commands that read no run: they take no --out and create nothing but what they write.
+    from sb3_divmorph.record import add_arguments as record_arguments
+
+    help_text = "record a trained model (pipeline stage or rl-zoo run) to MP4, headless"
+    record_arguments(sub.add_parser("record", help=help_text, description=help_text))
+    help_text = "list the profiles (or print one, validated) and the file they are read from"
+    p = sub.add_parser("profiles", help=help_text, description=help_text)
+    p.add_argument("--profile", help="print this profile's settings")
+    p.add_argument("--profiles", default="zoo_configs/divmorph.yml", help="profiles file (default: the shipped one)")
     return parser
+
+
+def _profiles(args: argparse.Namespace) -> int:
+    """``divmorph profiles``: the profile names (or one profile, validated) and their file."""
+    import dataclasses
+
+    import yaml
+
+    from sb3_divmorph.pipeline.config import ConfigError, load_profile, load_profiles, resolve_path
+
+    try:
+        names = sorted(load_profiles(args.profiles))
+        if args.profile is not None:
+            settings = dataclasses.asdict(load_profile(args.profile, args.profiles))
+    except ConfigError as error:
+        print(f"divmorph: {error}", file=sys.stderr)
+        return 2
+    print(f"# {resolve_path(args.profiles).resolve()}")
+    print(yaml.safe_dump({args.profile: settings}, sort_keys=False) if args.profile is not None else "\n".join(names))
+    return 0
 
 
 def _robot_path(name: str) -> Path:
@@ -99,10 +133,16 @@ def _robot_path(name: str) -> Path:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    if args.command == "record":
+        from sb3_divmorph.record import run as record
+
+        return record(args)
+    if args.command == "profiles":
+        return _profiles(args)
     import torch as th
 
     from sb3_divmorph import pipeline as P
-    from sb3_divmorph.pipeline.runs import seed_everything
+    from sb3_divmorph.pipeline.runs import record_robot_sets, seed_everything
 
     try:
         profile = P.load_profile(args.profile, args.profiles)
@@ -116,6 +156,7 @@ def main(argv: list[str] | None = None) -> int:
     command_line = "divmorph " + shlex.join(argv if argv is not None else sys.argv[1:])
     start = time.perf_counter()
     try:
+        record_robot_sets(profile, out)  # out/robot_sets.json: which robots this run uses
         backend = None
         if getattr(args, "backend", None) is not None:
             if args.backend == "local" and (args.cpus_per_run != 1 or args.gpus_per_run != 0 or args.ray_cpus is not None):
@@ -156,7 +197,7 @@ def main(argv: list[str] | None = None) -> int:
                       f"max |diff| {r['max_abs_diff']:.1e}, "
                       f"latency {r['latency_compact_ms']:.3f} ms vs {r['latency_student_ms']:.3f} ms -> {Path(out) / 'export'}")
         elif args.command == "evaluate":
-            print(f"returns -> {P.evaluate(profile, out) / 'returns.csv'}")
+            print(f"returns -> {P.evaluate(profile, out, progress) / 'returns.csv'}")
         elif args.command == "report":
             print(P.report(profile, out, command_line))
     except (P.ConfigError, FileNotFoundError, ValueError, KeyError, TypeError) as error:

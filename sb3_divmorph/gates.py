@@ -27,12 +27,13 @@ class TopKSoftGate(nn.Module):
     :param n_units: number of tailors gated.
     :param k: number of tailors kept per sample.
     :param hidden_dim: hidden width of the scoring MLP ``G`` (0 = a single linear layer).
+    :param name: which gate this is, for error messages (e.g. ``"morphology gate (top_k_morph)"``).
     """
 
-    def __init__(self, in_dim: int, n_units: int, k: int, hidden_dim: int = 64):
+    def __init__(self, in_dim: int, n_units: int, k: int, hidden_dim: int = 64, name: str = "gate"):
         super().__init__()
         if not 1 <= k <= n_units:
-            raise ValueError(f"top-k must be in [1, {n_units}], got {k}")
+            raise ValueError(f"{name}: top-k must be in [1, {n_units}] (the number of tailors it gates), got {k}")
         self.n_units = n_units
         self.k = k
         if hidden_dim:
@@ -167,8 +168,10 @@ class DiversionRouter(nn.Module):
     ):
         super().__init__()
         self.morphology_encoder = MorphologyEncoder(context_dim, max_tokens, morph_embed_dim, morph_encoder_layers)
-        self.morphology_gate = TopKSoftGate(morph_embed_dim, n_morph_tailors, top_k_morph, gate_hidden_dim)
-        self.task_gate = TopKSoftGate(task_embedding_dim, n_task_tailors, top_k_task, gate_hidden_dim)
+        self.morphology_gate = TopKSoftGate(morph_embed_dim, n_morph_tailors, top_k_morph, gate_hidden_dim,
+                                            name="morphology gate (top_k_morph, over n_morph_tailors)")
+        self.task_gate = TopKSoftGate(task_embedding_dim, n_task_tailors, top_k_task, gate_hidden_dim,
+                                      name="task gate (top_k_task, over n_task_tailors)")
         self._last: tuple[tuple, tuple[th.Tensor, ...], GateActivations] | None = None
 
     def forward(self, context: th.Tensor, padding_mask: th.Tensor, task_embedding: th.Tensor) -> GateActivations:
@@ -229,7 +232,21 @@ def _unique_rows(key: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
     if batch < _DEDUPLICATE_FROM:
         index = th.arange(batch, device=key.device)
         return index, index
-    _, inverse = th.unique(key.detach(), dim=0, return_inverse=True)
+    key = key.detach()
+    # ``th.unique(dim=0)`` compares rows one by one (hundreds of small ops per batch); a random
+    # float64 projection turns each row into one number, which a 1-D unique groups in one sort.
+    # Identical rows get identical numbers; the check below catches the (measure-zero) collision of
+    # two different rows and falls back to the exact row-wise unique.
+    _, inverse = th.unique((key.double() * _row_projection(key.shape[1], key.device)).sum(-1), return_inverse=True)
     first = th.full((int(inverse.max()) + 1,), batch, dtype=inverse.dtype, device=key.device)
     first = first.scatter_reduce(0, inverse, th.arange(batch, device=key.device), reduce="amin")
+    if not th.equal(key[first][inverse], key):
+        _, inverse = th.unique(key, dim=0, return_inverse=True)
+        first = th.full((int(inverse.max()) + 1,), batch, dtype=inverse.dtype, device=key.device)
+        first = first.scatter_reduce(0, inverse, th.arange(batch, device=key.device), reduce="amin")
     return first, inverse
+
+
+def _row_projection(width: int, device: th.device) -> th.Tensor:
+    """A fixed random float64 vector (its own generator: deduplication never shifts the global RNG)."""
+    return th.randn(width, dtype=th.float64, generator=th.Generator().manual_seed(0)).to(device)

@@ -65,8 +65,9 @@ class _Factors(NamedTuple):
 
     U: th.Tensor  # (out, r)
     V: th.Tensor  # (in, r)
-    #: dense weight of the always-on units: the learngenes, or every unit when nothing is gated
-    merged: th.Tensor  # (out, in)
+    #: dense weight of the always-on units: the learngenes, or every unit when nothing is gated;
+    #: ``None`` for a gated layer on the low-rank path, which never reads it
+    merged: th.Tensor | None  # (out, in)
 
 
 class FactorizedLinear(nn.Module):
@@ -224,6 +225,8 @@ class FactorizedLinear(nn.Module):
     def _compute_factors(self) -> _Factors:
         square = self.square_factor()
         U, V = (square, self.tall) if self.square_side == "U" else (self.tall, square)
+        if self.n_tailors and self.path == "lowrank":
+            return _Factors(U, V, None)  # building it would cost a matmul (and its backward) per step
         n_on = self.rank if self.n_tailors == 0 else self.n_learngenes
         merged = (U[:, :n_on] * self.singular_values[:n_on]) @ V[:, :n_on].T
         return _Factors(U, V, merged)

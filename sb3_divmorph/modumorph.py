@@ -458,32 +458,15 @@ class ModuMorphPolicy(MorphologyTransformerPolicy):
         with th.no_grad():
             return extractor(self._preprocess(observation), return_attention=True)[1]
 
-    def parameter_counts(self) -> dict[str, int]:
-        """Parameters per part: context encoders, hypernetwork-generated layers, Transformer, decoders."""
-
-        def count(*modules: nn.Module | None) -> int:
-            return sum(p.numel() for m in modules if m is not None for p in m.parameters())
-
-        def parts(prefix: str, e: ModuMorphExtractor) -> dict[str, int]:
-            return {
-                f"{prefix}/embedding": count(e.embedding),
-                f"{prefix}/context_encoder": count(e.context_encoder),
-                f"{prefix}/hypernet_encoder": count(e.hypernet_encoder),
-                f"{prefix}/transformer": count(e.layers),
-                f"{prefix}/exteroception": count(e.exteroception),
-            }
-
-        counts: dict[str, int] = {}
-        if self.share_features_extractor:
-            counts.update(parts("shared", self.features_extractor))
-        else:
-            counts.update(parts("actor", self.pi_features_extractor))
-            counts.update(parts("critic", self.vf_features_extractor))
-        counts["actor/decoder"] = count(self.mlp_extractor.policy_net)
-        counts["critic/decoder"] = count(self.mlp_extractor.value_net)
-        counts["actor/log_std"] = self.log_std.numel() if isinstance(self.log_std, nn.Parameter) else 0
-        counts["total"] = count(self)
-        return counts
+    def _extractor_parts(self, prefix: str, extractor: nn.Module, count) -> dict[str, int]:
+        """Parameters per part: context encoders, hypernetwork-generated layers, Transformer."""
+        return {
+            f"{prefix}/embedding": count(extractor.embedding),
+            f"{prefix}/context_encoder": count(extractor.context_encoder),
+            f"{prefix}/hypernet_encoder": count(extractor.hypernet_encoder),
+            f"{prefix}/transformer": count(extractor.layers),
+            f"{prefix}/exteroception": count(extractor.exteroception),
+        }
 
 
 # -- deployment ------------------------------------------------------------------------------------

@@ -384,25 +384,26 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
                         total += p.numel()
             return total
 
-        def extractor_parts(prefix: str, extractor: MorphologyTransformerExtractor) -> dict[str, int]:
-            return {
-                f"{prefix}/embedding": count(extractor.embedding),
-                f"{prefix}/transformer": count(extractor.encoder),
-                f"{prefix}/exteroception": count(extractor.exteroception),
-            }
-
         parts: dict[str, int] = {}
         if self.share_features_extractor:
-            parts.update(extractor_parts("shared", self.features_extractor))
+            parts.update(self._extractor_parts("shared", self.features_extractor, count))
         else:
-            parts.update(extractor_parts("actor", self.pi_features_extractor))
-            parts.update(extractor_parts("critic", self.vf_features_extractor))
+            parts.update(self._extractor_parts("actor", self.pi_features_extractor, count))
+            parts.update(self._extractor_parts("critic", self.vf_features_extractor, count))
         parts["actor/decoder"] = count(self.mlp_extractor.policy_net, self.action_net)
         parts["critic/decoder"] = count(self.mlp_extractor.value_net, self.value_net)
         parts["actor/log_std"] = self.log_std.numel() if isinstance(self.log_std, nn.Parameter) else 0
         parts.update(self._router_counts(count))
         parts["total"] = count(self)
         return parts
+
+    def _extractor_parts(self, prefix: str, extractor: nn.Module, count) -> dict[str, int]:
+        """``parameter_counts`` entries of one extractor (subclasses with other parts override it)."""
+        return {
+            f"{prefix}/embedding": count(extractor.embedding),
+            f"{prefix}/transformer": count(extractor.encoder),
+            f"{prefix}/exteroception": count(extractor.exteroception),
+        }
 
     def _router_counts(self, count) -> dict[str, int]:
         return {}

@@ -373,3 +373,37 @@ def test_cli_stats_compare_official(capsys):
     assert cli_main(["stats", "--compare", str(OFFICIAL_TRAIN)]) == 0
     out = capsys.readouterr().out
     assert "unimals_100" in out and "depth" in out and "novel" in out
+
+
+def test_standing_filter_is_optional_and_off_for_new_sets():
+    assert S.SetSpec("new", 5).min_standing_ratio == 0.0  # new sets: off
+    assert all(spec.min_standing_ratio == 0.5 for spec in S.SETS.values())  # shipped sets keep it
+    with_filter = S.generate_set("train", count=4, exclude=[], spec=S.SETS["train"])
+    without = S.generate_set("train", count=4, exclude=[], spec=replace(S.SETS["train"], min_standing_ratio=0.0))
+    assert all(S.passive_standing_ratio(r.xml) > 0.5 for r in with_filter)
+    assert any(S.passive_standing_ratio(r.xml) <= 0.5 for r in without)  # fallers are kept
+
+
+def test_stats_compare_with_the_official_set_as_markdown(tmp_path):
+    if not (OFFICIAL_TRAIN / "xml").is_dir():
+        pytest.skip(f"official unimals_100 train set not found at {OFFICIAL_TRAIN}")
+    official = S.collect_stats("official", sorted((OFFICIAL_TRAIN / "xml").glob("*.xml")))
+    # The measured differences the shipped sets are compared on (issue #14).
+    assert official.summary("falls at zero torque")[1] == pytest.approx(0.33, abs=0.02)
+    assert official.summary("horizontal limbs")[1] == pytest.approx(0.75, abs=0.01)
+    assert official.summary("mass (kg)")[1] == pytest.approx(29.0, abs=0.5)
+    table = S.stats_markdown([official], "cmd")
+    assert "| falls at zero torque | official | 100 | 0 | 0.33 | 1 | 0:67 1:33 |" in table
+
+
+def test_no_diagonal_downward_mirrored_pairs_with_tie_rounding():
+    """DERL's NumPy rounding makes the h = 0.2 / 0.4 diagonal-down pairs asymmetric, so they are
+    rejected; the official set has no diagonal-down limb at all."""
+    import math
+
+    for theta in (45, 135, 225, 315):
+        t, p = math.radians(theta), math.radians(135)
+        a, b = G.sph2cart(0.45, t, p), G.sph2cart(0.45, 2 * math.pi - t, p)
+        assert a[1] != -b[1] or a[0] != b[0]  # not an exact mirror image
+    for f in sorted((S.DATA_DIR / "train" / "xml").glob("*.xml")):
+        assert 'fromto="0 0 0 -0.23 0.23 -0.32"' not in f.read_text() and 'fromto="0 0 0 0.23 0.23 -0.32"' not in f.read_text()

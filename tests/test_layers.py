@@ -296,3 +296,18 @@ def test_padded_tokens_never_affect_real_tokens(factorization):
     # control: a real token does change the other real tokens
     changed[0, 1] += th.randn(16)  # (a constant shift would vanish in the LayerNorm)
     assert not th.allclose(encoder(x, padding, gates)[0, 0], encoder(changed, padding, gates)[0, 0], atol=1e-4)
+
+
+@pytest.mark.parametrize("collide", [False, True])
+def test_router_deduplication_groups_exactly_the_identical_rows(monkeypatch, collide):
+    from sb3_divmorph import gates
+
+    if collide:  # every row projects to 0: the check must catch it and fall back to the exact unique
+        monkeypatch.setattr(gates, "_row_projection", lambda width, device: th.zeros(width, dtype=th.float64))
+    rows = th.randn(7, 5)
+    key = rows[th.randint(0, 7, (40,), generator=th.Generator().manual_seed(0))]
+    key[3] = key[3] + 1e-7  # a near-duplicate is still a different robot
+    first, inverse = gates._unique_rows(key)
+    assert th.equal(key[first][inverse], key)
+    expected = len(th.unique(key, dim=0))
+    assert len(first) == expected

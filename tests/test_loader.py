@@ -96,3 +96,14 @@ def test_bad_morphology_arguments(tmp_path):
 def test_parse_from_string_names_the_source():
     with pytest.raises(MorphologyError, match="^my-robot: malformed XML"):
         parse_morphology("<mujoco>", name="my-robot")
+
+
+def test_torso_context_includes_the_reference_floor_offset(official_train):
+    """ModuMorph's context reads the torso's body_pos in MetaMorph's world (floor top at z = 1)."""
+    from unimal_envs.morphology.loader import REFERENCE_FLOOR_TOP, load_morphology
+
+    robot = load_morphology(official_train / "xml" / "floor-1409-0-12-01-12-30-07.xml")
+    z = robot.proprio_static[0, 15]  # body_pos z of the torso, as in the file
+    lo, hi = -0.49, 2.04  # ModuMorph's body_pos z bounds
+    assert robot.context[0, 2] == pytest.approx(2 * (z + REFERENCE_FLOOR_TOP - lo) / (hi - lo) - 1, abs=1e-6)
+    assert 0.0 < robot.context[0, 2] < 1.0  # inside the bounds only with the offset

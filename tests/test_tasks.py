@@ -80,7 +80,9 @@ def test_escape_rewards_radial_progress(train_files):
 
 def test_exploration_rewards_new_cells_only(train_files):
     env = make("Exploration", train_files[:1])
-    assert sum(env.step(ZERO)[1] for _ in range(10)) == 0.0  # standing still finds nothing new
+    # As in the reference, the grid starts empty: the first step finds the start cell, then
+    # standing still finds nothing new.
+    assert [env.step(ZERO)[1] for _ in range(10)] == [1.0] + [0.0] * 9
     gained = push(env, (1, 1), steps=40)
     visited = env.unwrapped.task.metrics(env.unwrapped.robot)["cells_visited"]
     assert gained >= 1.0 and gained == visited - 1
@@ -110,9 +112,14 @@ def test_escape_terminates_with_the_bonus(train_files):
 def test_patrol_goal_toggles_when_reached(train_files):
     env = make("Patrol", train_files[:1])
     _teleport(env, 5.0, 0.1)
-    _, reward, _, _, info = env.step(ZERO)
+    obs, reward, _, _, info = env.step(ZERO)
     assert info["reward_at_goal"] == 10.0 and info["goals_reached"] == 1
     assert env.unwrapped.task.goal[0] == -5.0
+    # The reaching step still observes the goal it reached (the reference toggles after building
+    # the observation); the next step observes the new one, 10 m behind.
+    assert np.linalg.norm(obs["goal"][:2]) < 0.5
+    obs = env.step(ZERO)[0]
+    assert np.linalg.norm(obs["goal"][:2]) > 9.0
 
 
 def test_box_tasks_reward_pushing_the_box_to_the_goal(train_files):
@@ -127,6 +134,29 @@ def test_box_tasks_reward_pushing_the_box_to_the_goal(train_files):
         info = env.step(ZERO)[-1]
         gains.append(info["reward_push"])
     assert gains[0] > 0 > gains[1]
+
+
+@pytest.mark.parametrize("task", ["ManipulateBox", "PushBoxIncline"])
+def test_box_reach_shaping_continues_after_the_box_is_reached(train_files, task):
+    """As in DERL: the reach term is paid every step (walking away from the box after reaching it
+    costs reward) and the push term starts on the very step the box is reached."""
+    env = make(task, train_files[:1])
+    u = env.unwrapped
+    box = u.data.xpos[u.task._box].copy()
+    torso_xy = u.robot.torso_qpos[:2].copy()
+    # Put the torso right next to the box: this step reaches it.
+    u.data.qpos[:2] = box[:2] - 0.3 * (box[:2] - torso_xy) / np.linalg.norm(box[:2] - torso_xy)
+    u.data.qpos[2] += box[2] - u.robot.torso_qpos[2] + 0.3
+    # ... and the box moves 2 cm toward the goal on the same step: already paid as push.
+    to_goal = u.task.goal[:2] - box[:2]
+    u.task._box_qpos[:2] += 0.02 * to_goal / np.linalg.norm(to_goal)
+    mujoco.mj_forward(u.model, u.data)
+    info = env.step(ZERO)[-1]
+    assert info["reward_reached"] == 10.0 and info["reward_reach"] > 0
+    assert info["reward_push"] > 0.5 and u.task.reached
+    # Walking away from the reached box is penalised by the reach term.
+    away = push(env, -(box[:2] - torso_xy), steps=10)
+    assert away < -1.0
 
 
 def _yaw(env, angle: float) -> None:
@@ -153,7 +183,7 @@ def test_height_map_shows_a_step_ahead_at_the_right_offset(train_files):
     hmap = u._observation()["hfield"].reshape(C.HFIELD_ROWS, C.HFIELD_COLS)
     assert np.allclose(hmap[LATERAL_CELLS <= -21], 0.5)
     assert np.allclose(hmap[(LATERAL_CELLS >= -19) & (LATERAL_CELLS <= 19)], 0.0)
-    assert np.allclose(hmap[LATERAL_CELLS >= 40], -10.0)  # 4 m to the left is behind the course start
+    assert np.allclose(hmap[LATERAL_CELLS >= 40], -11.0)  # 4 m to the left is off the course (reference: -11)
 
 
 def test_height_map_matches_the_physical_terrain(train_files):
@@ -181,8 +211,9 @@ def test_obstacles_appear_in_the_height_map(train_files):
     assert len(placed) >= 40
     for g in placed[:10]:
         x, y, _ = u.model.geom_pos[g]
-        assert arena.grid.height(x, y) == pytest.approx(4.0)
+        assert arena.grid.height(x, y) == pytest.approx(2.0)  # the reference's observed block height
     assert arena.grid.height(0.0, 0.0) == 0.0
+    assert arena.grid.height(arena.bounds[0] - 0.5, 0.0) == pytest.approx(3.0)  # walls: +3 as in the reference
 
 
 @pytest.mark.parametrize("task, key", [("PointNav", "goal"), ("Patrol", "goal"), ("ManipulateBox", "object")])

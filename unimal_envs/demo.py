@@ -6,7 +6,7 @@ hinge follows ``sin(2 pi f t + phase)``, phases drawn at random: a scripted poli
 random search, no learning). It prints a per-morphology table, and writes under ``--out``:
 
 * ``summary.md`` — the same table, with the command and seed;
-* ``robots.png`` — a picture of every robot;
+* ``robots.png`` — a picture of every robot, each panel titled with its name, limbs and dof;
 * ``gaits.mp4`` — a short video of each robot walking with its best gait.
 
 Usage: ``python -m unimal_envs.demo [--morphologies train] [--count 6] [--out runs/demo]``
@@ -62,15 +62,34 @@ def run_episode(env: gym.Env, policy, seed: int, morphology: str) -> tuple[float
     return total, env.unwrapped.robot.torso_x - start_x, steps, fell
 
 
-def tile(images: list[np.ndarray], columns: int) -> np.ndarray:
-    """Arrange equally sized images in a grid."""
-    rows = math.ceil(len(images) / columns)
-    h, w, _ = images[0].shape
-    grid = np.full((rows * h, columns * w, 3), 255, dtype=np.uint8)
-    for i, image in enumerate(images):
-        r, c = divmod(i, columns)
-        grid[r * h : (r + 1) * h, c * w : (c + 1) * w] = image
-    return grid
+def robot_figure(pictures: list[np.ndarray], labels: list[str], title: str, columns: int = 3):
+    """A grid of robot pictures, each panel titled with its label (robot name, limbs, dof).
+
+    :param pictures: equally sized RGB images, one per robot.
+    :param labels: one panel title per picture.
+    :param title: the figure's title (task, robot set, seed).
+    :param columns: panels per row.
+    :returns: the matplotlib figure (``fig.savefig(path)`` writes it).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if len(pictures) != len(labels) or not pictures:
+        raise ValueError(f"need one label per picture, got {len(pictures)} pictures and {len(labels)} labels")
+    columns = min(columns, len(pictures))
+    rows = math.ceil(len(pictures) / columns)
+    h, w, _ = pictures[0].shape
+    fig, axes = plt.subplots(rows, columns, figsize=(3.2 * columns, 3.2 * rows * h / w + 0.6), squeeze=False)
+    for ax in axes.flat:
+        ax.axis("off")
+    for ax, picture, label in zip(axes.flat, pictures, labels):
+        ax.imshow(picture)
+        ax.set_title(label, fontsize=9)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return fig
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -81,6 +100,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=Path("runs/demo"))
     parser.add_argument("--video-steps", type=int, default=150, help="video length per robot, in steps")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = parser.parse_args(argv)
 
     from rich.console import Console
@@ -95,7 +115,7 @@ def main(argv: list[str] | None = None) -> None:
     env.action_space.seed(args.seed)
 
     rows, best_gaits = [], {}
-    for robot in tqdm(robots, desc="robots", unit="robot"):
+    for robot in tqdm(robots, desc="robots", unit="robot", disable=args.no_progress):
         random_return, random_dist, random_len, random_fell = run_episode(env, None, args.seed, robot.name)
         best = None
         for _ in range(args.gaits):
@@ -121,19 +141,22 @@ def main(argv: list[str] | None = None) -> None:
 
     args.out.mkdir(parents=True, exist_ok=True)
     render_env = gym.make("Unimal-FT-v0", morphologies=[r.path for r in robots], render_mode="rgb_array", width=320, height=240)
-    pictures, frames = [], []
-    for robot in tqdm(robots, desc="rendering", unit="robot"):
+    pictures, labels, frames = [], [], []
+    for robot in tqdm(robots, desc="rendering", unit="robot", disable=args.no_progress):
         render_env.reset(seed=args.seed, options={"morphology": robot.name})
         pictures.append(render_env.render())
+        labels.append(f"{robot.name}: {robot.num_limbs} limbs, {robot.dof} dof")
         gait = best_gaits[robot.name]
         gait.t = 0
         clip, _ = record_episode(render_env, gait, steps=args.video_steps, seed=args.seed, options={"morphology": robot.name})
         frames.extend(clip)
     render_env.close()
 
-    import imageio.v2 as imageio
+    import matplotlib.pyplot as plt
 
-    imageio.imwrite(args.out / "robots.png", tile(pictures, columns=min(3, len(pictures))))
+    figure = robot_figure(pictures, labels, f"{len(robots)} robots of '{args.morphologies}' (seed {args.seed}) at their Unimal-FT-v0 start pose")
+    figure.savefig(args.out / "robots.png", dpi=100)
+    plt.close(figure)
     write_video(frames, args.out / "gaits.mp4", fps=50)
     command = "python -m unimal_envs.demo " + " ".join(argv if argv is not None else sys.argv[1:])
     summary = [

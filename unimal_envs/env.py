@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import os
+import sys
 from collections import OrderedDict
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -30,6 +32,17 @@ _SUBSTEP = CONTROL_DT / _SUBSTEPS
 _ZEROS_HFIELD = np.zeros(C.HFIELD_DIM, dtype=np.float32)
 _ZEROS_GOAL = np.zeros(C.GOAL_DIM, dtype=np.float32)
 _ZEROS_OBJECT = np.zeros(C.OBJECT_DIM, dtype=np.float32)
+
+
+def _check_display() -> None:
+    """Refuse ``render_mode="human"`` up front where no window can open: on Linux without an X11
+    or Wayland display, MuJoCo's viewer would otherwise fail deep inside GLFW on the first step."""
+    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        raise RuntimeError(
+            "render_mode='human' needs a display, and neither DISPLAY nor WAYLAND_DISPLAY is set; "
+            "use render_mode='rgb_array' for frames without a display (MUJOCO_GL=egl), e.g. "
+            "unimal_envs.rendering.record_episode(env) and write_video(frames, 'clip.mp4')"
+        )
 
 
 @dataclass
@@ -94,8 +107,10 @@ class UnimalEnv(gym.Env):
     U(-0.005, 0.005) on every robot qpos and qvel entry.
 
     :param task: task name (``"FT"``, ...) or a :class:`~unimal_envs.tasks.Task` instance.
-    :param morphologies: ``"train"`` / ``"novel"`` (shipped generated sets, 100 each), a directory
-        in the unimals_100 layout (``DIR/xml/*.xml``), or a list of MJCF paths.
+    :param morphologies: ``"train"`` / ``"novel"`` (shipped generated sets, 100 each),
+        ``"unimals100-train"`` / ``"unimals100-test"`` / ``"unimals100-mutants"`` (the official sets,
+        fetched once with ``python -m unimal_envs.morphology fetch``), a directory in the unimals_100
+        layout (``DIR/xml/*.xml``), or a list of MJCF paths.
     :param instruction: replaces the task's instruction; embedded with ``text_encoder``.
     :param text_encoder: encoder for a custom ``instruction`` (``"minilm"`` or ``"hash"``).
     :param ctrl_cost_weight: weight of the control cost (0.0 as in MetaMorph; DERL used 1e-3).
@@ -124,6 +139,8 @@ class UnimalEnv(gym.Env):
     ):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
+        if render_mode == "human":
+            _check_display()
         self.task = make_task(task)
         self.morphologies: list[Morphology] = load_morphologies(morphologies)
         self.arena = self.task.arena
@@ -138,6 +155,8 @@ class UnimalEnv(gym.Env):
         self.action_space = C.action_space()
         self.world_cache_size = int(world_cache_size)
         self._worlds: OrderedDict[int, _World] = OrderedDict()  # compiled worlds, least recently used first
+        #: Per-morphology draw probabilities (``None``: uniform), set by a robot sampler.
+        self._morphology_probabilities: np.ndarray | None = None
         self._world: _World | None = None
         self._viewer = None
         #: Tracking camera: distance to the torso (``None`` = from the robot's size), azimuth, elevation.
@@ -295,8 +314,36 @@ class UnimalEnv(gym.Env):
                 )
         return action
 
+    @property
+    def morphology_names(self) -> list[str]:
+        """Names of this env's morphologies, in draw order (the order of sampling probabilities)."""
+        return [m.name for m in self.morphologies]
+
+    def set_morphology_probabilities(self, probabilities: np.ndarray | None) -> None:
+        """Draw morphologies with these probabilities from the next reset on (``None``: uniform).
+
+        Used by MetaMorph's balanced robot sampler
+        (:class:`sb3_divmorph.recipe.BalancedRobotSampler`), through ``VecEnv.env_method``.
+
+        :param probabilities: one non-negative weight per morphology (:attr:`morphology_names`
+            order), normalised here.
+        :raises ValueError: wrong length, negative, non-finite or all-zero weights.
+        """
+        if probabilities is None:
+            self._morphology_probabilities = None
+            return
+        p = np.asarray(probabilities, dtype=np.float64)
+        if p.shape != (len(self.morphologies),) or not np.all(np.isfinite(p)) or np.any(p < 0) or p.sum() <= 0:
+            raise ValueError(
+                f"morphology probabilities must be {len(self.morphologies)} finite non-negative weights "
+                f"with a positive sum, got shape {p.shape}"
+            )
+        self._morphology_probabilities = p / p.sum()
+
     def _choose_morphology(self, choice: int | str | None) -> int:
         if choice is None:
+            if self._morphology_probabilities is not None:
+                return int(self.np_random.choice(len(self.morphologies), p=self._morphology_probabilities))
             return int(self.np_random.integers(len(self.morphologies)))
         if isinstance(choice, (int, np.integer)):
             if not 0 <= choice < len(self.morphologies):

@@ -72,7 +72,7 @@ class MiniLMEncoder:
         self._model = SentenceTransformer(path, device=device, local_files_only=local)
 
     def encode(self, texts: list[str]) -> np.ndarray:
-        return np.asarray(self._model.encode(list(texts), normalize_embeddings=True), dtype=np.float32)
+        return np.asarray(self._model.encode(list(texts), normalize_embeddings=True, show_progress_bar=False), dtype=np.float32)
 
 
 class HashEncoder:

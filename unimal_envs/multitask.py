@@ -80,6 +80,16 @@ class MultiTaskEnv(gym.Env):
         self.current = self.envs[task]
         return self.current.reset(seed=int(self.np_random.integers(2**31)), options=options)
 
+    @property
+    def morphology_names(self) -> list[str]:
+        """Names of the morphologies (shared by every task), in draw order."""
+        return next(iter(self.envs.values())).morphology_names
+
+    def set_morphology_probabilities(self, probabilities: np.ndarray | None) -> None:
+        """Robot draw probabilities for every task (see :meth:`UnimalEnv.set_morphology_probabilities`)."""
+        for env in self.envs.values():
+            env.set_morphology_probabilities(probabilities)
+
     def step(self, action: np.ndarray):
         if self.current is None:
             raise RuntimeError("call reset() before step()")

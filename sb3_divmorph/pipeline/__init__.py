@@ -38,7 +38,7 @@ def run_pipeline(profile: Profile, out, progress_bar: bool = True, command: str 
         evolve(profile, out, backend, progress_bar)
     transfer(profile, out, progress_bar=progress_bar, backend=backend)
     export_all(profile, out)
-    evaluate(profile, out)
+    evaluate(profile, out, progress_bar=progress_bar)
     return report(profile, out, command)
 
 

@@ -29,10 +29,18 @@ class ConfigError(ValueError):
 
 
 def resolve_path(path: str | Path) -> Path:
-    """``path`` as given if it exists, else relative to the repository root."""
+    """``path`` as given if it exists; else a ``zoo_configs/...`` path among the shipped
+    configuration files (found from any working directory, installed or not); else relative to
+    the repository root."""
     path = Path(path)
     if path.exists() or path.is_absolute():
         return path
+    if path.parts and path.parts[0] == "zoo_configs":
+        from sb3_divmorph.zoo import zoo_configs_dir
+
+        shipped = zoo_configs_dir().joinpath(*path.parts[1:])
+        if shipped.exists():
+            return shipped
     candidate = REPO_ROOT / path
     return candidate if candidate.exists() else path
 
@@ -75,6 +83,10 @@ class TeachersConfig:
     overrides: dict[str, Any] = field(default_factory=dict)
     policy_kwargs: dict[str, Any] = field(default_factory=dict)
     checkpoint_every: int = 50_000
+    #: ``""``: the zoo entry ``Unimal-<task>-v0``; ``"metamorph"``: ``Unimal-<task>-v0-metamorph``,
+    #: MetaMorph's training recipe (cosine lr with warm-up, Adam eps 1e-5, KL stop at 0.2,
+    #: normalisation clipped at 10, balanced robot sampler; see ``sb3_divmorph.recipe``)
+    recipe: str = ""
 
 
 @dataclass
@@ -252,6 +264,8 @@ class Profile:
                 raise ConfigError(f"profile {name!r}: unknown teacher policy {policy!r} in {where}; choose from {list(TEACHER_POLICIES)}")
         if profile.hyperdistill is not None and profile.hyperdistill.loss not in ("nll", "kl"):
             raise ConfigError(f"profile {name!r}: hyperdistill.loss must be 'nll' or 'kl', got {profile.hyperdistill.loss!r}")
+        for section in ("teachers", "transfer", "grl"):
+            check_ppo_keys(getattr(profile, section).overrides, f"profile {name!r}, {section}.overrides")
         check_transfer(profile.transfer, f"profile {name!r}, transfer")
         if profile.grl.population < 1 or profile.grl.generations < 1 or profile.grl.learngene_layers < 1 or profile.grl.tournament < 1:
             raise ConfigError(f"profile {name!r}: grl.population, generations, learngene_layers and tournament must be >= 1")
@@ -299,7 +313,9 @@ def load_profiles(path: str | Path = DEFAULT_PROFILES) -> dict[str, dict[str, An
     """The raw profile entries of a profiles file."""
     resolved = resolve_path(path)
     if not resolved.is_file():
-        raise ConfigError(f"profiles file {path} not found (looked in . and {REPO_ROOT})")
+        from sb3_divmorph.zoo import zoo_configs_dir
+
+        raise ConfigError(f"profiles file {path} not found (looked in {Path.cwd()}, in the shipped {zoo_configs_dir()} and in {REPO_ROOT})")
     with open(resolved) as f:
         data = yaml.safe_load(f) or {}
     if not isinstance(data, dict):
@@ -311,14 +327,38 @@ def load_profile(name: str, path: str | Path = DEFAULT_PROFILES) -> Profile:
     """Load and validate one profile; unknown names list the available ones."""
     profiles = load_profiles(path)
     if name not in profiles:
-        raise ConfigError(f"unknown profile {name!r}; profiles in {path}: {sorted(profiles)}")
-    return Profile.from_dict(name, profiles[name])
+        raise ConfigError(f"unknown profile {name!r}; profiles in {resolve_path(path)}: {sorted(profiles)}")
+    try:
+        return Profile.from_dict(name, profiles[name])
+    except ConfigError as error:  # name the file: the same profile name may live in several
+        raise ConfigError(f"{resolve_path(path)}: {error}") from None
 
 
 # -- rl-zoo hyperparameter entries -----------------------------------------------------------
 #: Keys of an rl-zoo entry that are not PPO constructor arguments.
 _ZOO_ONLY = {"n_timesteps", "policy", "n_envs", "normalize", "env_wrapper", "frame_stack", "callback", "vec_env_wrapper"}
 _PPO_ARGS = set(inspect.signature(PPO.__init__).parameters) - {"self", "env", "policy"}
+#: PPO arguments the pipeline sets itself (from the profile's ``seed`` and ``device``, or not at all)
+_SET_BY_PIPELINE = {"seed", "device", "verbose", "tensorboard_log", "_init_setup_model"}
+#: What an entry or a profile's ``overrides`` may hold: PPO's hyperparameters and the rl-zoo keys
+#: the pipeline reads.
+PPO_HYPERPARAMETERS = sorted(_PPO_ARGS - _SET_BY_PIPELINE)
+ZOO_KEYS = sorted(_ZOO_ONLY - {"env_wrapper", "frame_stack", "vec_env_wrapper"})
+
+
+def check_ppo_keys(keys, where: str) -> None:
+    """Refuse keys that are neither PPO hyperparameters nor rl-zoo keys the pipeline reads.
+
+    :param keys: the keys of a zoo entry or of a profile's ``overrides``.
+    :param where: what holds them, for the message (file, profile, section).
+    :raises ConfigError: naming the unknown keys and listing only the valid ones.
+    """
+    managed = sorted(set(keys) & _SET_BY_PIPELINE)
+    if managed:
+        raise ConfigError(f"{where}: {managed} are set by the pipeline (the profile's seed and device), not by a zoo entry or overrides")
+    unknown = sorted(set(keys) - set(PPO_HYPERPARAMETERS) - _ZOO_ONLY)
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {unknown}; PPO hyperparameters: {PPO_HYPERPARAMETERS}; rl-zoo keys: {ZOO_KEYS}")
 
 
 @dataclass
@@ -331,6 +371,8 @@ class ZooEntry:
     policy_kwargs: dict[str, Any]
     normalize: dict[str, Any] | None
     ppo_kwargs: dict[str, Any]
+    #: ``(class path, kwargs)`` of rl-zoo callbacks (only MetaMorph's balanced robot sampler)
+    callbacks: list[tuple[str, dict[str, Any]]] = field(default_factory=list)
 
 
 def _zoo_eval(text: str, where: str) -> Any:
@@ -344,9 +386,33 @@ def _schedule(value: Any, where: str) -> Any:
     if isinstance(value, str) and value.startswith("lin_"):
         start = float(value[4:])
         return LinearSchedule(start, 0.0, 1.0)
+    if isinstance(value, str) and value.startswith("cosine_"):
+        # MetaMorph's recipe: cosine decay to 0 with a short linear warm-up (sb3_divmorph.recipe).
+        from sb3_divmorph.recipe import CosineWarmupSchedule
+
+        try:
+            return CosineWarmupSchedule(float(value[7:]))
+        except ValueError as error:
+            raise ConfigError(f"{where}: bad cosine schedule {value!r}: {error}") from None
     if isinstance(value, str):
-        raise ConfigError(f"{where}: only numbers and 'lin_<value>' schedules are supported, got {value!r}")
+        raise ConfigError(f"{where}: only numbers, 'lin_<value>' and 'cosine_<value>' schedules are supported, got {value!r}")
     return value
+
+
+#: The one rl-zoo ``callback`` the pipeline understands: MetaMorph's balanced robot sampler.
+BALANCED_SAMPLER = "sb3_divmorph.recipe.BalancedRobotSampler"
+
+
+def _callbacks(value: Any, where: str) -> list[tuple[str, dict[str, Any]]]:
+    """rl-zoo's ``callback`` value (a class path, a ``{path: kwargs}`` dict, or a list of them)."""
+    items = value if isinstance(value, list) else [value]
+    parsed = []
+    for item in items:
+        path, kwargs = (next(iter(item.items())) if isinstance(item, dict) and len(item) == 1 else (item, {}))
+        if path != BALANCED_SAMPLER:
+            raise ConfigError(f"{where}: the divmorph pipeline supports only callback {BALANCED_SAMPLER!r}, got {item!r}")
+        parsed.append((path, dict(kwargs or {})))
+    return parsed
 
 
 def load_zoo_entry(path: str | Path, env_id: str, overrides: dict[str, Any] | None = None) -> ZooEntry:
@@ -363,10 +429,10 @@ def load_zoo_entry(path: str | Path, env_id: str, overrides: dict[str, Any] | No
         raise ConfigError(f"{resolved} has no entry for {env_id}; entries: {sorted(data)}")
     entry = {**data[env_id], **(overrides or {})}
     where = f"{resolved} [{env_id}]"
-    unknown = sorted(set(entry) - _ZOO_ONLY - _PPO_ARGS)
-    if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {unknown}; valid: {sorted(_ZOO_ONLY | _PPO_ARGS)}")
-    for key in ("env_wrapper", "frame_stack", "callback", "vec_env_wrapper"):
+    check_ppo_keys(data[env_id], where)
+    check_ppo_keys(overrides or {}, f"overrides of {where}")
+    callbacks = _callbacks(entry.pop("callback"), where) if "callback" in entry else []
+    for key in ("env_wrapper", "frame_stack", "vec_env_wrapper"):
         if key in entry:
             raise ConfigError(f"{where}: {key!r} is not supported by the divmorph pipeline")
     policy_kwargs = entry.pop("policy_kwargs", {}) or {}
@@ -392,4 +458,5 @@ def load_zoo_entry(path: str | Path, env_id: str, overrides: dict[str, Any] | No
         policy_kwargs=dict(policy_kwargs),
         normalize=normalize,
         ppo_kwargs=ppo_kwargs,
+        callbacks=callbacks,
     )

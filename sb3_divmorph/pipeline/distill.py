@@ -138,7 +138,9 @@ def distill_run(profile: Profile, out: Path, progress_bar: bool = True, name: st
 def distill_student(profile: Profile, out: Path, name: str = "divmorph", progress_bar: bool = True) -> Path:
     """Distil the teachers into student ``name`` (resumes; skips when done); returns its folder."""
     folder = student_folder(out, name)
-    if not is_done(folder):
+    if is_done(folder):
+        print(f"[distill] {name}: skipped, already distilled in {folder}")
+    else:
         print(f"[distill] DAgger into the {STUDENTS[name].description} for {profile.distill.n_timesteps} steps -> {folder}")
         distill_run(profile, out, progress_bar, name).run()
     return folder
@@ -163,7 +165,9 @@ def distill(profile: Profile, out: Path, progress_bar: bool = True, students: li
     load_teachers(profile, out)  # a missing teacher is an error before anything starts
     jobs = [Job("student", (name,), student_folder(out, name), f"student {name}") for name in names]
     for job in jobs:
-        if not is_done(job.folder):
+        if is_done(job.folder):
+            print(f"[distill] {job.args[0]}: skipped, already distilled in {job.folder}")
+        else:
             print(f"[distill] DAgger into the {STUDENTS[job.args[0]].description} for {profile.distill.n_timesteps} steps -> {job.folder}")
     run_grid(profile, out, jobs, backend, progress_bar).raise_on_failure()
     return [job.folder for job in jobs]

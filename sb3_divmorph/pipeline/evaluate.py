@@ -93,11 +93,15 @@ def student_gates(out: Path, robots: list[Path], seed: int) -> dict[str, np.ndar
             "robots": np.array([r.stem for r in robots])}
 
 
-def evaluate(profile: Profile, out: Path) -> Path:
-    """Evaluate every finished model of the run; writes ``evaluate/returns.csv`` and ``gates.npz``."""
+def evaluate(profile: Profile, out: Path, progress_bar: bool = True) -> Path:
+    """Evaluate every finished model of the run; writes ``evaluate/returns.csv`` and ``gates.npz``.
+
+    :param progress_bar: show a bar over the (model, task, split) jobs.
+    """
     out = Path(out)
     folder = out / "evaluate"
     if is_done(folder):
+        print(f"[evaluate] skipped, already evaluated in {folder}")
         return folder
     splits = {split: profile_robots(profile, split) for split in ("train", "novel")}
     plan = evaluation_plan(profile, out)
@@ -105,7 +109,7 @@ def evaluate(profile: Profile, out: Path) -> Path:
         raise FileNotFoundError(f"nothing to evaluate in {out}: run the teachers/distill/transfer stages first")
     rows = []
     jobs = [(label, model, task, split) for label, model, task in plan for split in splits]
-    for label, model, task, split in tqdm(jobs, desc="[evaluate]", unit="model x task x split"):
+    for label, model, task, split in tqdm(jobs, desc="[evaluate]", unit="model x task x split", disable=not progress_bar):
         for row in evaluate_model(model, task, splits[split], profile.evaluate.episodes, profile.max_episode_steps, profile.seed):
             rows.append({"model": label, "task": task, "split": split, **row})
     buffer = io.StringIO()

@@ -187,10 +187,19 @@ def export_all(
     if robots is None:
         n = profile.export.robots_per_split
         robots = profile_robots(profile, "train")[:n] + profile_robots(profile, "novel")[:n]
+    tasks = tasks or profile.export.tasks
+    # every name is checked before the first one is announced and exported
+    unknown = [task for task in tasks if task not in TASK_NAMES]
+    if unknown:
+        raise ConfigError(f"unknown task(s) {unknown}; choose from {list(TASK_NAMES)}")
+    bad = [f for f in formats if f not in FORMATS]
+    if bad or not formats:
+        raise ConfigError(f"unknown export format(s) {bad or list(formats)}; choose from {list(FORMATS)} or 'all'")
     reports = []
-    for task in tasks or profile.export.tasks:
+    for task in tasks:
         for robot in robots:
-            print(f"[export] {Path(robot).stem} x {task}")
+            folder = export_folder(out, Path(robot).stem, task)
+            print(f"[export] {Path(robot).stem} x {task}" + (f": skipped, already exported in {folder}" if is_done(folder) else ""))
             reports.append(export_actor(profile, out, robot, task, formats=formats))
     # the summary covers every actor exported into this run folder so far, not only this call's
     everything = [json.loads(p.read_text()) for p in sorted((Path(out) / "export").glob("*/report.json"))]

@@ -77,6 +77,7 @@ def train_student(profile: Profile, out: Path, progress_bar: bool = True) -> Pat
     cfg = _config(profile)
     folder = hyperdistill_folder(out) / "student"
     if is_done(folder):
+        print(f"[hyperdistill] student: skipped, already trained in {folder}")
         return folder
     teachers = hyperdistill_teachers(profile, out, progress_bar)
     robots = profile_robots(profile, "train")
@@ -116,6 +117,7 @@ def export_mlp(profile: Profile, out: Path, robot_file: Path, task: str, steps: 
     robot_file = Path(robot_file)
     folder = hyperdistill_folder(out) / "export" / f"{robot_file.stem}-{task}"
     if is_done(folder):
+        print(f"[hyperdistill] {robot_file.stem} x {task}: skipped, already exported in {folder}")
         return json.loads((folder / "report.json").read_text())
     source = hyperdistill_folder(out) / "student"
     if not is_done(source):

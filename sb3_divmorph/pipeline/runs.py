@@ -10,6 +10,7 @@ complete checkpoint and loses at most one interval.
 from __future__ import annotations
 
 import csv
+import hashlib
 import json
 import os
 import shutil
@@ -33,7 +34,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecMonitor, Ve
 
 import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
 from unimal_envs import env_id
-from unimal_envs.morphology.loader import morphology_files
+from unimal_envs.morphology.loader import is_set_name, morphology_files
 from sb3_divmorph.distillation import check_spaces
 from sb3_divmorph.pipeline.config import Profile, resolve_path
 
@@ -43,11 +44,20 @@ NORMALIZER = "vecnormalize.pkl"
 
 
 # -- atomic files ----------------------------------------------------------------------------
+def _umask() -> int:
+    """The process umask (reading it means setting it; it is put back at once)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     """Write ``data`` to ``path`` so that readers see the old file or the new one, never a part."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
+        # mkstemp creates the file 0600; results are for sharing, so give it the mode open() would
+        os.fchmod(fd, 0o666 & ~_umask())
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             f.flush()
@@ -93,9 +103,10 @@ def read_done(folder: Path) -> dict[str, Any]:
 def robot_files(robot_set: str, count: int | None, exclude: Sequence[Path] = ()) -> list[Path]:
     """The first ``count`` robots of a set (all when ``None``), leaving out the files in ``exclude``.
 
-    :param robot_set: a shipped set name or a directory (relative paths also from the repository root)
+    :param robot_set: a set name (shipped ``train``/``novel`` or official ``unimals100-*``, fetched
+        once) or a directory (relative paths also from the repository root)
     """
-    source: str | Path = robot_set if robot_set in ("train", "novel") else resolve_path(robot_set)
+    source: str | Path = robot_set if is_set_name(robot_set) else resolve_path(robot_set)
     excluded = {p.resolve() for p in exclude}
     files = [f for f in morphology_files(source) if f.resolve() not in excluded]
     return files if count is None else files[:count]
@@ -107,6 +118,29 @@ def profile_robots(profile: Profile, split: str) -> list[Path]:
     if split == "train":
         return train
     return robot_files(profile.novel_set, profile.novel_robots, exclude=train)
+
+
+def robot_set_record(profile: Profile) -> dict[str, Any]:
+    """Which robot sets a profile uses, resolved: names, folders, robot counts and, for the official
+    sets, the source and checksum manifest they were fetched with (so results name their robots)."""
+    record: dict[str, Any] = {}
+    for split, name in (("train", profile.train_set), ("novel", profile.novel_set)):
+        files = profile_robots(profile, split)
+        entry: dict[str, Any] = {"set": name, "folder": str(files[0].parent.parent if files[0].parent.name == "xml" else files[0].parent), "robots": [f.stem for f in files]}
+        manifest = Path(entry["folder"]) / "MANIFEST.json"
+        if manifest.is_file():
+            data = json.loads(manifest.read_text())
+            entry["source"] = data.get("source")
+            entry["manifest_sha256"] = hashlib.sha256(manifest.read_bytes()).hexdigest()
+        record[split] = entry
+    return record
+
+
+def record_robot_sets(profile: Profile, out: Path) -> Path:
+    """Write :func:`robot_set_record` to ``out/robot_sets.json`` (atomically) and return its path."""
+    path = Path(out) / "robot_sets.json"
+    atomic_write_json(path, robot_set_record(profile))
+    return path
 
 
 def make_vec_env(
@@ -215,6 +249,7 @@ class TrainingRun:
         resume = latest_checkpoint(checkpoints)
         if resume is not None:
             model = self._load(resume)
+            print(f"[resume] {self.folder}: resuming from step {model.num_timesteps} of {self.total_timesteps} (checkpoint {resume.name})")
         else:
             model = self.make_model()
         if self.prepare is not None:

@@ -31,10 +31,16 @@ def teacher_folder(out: Path, task: str, root: str = "teachers") -> Path:
     return Path(out) / root / task
 
 
+def zoo_entry_id(profile: Profile, task: str) -> str:
+    """The rl-zoo entry of ``task``'s teacher: ``Unimal-<task>-v0``, or its ``-<recipe>`` variant."""
+    env_name = task_env_name(task)
+    return f"{env_name}-{profile.teachers.recipe}" if profile.teachers.recipe else env_name
+
+
 def teacher_policy(profile: Profile, task: str) -> str:
     """The policy of the run's teacher of ``task``: ``teachers.policy``, else the zoo entry's."""
     cfg = profile.teachers
-    return cfg.policy or load_zoo_entry(cfg.hyperparams, task_env_name(task), cfg.overrides).policy
+    return cfg.policy or load_zoo_entry(cfg.hyperparams, zoo_entry_id(profile, task), cfg.overrides).policy
 
 
 def teacher_run(
@@ -47,7 +53,7 @@ def teacher_run(
     """
     cfg = profile.teachers
     env_name = task_env_name(task)
-    entry = load_zoo_entry(cfg.hyperparams, env_name, cfg.overrides)
+    entry = load_zoo_entry(cfg.hyperparams, zoo_entry_id(profile, task), cfg.overrides)
     entry.policy = policy or teacher_policy(profile, task)
     policy_kwargs = {**entry.policy_kwargs, **cfg.policy_kwargs}
     robots = profile_robots(profile, "train")
@@ -61,9 +67,12 @@ def teacher_run(
         venv = normalizer_for(make_env(), entry.normalize, entry.ppo_kwargs.get("gamma", 0.99))
         return PPO(entry.policy, venv, policy_kwargs=policy_kwargs, seed=seed, device=device, verbose=0, **entry.ppo_kwargs)
 
+    from sb3_divmorph.recipe import BalancedRobotSampler  # the only callback a zoo entry may name
+
+    callbacks = [BalancedRobotSampler(**kwargs) for _, kwargs in entry.callbacks]
     return TrainingRun(
         teacher_folder(out, task, root), cfg.n_timesteps, cfg.checkpoint_every, make_model, make_env,
-        device=device, progress_bar=progress_bar,
+        callbacks=callbacks, device=device, progress_bar=progress_bar,
     )
 
 
@@ -81,21 +90,26 @@ def train_teachers(
     from sb3_divmorph.pipeline.grid import Job, run_grid
 
     tasks = list(tasks or profile.teachers.tasks)
-    for task in tasks:
-        if task not in profile.teachers.tasks:
-            raise ConfigError(f"task {task!r} has no teacher in profile {profile.name!r}: {profile.teachers.tasks}")
+    # every name is checked before the first one is announced and trained
+    unknown = [task for task in tasks if task not in profile.teachers.tasks]
+    if unknown:
+        raise ConfigError(f"task(s) {unknown} have no teacher in profile {profile.name!r}: {profile.teachers.tasks}")
     if policy is None and root == "teachers":
         # the run's own teachers: independent jobs of a grid (in this process, or on Ray)
         jobs = [Job("teacher", (task,), teacher_folder(out, task), f"teacher {task}") for task in tasks]
         for job in jobs:
-            if not is_done(job.folder):
+            if is_done(job.folder):
+                print(f"[teachers] {job.args[0]}: skipped, already trained in {job.folder}")
+            else:
                 print(f"[teachers] {job.args[0]}: {teacher_policy(profile, job.args[0])} PPO for {profile.teachers.n_timesteps} steps -> {job.folder}")
         run_grid(profile, out, jobs, backend, progress_bar).raise_on_failure()
         return [job.folder for job in jobs]
     done = []
     for task in tasks:
         folder = teacher_folder(out, task, root)
-        if not is_done(folder):
+        if is_done(folder):
+            print(f"[teachers] {task}: skipped, already trained in {folder}")
+        else:
             print(f"[teachers] {task}: {policy or teacher_policy(profile, task)} PPO for {profile.teachers.n_timesteps} steps -> {folder}")
             teacher_run(profile, out, task, progress_bar, policy, root).run()
         done.append(folder)

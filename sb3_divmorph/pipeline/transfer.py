@@ -340,10 +340,21 @@ def transfer(
         if compare_scratch is False and "scratch" in arms:
             arms.remove("scratch")
     seeds = list(cfg.seeds if seeds is None else seeds)
+    # every name is checked before the first one is announced and trained
+    unknown = [task for task in tasks if task not in NOVEL_TASKS]
+    if unknown:
+        raise ConfigError(f"transfer targets a novel task; {unknown} not one of {list(NOVEL_TASKS)}")
     check_arms(list(arms), "--arms")
     check_seeds(seeds, "--seeds")
     check_arm_prerequisites(profile, out, tasks, arms, seeds)
-    report = run_grid(profile, out, transfer_jobs(profile, out, tasks, arms, seeds), backend, progress_bar)
+    jobs = transfer_jobs(profile, out, tasks, arms, seeds)
+    for job in jobs:
+        task, arm, seed = job.args
+        if is_done(job.folder):
+            print(f"[transfer] {task} ({arm}, seed {seed}): skipped, already trained in {job.folder}")
+        else:
+            print(f"[transfer] {task} ({arm}, seed {seed}): PPO for {cfg.n_timesteps} steps -> {job.folder}")
+    report = run_grid(profile, out, jobs, backend, progress_bar)
     report.raise_on_failure()
     if cfg.eval_every > 0:
         from sb3_divmorph.pipeline.figures import write_metrics

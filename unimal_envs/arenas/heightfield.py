@@ -20,8 +20,9 @@ import numpy as np
 
 from unimal_envs import contract as C
 
-#: Value of the height map outside the terrain (MetaMorph's "gap" marker).
-OUTSIDE = -10.0
+#: Value of the height map outside the terrain: MetaMorph pads its height array with -10 around a
+#: floor whose top is at 1, so off the course the observed relative height is -11.
+OUTSIDE = -11.0
 
 
 def log_offsets(n: int) -> np.ndarray:

@@ -23,7 +23,7 @@ class VariableTerrain(Arena):
     ``curve_slope``   4 or 8         a sine hump ``c sin(0..pi)``, c in {0.6, 0.7, ..., 1.2} m
     ``steps``         12 or 16       8 equal terraces of height 0, .2, .4, .6, .6, .4, .2, 0 m
     ``rugged_square`` 4 or 8         y-bands of 1-1.9 m, each a triangle wave over x (10 or 15
-                                     half-periods, range 0-2 m) clipped at 0.2 or 0.3 m
+                                     half-periods from phase 0, range 0-2 m) clipped at 0.2 or 0.3 m
     ================  =============  =================================================================
 
     Terrain is one heightfield (0.1 m cells) used both for physics and for the height-map
@@ -80,7 +80,7 @@ class VariableTerrain(Arena):
             while row < rows:
                 band = int(rng.integers(10, 20))
                 half_periods = int(rng.choice((10, 15)))
-                t = np.linspace(0.0, half_periods, n) + rng.uniform(0.0, 2.0)
+                t = np.linspace(0.0, half_periods, n)  # every band starts at phase 0, as in the reference
                 triangle = 2.0 * np.abs((t % 2.0) - 1.0)  # in [0, 2]
                 segment[row : row + band] = np.minimum(triangle, rng.choice((0.2, 0.3)))
                 row += band
@@ -94,6 +94,11 @@ class VariableTerrain(Arena):
         return self.grid.height_map(x, y, yaw)
 
 
+#: Heights the Obstacle height map shows for blocks and walls (the reference's values, see below).
+OBSERVED_BLOCK = 2.0
+OBSERVED_WALL = 3.0
+
+
 class ObstacleCourse(Arena):
     """A flat walled corridor with static 4 m tall boxes (MetaMorph ``obstacle.yaml``).
 
@@ -101,7 +106,9 @@ class ObstacleCourse(Arena):
     independently) are placed uniformly at x in [3 + s, 91 - s] (a 6 m buffer at both ends), anywhere
     across the width, without overlapping (up to 10 tries each; a box that finds no room is left
     out of the course). They are redrawn every episode by moving and resizing the compiled geoms.
-    The height map shows them (4 m), and the walls.
+    The height map shows them and the walls with the reference's values, not their physical
+    heights: blocks +2 m (MetaMorph raises its height array to the blocks' half-height), walls +3 m
+    (its wall padding of 4 over a floor at 1), and off the course -11 m (:data:`OUTSIDE`).
 
     Deliberate change: the original boxes float 0.1 m above the ground (spec 4.4); here they stand
     on it, so nothing can crawl underneath.
@@ -143,7 +150,7 @@ class ObstacleCourse(Arena):
     def reset(self, rng: np.random.Generator) -> None:
         heights = self.grid.heights
         heights[:] = 0.0
-        heights[:10, :] = heights[-10:, :] = heights[:, :10] = heights[:, -10:] = WALL_HEIGHT
+        heights[:10, :] = heights[-10:, :] = heights[:, :10] = heights[:, -10:] = OBSERVED_WALL
         x_min, x_max, y_min, y_max = self.bounds
         free = np.ones((int((y_max - y_min) * 10), int((x_max - x_min) * 10)), dtype=bool)
         model = self.model
@@ -166,7 +173,7 @@ class ObstacleCourse(Arena):
             model.geom_pos[geom] = (x, y, WALL_HEIGHT / 2)
             set_box_size(model, geom, (sx, sy, WALL_HEIGHT / 2))
             # +10 cells: the grid starts 1 m before the course.
-            heights[row - cy + 10 : row + cy + 10, col - cx + 10 : col + cx + 10] = WALL_HEIGHT
+            heights[row - cy + 10 : row + cy + 10, col - cx + 10 : col + cx + 10] = OBSERVED_BLOCK
 
     def height_map(self, x: float, y: float, yaw: float) -> np.ndarray:
         return self.grid.height_map(x, y, yaw)

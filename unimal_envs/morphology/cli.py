@@ -6,6 +6,8 @@ Examples::
     unimal-morphologies generate --set train --out /tmp/sets
     unimal-morphologies generate --check              # verify the shipped files, write nothing
     unimal-morphologies stats --compare /path/to/unimals_100/train
+    unimal-morphologies fetch                         # the official sets into $UNIMAL_DATA
+    unimal-morphologies fetch --sets train --source /path/to/archive.tar.gz
 
 Also runnable as ``python -m unimal_envs.morphology``.
 """
@@ -13,14 +15,16 @@ Also runnable as ``python -m unimal_envs.morphology``.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
 
+from unimal_envs.morphology import official as O
 from unimal_envs.morphology import sets as S
-from unimal_envs.morphology.loader import MorphologyError, morphology_files
+from unimal_envs.morphology.loader import MorphologyError, is_set_name, morphology_files
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -35,6 +39,11 @@ def _parser() -> argparse.ArgumentParser:
     gen.add_argument("--quiet", action="store_true", help="no progress bar")
     gen.add_argument("--count", type=int, default=None, help="only the first COUNT robots of each set (quick checks)")
     gen.add_argument(
+        "--stand-filter", type=float, default=None, metavar="RATIO",
+        help="keep only robots whose torso stays above RATIO x standing height at zero torque (shipped sets: 0.5; "
+             "0 = off); a value other than the shipped one needs --out",
+    )  # fmt: skip
+    gen.add_argument(
         "--jobs", type=int, default=min(os.cpu_count() or 1, 8),
         help="worker processes (default: CPU count, at most 8); the output does not depend on it",
     )  # fmt: skip
@@ -42,10 +51,27 @@ def _parser() -> argparse.ArgumentParser:
     stats.add_argument("--set", dest="which", choices=[*S.SETS, "all"], default="all", help="which set (default all)")
     stats.add_argument("--root", type=Path, default=None, help="read the sets from ROOT/<set> instead of the package")
     stats.add_argument(
-        "--compare", type=Path, action="append", default=[], metavar="DIR",
-        help="also show a robot directory (e.g. unimals_100/train with xml/ inside); repeatable",
+        "--compare", action="append", default=[], metavar="SET_OR_DIR",
+        help="also show a set (e.g. unimals100-train, once fetched) or a robot directory (xml/ inside); repeatable",
     )  # fmt: skip
+    stats.add_argument("--markdown", type=Path, default=None, help="also write the table as markdown to this file")
+    fetch = sub.add_parser("fetch", help="download the official unimals_100 sets into the cache ($UNIMAL_DATA)")
+    fetch.add_argument(
+        "--source", default=None,
+        help="URL, .tar.gz archive or directory (default: the authors' repository archive pinned to "
+             f"commit {O.PINNED_COMMIT[:10]})",
+    )  # fmt: skip
+    fetch.add_argument("--sets", nargs="+", choices=list(O.SHORT_NAMES), default=list(O.SHORT_NAMES), help="which sets")
+    fetch.add_argument("--cache", type=Path, default=None, help="cache folder (default $UNIMAL_DATA or ~/.cache/unimal_envs)")
+    fetch.add_argument("--force", action="store_true", help="fetch again even if already cached")
     return parser
+
+
+def _fetch(args: argparse.Namespace) -> int:
+    folders = O.fetch(args.source, args.sets, cache=args.cache, force=args.force, progress=True)
+    for name, folder in folders.items():
+        print(f"{name}: {O.OFFICIAL_SETS[name].count} robots in {folder}  (morphologies=\"{name}\")")
+    return 0
 
 
 def _generate(args: argparse.Namespace) -> int:
@@ -55,7 +81,12 @@ def _generate(args: argparse.Namespace) -> int:
     for name in S.set_names(args.which):
         start = time.perf_counter()
         exclude = _exclusions(name, made, partial=args.count is not None)
-        robots = S.generate_set(name, progress=not args.quiet, count=args.count, jobs=args.jobs, exclude=exclude)
+        spec = S.SETS[name]
+        if args.stand_filter is not None and args.stand_filter != spec.min_standing_ratio:
+            if args.out is None:
+                raise MorphologyError("--stand-filter changes the set; give --out to write it elsewhere than the shipped set")
+            spec = dataclasses.replace(spec, min_standing_ratio=args.stand_filter)
+        robots = S.generate_set(name, progress=not args.quiet, count=args.count, jobs=args.jobs, exclude=exclude, spec=spec)
         if args.count is None:
             made[name] = robots
         elapsed = time.perf_counter() - start
@@ -110,10 +141,20 @@ def _print_table(rows: list[list[str]]) -> None:
 
 def _stats(args: argparse.Namespace) -> int:
     sets = [S.set_stats(name, args.root) for name in S.set_names(args.which)]
-    for directory in args.compare:
-        sets.append(S.collect_stats(f"{directory.name} ({directory.parent.name})", morphology_files(directory)))
+    for other in args.compare:
+        label = other if is_set_name(other) else f"{Path(other).name} ({Path(other).parent.name})"
+        sets.append(S.collect_stats(label, morphology_files(other)))
     _print_table(S.stats_rows(sets))
+    if args.markdown is not None:
+        command = "python -m unimal_envs.morphology " + " ".join(sys.argv[1:] if argv_is_cli() else ["stats"])
+        args.markdown.write_text(S.stats_markdown(sets, command))
+        print(f"table written to {args.markdown}")
     return 0
+
+
+def argv_is_cli() -> bool:
+    """Whether this process was started as the morphology CLI (then sys.argv describes the command)."""
+    return Path(sys.argv[0]).name in ("unimal-morphologies", "__main__.py", "cli.py")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -124,6 +165,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     """
     args = _parser().parse_args(argv)
     try:
+        if args.command == "fetch":
+            return _fetch(args)
         return _generate(args) if args.command == "generate" else _stats(args)
     except MorphologyError as err:
         print(f"unimal-morphologies: {err}", file=sys.stderr)

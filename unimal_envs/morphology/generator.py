@@ -128,18 +128,30 @@ def _clean(x: float, decimals: int) -> float:
 
 @lru_cache(maxsize=4096)
 def sph2cart(rho: float, theta: float, phi: float) -> Vec3:
-    """Point at distance ``rho`` in direction (θ, φ) (degrees), rounded to 2 decimals (DERL's grid).
+    """Point at distance ``rho`` in direction (θ, φ) (**radians**), rounded to 2 decimals (DERL's grid).
+
+    DERL computes these with NumPy floats, so ``round(x, 2)`` is NumPy's rounding (scale by 100,
+    round half to even, scale back), not Python's correctly rounded decimal ``round``; and it keeps
+    angles in radians, a mirror image at ``2π - θ``. On the 45° grid the two differ exactly where a
+    coordinate is a tie, ``ρ/2`` for the diagonal downward directions (θ ∈ {45, 135, 225, 315}°,
+    φ = 135°): there a mirrored pair rounds asymmetrically in DERL (e.g. ``(-0.22, 0.23)`` against
+    ``(-0.23, -0.22)``) and the symmetry test rejects it, which is why no official robot has such a
+    limb. The same arithmetic here rejects them the same way.
 
     :param rho: distance from the origin.
-    :param theta: azimuth in degrees, from +x towards +y.
-    :param phi: polar angle in degrees from +z (90 = horizontal, 180 = straight down).
+    :param theta: azimuth in radians, from +x towards +y.
+    :param phi: polar angle in radians from +z (π/2 = horizontal, π = straight down).
     """
-    t, p = math.radians(theta), math.radians(phi)
     return (
-        _clean(rho * math.sin(p) * math.cos(t), 2),
-        _clean(rho * math.sin(p) * math.sin(t), 2),
-        _clean(rho * math.cos(p), 2),
+        _np_round2(rho * math.sin(phi) * math.cos(theta)),
+        _np_round2(rho * math.sin(phi) * math.sin(theta)),
+        _np_round2(rho * math.cos(phi)),
     )
+
+
+def _np_round2(x: float) -> float:
+    """NumPy's ``round(x, 2)`` (``rint(x * 100) / 100``), with -0.0 turned into 0.0."""
+    return float(np.rint(x * 100.0) / 100.0) + 0.0
 
 
 def _add(a: Sequence[float], b: Sequence[float]) -> Vec3:
@@ -177,6 +189,8 @@ class Limb:
     :param phi: polar angle of the limb direction, degrees.
     :param hinges: the limb's hinges, ``x`` before ``y``.
     :param mirrored: member of a mirrored pair (its own sites are ``mirror_growth_site``).
+    :param theta_rad: θ in radians when it was derived as DERL derives it (``2π - θ`` of another
+        angle); ``None``: ``radians(theta)``.
     """
 
     idx: int
@@ -187,10 +201,18 @@ class Limb:
     phi: int
     hinges: tuple[Hinge, ...]
     mirrored: bool
+    theta_rad: float | None = None
 
     @property
     def name(self) -> str:
         return f"limb/{self.idx}"
+
+    @property
+    def radians(self) -> tuple[float, float]:
+        """(θ, φ) in radians as DERL computes them: ``theta_rad`` when the limb is a mirror image or
+        a flipped pair member (``2π - θ``, see :func:`sph2cart`), else ``radians(theta)``."""
+        theta = math.radians(self.theta) if self.theta_rad is None else self.theta_rad
+        return theta, math.radians(self.phi)
 
     @property
     def parent_name(self) -> str:
@@ -207,7 +229,7 @@ class Limb:
     @property
     def direction(self) -> Vec3:
         """Unit direction on DERL's rounded grid (straight down is one direction for every θ)."""
-        return sph2cart(1.0, self.theta, self.phi)
+        return sph2cart(1.0, *self.radians)
 
 
 @dataclass(frozen=True)
@@ -328,7 +350,7 @@ def _site_position(genome: UnimalGenome, limb: Limb) -> Vec3:
         return (0.0, 0.0, 0.0)
     parent = genome.limbs[limb.parent]
     reach = LIMB_RADIUS + (parent.h / 2 if limb.site == "mid" else parent.h)
-    return sph2cart(reach, parent.theta, parent.phi)
+    return sph2cart(reach, *parent.radians)
 
 
 def limb_layout(genome: UnimalGenome, limb: Limb) -> LimbLayout:
@@ -337,11 +359,16 @@ def limb_layout(genome: UnimalGenome, limb: Limb) -> LimbLayout:
     :param genome: the robot (for the parent's geometry).
     :param limb: the limb.
     """
-    r, h, t, p = LIMB_RADIUS, limb.h, limb.theta, limb.phi
+    r, h = LIMB_RADIUS, limb.h
+    t, p = limb.radians
     parent_radius = TORSO_RADIUS if limb.parent is None else LIMB_RADIUS
+    # DERL places the hinge anchor along the opposite direction (π + θ, π - φ) rounded on its own.
+    t_joint = math.pi + t
+    if t_joint >= 2 * math.pi:
+        t_joint -= 2 * math.pi
     return LimbLayout(
         pos=_add(_site_position(genome, limb), sph2cart(parent_radius, t, p)),
-        joint_pos=_neg(sph2cart(r, t, p)),
+        joint_pos=sph2cart(r, t_joint, math.pi - p),
         tip=sph2cart(r + h, t, p),
         mid=sph2cart(r + h / 2, t, p),
         btm=sph2cart(r + h, t, p),
@@ -522,9 +549,10 @@ def _try_grow(genome: UnimalGenome, rng: np.random.Generator) -> UnimalGenome | 
     h = _pick(rng, LIMB_HEIGHTS)
     hinges = _sample_hinges(rng, _pick(rng, JOINT_AXES))
     theta, phi = _pick(rng, THETAS), _pick(rng, PHIS)
+    theta_rad = None
     if count == 2 and theta > 180:
-        theta = 360 - theta
-    first = Limb(genome.next_idx, site.limb, site.kind, h, theta, phi, hinges, mirrored=count == 2)
+        theta, theta_rad = 360 - theta, 2 * math.pi - math.radians(theta)  # DERL flips in radians
+    first = Limb(genome.next_idx, site.limb, site.kind, h, theta, phi, hinges, mirrored=count == 2, theta_rad=theta_rad)
     if site.limb is not None:
         parent_dir = genome.limbs[site.limb].direction
         if site.kind == "mid" and first.direction == parent_dir:
@@ -536,7 +564,7 @@ def _try_grow(genome: UnimalGenome, rng: np.random.Generator) -> UnimalGenome | 
         if not site.mirror:
             if theta in (0, 180) or phi == 180:
                 return None  # the mirror image would coincide with the limb
-            new.append(replace(first, idx=first.idx + 1, theta=360 - theta))
+            new.append(replace(first, idx=first.idx + 1, theta=360 - theta, theta_rad=2 * math.pi - first.radians[0]))
         else:
             twin = genome.mirror_site(site)
             new.append(replace(first, idx=first.idx + 1, parent=twin.limb, site=twin.kind))

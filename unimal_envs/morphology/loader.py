@@ -29,6 +29,8 @@ TORSO = "torso/0"
 #: Torso height above the lowest body point at spawn, added by the generator (DERL FLOOR_OFFSET).
 FLOOR_OFFSET = 0.2
 SHIPPED_SETS = ("train", "novel")
+#: Height of the floor's top in MetaMorph's worlds (a 1 m half-thick box at the origin); ours is at 0.
+REFERENCE_FLOOR_TOP = 1.0
 _DATA_DIR = Path(__file__).resolve().parent.parent / "data" / "morphologies"
 
 # ModuMorph's fixed rescaling bounds for the context features: x' = 2 (x - lo) / (hi - lo) - 1.
@@ -124,6 +126,11 @@ class Morphology:
     def spec(self) -> mujoco.MjSpec:
         """A fresh, editable :class:`mujoco.MjSpec` of the robot file."""
         return mujoco.MjSpec.from_string(self.xml)
+
+    def __repr__(self) -> str:
+        # One line: the dataclass repr would print the whole MJCF text and every token name.
+        where = f", path={str(self.path)!r}" if self.path is not None else ""
+        return f"Morphology(name={self.name!r}, limbs={self.num_limbs}, dof={self.dof}{where})"
 
 
 def _fail(source: str, problem: str) -> MorphologyError:
@@ -234,6 +241,11 @@ def parse_morphology(xml: str, name: str, source: str | None = None, path: Path 
             ]
         )
         proprio[t, C.STATIC_BODY] = limb
+        if t == 0:
+            # ModuMorph's context reads the torso's body_pos in MetaMorph's world, whose floor top is
+            # at z = 1 (its bounds reach z = 2.04 for that reason): add that offset for the context.
+            limb = limb.copy()
+            limb[2] += REFERENCE_FLOOR_TOP
         context[t, :17] = _rescale(limb, _LIMB_CONTEXT_BOUNDS)
         names: list[str | None] = [None, None]
         for position, j in enumerate(hinge_ids[t]):
@@ -327,16 +339,41 @@ def shipped_set_dir(name: str) -> Path:
     return _DATA_DIR / name
 
 
+#: The official sets, fetched into a cache by ``python -m unimal_envs.morphology fetch``
+#: (:mod:`unimal_envs.morphology.official`).
+OFFICIAL_SET_NAMES = ("unimals100-train", "unimals100-test", "unimals100-mutants")
+
+
+def is_set_name(name: object) -> bool:
+    """Whether ``name`` names a robot set (shipped or official) rather than a path."""
+    return isinstance(name, str) and (name in SHIPPED_SETS or name in OFFICIAL_SET_NAMES)
+
+
+def set_dir(name: str) -> Path:
+    """Folder of a named set: a shipped one, or an official one from the cache.
+
+    :raises MorphologyError: unknown name, or an official set that is not fetched yet (the message
+        gives the fetch command).
+    """
+    if name in OFFICIAL_SET_NAMES:
+        from unimal_envs.morphology.official import official_set_dir
+
+        return official_set_dir(name)
+    return shipped_set_dir(name)
+
+
 def morphology_files(morphologies: str | Path | Iterable[str | Path]) -> list[Path]:
     """Resolve the ``morphologies=`` argument of the envs to a sorted list of MJCF files.
 
-    :param morphologies: ``"train"`` or ``"novel"`` (shipped sets), a directory in the unimals_100
-        layout (``DIR/xml/*.xml``) or holding ``*.xml`` directly, one ``.xml`` file, or a list of files.
-    :raises MorphologyError: unknown set name, empty directory, missing file.
+    :param morphologies: ``"train"`` or ``"novel"`` (shipped sets), ``"unimals100-train"``,
+        ``"unimals100-test"`` or ``"unimals100-mutants"`` (the official sets, once fetched), a
+        directory in the unimals_100 layout (``DIR/xml/*.xml``) or holding ``*.xml`` directly, one
+        ``.xml`` file, or a list of files.
+    :raises MorphologyError: unknown set name, official set not fetched, empty directory, missing file.
     """
     if isinstance(morphologies, (str, Path)):
-        if isinstance(morphologies, str) and morphologies in SHIPPED_SETS:
-            return morphology_files(shipped_set_dir(morphologies))
+        if is_set_name(morphologies):
+            return morphology_files(set_dir(morphologies))
         path = Path(morphologies)
         if path.is_dir():
             xml_dir = path / "xml" if (path / "xml").is_dir() else path
@@ -346,10 +383,13 @@ def morphology_files(morphologies: str | Path | Iterable[str | Path]) -> list[Pa
             return files
         if path.suffix == ".xml":
             return morphology_files([path])
-        raise MorphologyError(
-            f"unknown morphology set '{morphologies}'; use one of {list(SHIPPED_SETS)}, "
-            "a directory of MJCF files (DIR/xml/*.xml), or a list of .xml paths"
-        )
+        choices = f"use one of {list(SHIPPED_SETS + OFFICIAL_SET_NAMES)}, a directory of MJCF files (DIR/xml/*.xml), or a list of .xml paths"
+        if isinstance(morphologies, Path) or len(path.parts) > 1 or str(morphologies).startswith((".", "~")):
+            # written as a path: say so, rather than calling it an unknown set name
+            kind = "not a directory" if path.exists() else "no such directory"
+            where = "" if path.expanduser().is_absolute() else f" (relative to {Path.cwd()})"
+            raise MorphologyError(f"{kind}: {path}{where}; {choices}")
+        raise MorphologyError(f"unknown morphology set '{morphologies}' (and no such directory in {Path.cwd()}); {choices}")
     files = [Path(p) for p in morphologies]
     if not files:
         raise MorphologyError("the list of morphology files is empty")

@@ -15,7 +15,8 @@ class FlatTerrain(Task):
     """**FT** — walk forward on flat ground (MetaMorph ``ft.yaml``).
 
     ==============  ===========================================================================
-    arena           :class:`~unimal_envs.arenas.Floor` (surface at z = 0)
+    arena           :class:`~unimal_envs.arenas.Floor`: a 200 x 200 m floor box (surface at z = 0)
+                    that ends at x = +-100 m like MetaMorph's (a fast robot can walk off it and fall)
     start           torso at (0, 0, spawn height of the morphology file), upright
     reward          ``forward`` = (x_after - x_before) / 0.02 (torso forward speed, m/s)
     termination     fall: torso height <= 0.5 x standing height
@@ -29,7 +30,7 @@ class FlatTerrain(Task):
     name = "FT"
 
     def make_arena(self) -> Arena:
-        return Floor()
+        return Floor(half_size=100.0, bounded=True)
 
     def reward_terms(self, robot: Robot, torso_before: np.ndarray) -> dict[str, float]:
         return {"forward": (robot.torso_x - float(torso_before[0])) / CONTROL_DT}
@@ -90,7 +91,8 @@ class ObstacleTask(_Corridor):
     start           torso at (0, 0, spawn height), upright
     reward          ``forward`` = torso forward speed (m/s)
     termination     fall (0.5 x standing height); ``edge``: |y| >= 19 m
-    observations    ``hfield``: the height map shows the blocks and walls (4 m)
+    observations    ``hfield``: the height map shows the blocks at +2 m and the walls at +3 m
+                    (the reference's values; both are physically 4 m tall), -11 m off the course
     info            ``x_position``
     ==============  ===========================================================================
 

@@ -17,13 +17,19 @@ _XBODY = int(mujoco.mjtObj.mjOBJ_XBODY)
 
 
 class _BoxTask(Task):
-    """A free box and a goal marker, with DERL's two-phase manipulation reward.
+    """A free box and a goal marker, with DERL's manipulation reward (``tasks/manipulation.py``).
 
-    *Reach* phase: ``reach`` = 100 x (d_before - d_after), where d is the smallest distance between
+    Every step: ``reach`` = 100 x (d_before - d_after), where d is the smallest distance between
     any robot site (``limb/mid``, ``limb/btm``, ``torso*``; body origins for robots without sites)
-    and the box's six face centres, plus ``reached`` = +10 once, when d <= margin. *Push* phase
-    (after the first reach): ``push`` = 100 x progress of the box towards the goal (horizontal) and
-    ``box_at_goal`` = +10 on every step that ends with the box within the margin of the goal.
+    and the box's six face centres -- also after the box was reached, so walking away from it costs
+    reward, as in the reference -- plus ``reached`` = +10 once, on the first step that ends with
+    d <= margin. From that step on (the same step included): ``push`` = 100 x progress of the box
+    towards the goal (horizontal) and ``box_at_goal`` = +10 on every step that ends with the box
+    within the margin of the goal.
+
+    The ``object`` observation's angular-velocity row is the box free joint's angular velocity
+    (``qvel[3:6]``, MuJoCo's body frame), rotated by the torso frame like the other rows, exactly
+    as the reference builds it (which treats it as a world-frame vector).
     """
 
     observation_keys = ("object", "goal")
@@ -46,6 +52,7 @@ class _BoxTask(Task):
         super().bind(model, data)
         self._box = model.body(BOX).id
         self._box_qpos = data.qpos[model.jnt_qposadr[model.joint(BOX).id] :][:7]
+        self._box_angvel = data.qvel[model.jnt_dofadr[model.joint(BOX).id] :][3:6]
         self._goal_site = model.site("goal").id
         faces = [model.site(f"box/face/{i}").id for i in range(6)]
         self._faces = np.array(faces)
@@ -85,13 +92,11 @@ class _BoxTask(Task):
     def reward_terms(self, robot: Robot, torso_before: np.ndarray) -> dict[str, float]:
         reach = self.reach_distance(robot)
         goal = self.box_goal_distance()
-        terms = {"reach": 0.0, "reached": 0.0, "push": 0.0, "box_at_goal": 0.0}
-        if not self.reached:
-            terms["reach"] = REACH_PROGRESS_WEIGHT * (self._reach_distance - reach)
-            if reach <= self.margin:
-                self.reached = True
-                terms["reached"] = REACH_BONUS
-        else:
+        terms = {"reach": REACH_PROGRESS_WEIGHT * (self._reach_distance - reach), "reached": 0.0, "push": 0.0, "box_at_goal": 0.0}
+        if not self.reached and reach <= self.margin:
+            self.reached = True
+            terms["reached"] = REACH_BONUS
+        if self.reached:
             terms["push"] = REACH_PROGRESS_WEIGHT * (self._goal_distance - goal)
             terms["box_at_goal"] = REACH_BONUS if goal <= self.margin else 0.0
         self._reach_distance, self._goal_distance = reach, goal
@@ -103,7 +108,7 @@ class _BoxTask(Task):
         # Rows: box position, box velocity minus the torso's, box angular velocity, goal position.
         np.subtract(self._box_xpos, torso, out=rows[0])
         np.subtract(velocity[3:], robot.torso_velocity, out=rows[1])
-        rows[2] = velocity[:3]
+        rows[2] = self._box_angvel  # body-frame angular velocity, as the reference reads it
         np.subtract(self.goal, torso, out=rows[3])
         in_torso = to_torso_frame(robot, rows)
         return {"object": in_torso.reshape(-1), "goal": in_torso[3].copy()}
@@ -119,7 +124,7 @@ class PushBoxIncline(_BoxTask):
     arena           :class:`~unimal_envs.arenas.Incline`: 80 x 40 m slab rising 10 deg toward +x
     start           on the slope at x = -38 cos(10 deg) m, tilted with the slope
     props           box (0.4 m cube, 2 kg) resting on the slope at x = -35 m; goal at x = +35 m
-    reward          two-phase manipulation reward (:class:`_BoxTask`), margin 0.5 m
+    reward          manipulation reward (:class:`_BoxTask`), margin 0.5 m
     termination     fall: torso height above the slope <= **0.2** x standing height
     observations    ``object`` (12): box position, box velocity minus torso velocity, box angular
                     velocity, goal position, all relative to the torso and in the torso frame;
@@ -153,34 +158,45 @@ class PushBoxIncline(_BoxTask):
 
 
 class ManipulateBox(_BoxTask):
-    """**ManipulateBox** — walk to a box and push it to a goal (DERL ``manipulation``, box variant).
+    """**ManipulateBox** — walk to a box and push it to a goal (DERL's box manipulation, ``mvt.yml``).
 
     ==============  ===========================================================================
-    arena           flat walled area x in [-2, 28] m, |y| <= 15 m
+    arena           flat walled corridor x in [-3, 57] m, |y| <= 20 m (MVT's ``SIZE [30, 20, 1]``,
+                    ``START_FLAT 3``)
     start           torso at the origin, upright
-    props           box (0.4 m cube, 1 kg) at x = min(U{15..24}, 21.8) m, |y| < 4.8 m; goal at
-                    x = 21.8 m, |y| < 4.8 m
-    reward          two-phase manipulation reward (:class:`_BoxTask`), margin 0.5 m
+    props           box (0.4 m cube, 1 kg) at x = min(U{15..24}, 50.8) m, y = U[-9.8, 9.8) m;
+                    goal at x = min(box x + U{15..24}, 50.5) m, y = U[-9.5, 9.5) m (0.1 m grid)
+    reward          manipulation reward (:class:`_BoxTask`), margin **0.75** m
     termination     fall (0.5 x standing height)
     observations    ``object`` (12) as in PushBoxIncline; ``goal``: goal relative to the torso
     info            ``reached_box``, ``box_goal_distance``
     ==============  ===========================================================================
 
-    Placement follows DERL's "forward" rule: 15-24 m ahead of the start, capped 6.2 m before the
-    far wall (x = 21.8 m). The goal is drawn the same way from the box, so it always lands on the
-    cap at x = 21.8 m: the box must mostly be pushed sideways. Kept as in the original.
+    Which reference: DERL *evaluated* manipulation with a ball (``manipulation_ball.yml``, a 30 x 30 m
+    arena); its box variant is the evolution environment MVT (``mvt.yml``), whose constants this task
+    takes: box half-side 0.2 m and mass 1 kg, success margin 0.75 m, DERL's "forward" placement
+    (box 15-24 m ahead of the start, goal 15-24 m ahead of the box, both capped by the 6 m placement
+    buffer before the far end and a 10 m buffer from the side walls). Kept departure: the ground is
+    flat, whereas MVT lays the corridor with VT's terrain segments (the box tasks observe no
+    height map, as in MVT, whose ``make_env_manipulation`` attaches none).
     """
 
     name = "ManipulateBox"
-    x_cap = 21.8
-    y_half_range = 4.8
+    margin = 0.75
+    start_flat, length, half_width = 3.0, 60.0, 20.0
+    #: Placement caps (cells of 0.1 m): 6 m length buffer, 10 m width buffer, object half-sizes.
+    box_x_cap, goal_x_cap = 50.8, 50.5
+    box_y_half, goal_y_half = 9.8, 9.5
 
     def make_arena(self) -> Arena:
-        return Floor(half_size=40.0, walls=(-2.0, 28.0, -15.0, 15.0))
+        x_min = -self.start_flat
+        return Floor(half_size=70.0, walls=(x_min, x_min + self.length, -self.half_width, self.half_width))
 
     def reset(self, robot: Robot, rng: np.random.Generator) -> None:
-        box_x = min(float(rng.integers(15, 25)), self.x_cap)
-        goal_x = min(box_x + float(rng.integers(15, 25)), self.x_cap)
-        box_y, goal_y = rng.uniform(-self.y_half_range, self.y_half_range, size=2)
+        box_x = min(float(rng.integers(15, 25)), self.box_x_cap)
+        goal_x = min(box_x + float(rng.integers(15, 25)), self.goal_x_cap)
+        # Rows of DERL's 0.1 m placement grid, uniform inside the width buffer.
+        box_y = int(rng.integers(-10 * self.box_y_half, 10 * self.box_y_half)) / 10
+        goal_y = int(rng.integers(-10 * self.goal_y_half, 10 * self.goal_y_half)) / 10
         self.place((box_x, box_y, self.box_half_side + 0.005), (goal_x, goal_y, 0.1))
         super().reset(robot, rng)

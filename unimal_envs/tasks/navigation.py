@@ -68,7 +68,9 @@ class Patrol(_ReachGoal):
     start           torso at (-5, 0), upright; the first goal is (+5, 0)
     reward          ``progress`` = 100 x (distance before - distance after) to the current goal
                     (m, horizontal); ``at_goal`` = +10 on a step that ends within 0.5 m of it
-    goal switch     within 0.5 m the goal toggles to the other end
+    goal switch     within 0.5 m the goal toggles to the other end; as in the reference, the
+                    step that reaches a goal is rewarded (and observed) against that goal, and
+                    the next goal is observed from the following step on
     termination     fall (0.5 x standing height)
     observations    ``goal``: current goal minus torso position, in the torso frame
     info            ``goals_reached``, ``goal_distance``
@@ -88,14 +90,22 @@ class Patrol(_ReachGoal):
         self.set_goal(self.half_length, 0.0)
         self._distance = self.goal_distance(robot)
         self.goals_reached = 0
+        self._observed_goal: np.ndarray | None = None
 
     def reward_terms(self, robot: Robot, torso_before: np.ndarray) -> dict[str, float]:
+        self._observed_goal = None
         terms = self.reach_terms(robot)
         if self._distance <= SUCCESS_MARGIN:
             self.goals_reached += 1
+            # The reference builds this step's observation before toggling the goal.
+            self._observed_goal = self.goal
             self.set_goal(-self.goal[0], 0.0)
             self._distance = self.goal_distance(robot)
         return terms
+
+    def observations(self, robot: Robot) -> dict[str, np.ndarray]:
+        goal = self.goal if self._observed_goal is None else self._observed_goal
+        return {"goal": to_torso_frame(robot, goal - robot.torso_qpos)}
 
     def metrics(self, robot: Robot) -> dict[str, float]:
         return {"goals_reached": self.goals_reached, "goal_distance": self._distance}
@@ -148,7 +158,8 @@ class Exploration(_WalledArena, Task):
 
     ==============  ===========================================================================
     arena           flat 100 x 100 m square with boundary walls, centred on the origin
-    start           torso at the centre, upright (its cell counts as visited)
+    start           torso at the centre, upright; the visit grid starts empty, so the first step
+                    earns +1 for the start cell (as in the reference's ``ExploreTerrainReward``)
     reward          ``new_cell`` = +1 when the torso enters a cell not visited this episode
     termination     fall (0.5 x standing height)
     observations    proprioception only
@@ -161,7 +172,6 @@ class Exploration(_WalledArena, Task):
 
     def reset(self, robot: Robot, rng: np.random.Generator) -> None:
         self.visited = np.zeros((self.cells, self.cells), dtype=bool)
-        self._visit(robot)
 
     def _visit(self, robot: Robot) -> bool:
         x, y, _ = robot.torso_qpos.tolist()

@@ -1,0 +1,15 @@
+"""Packaging glue that ``pyproject.toml`` cannot express (everything else is there).
+
+``zoo_configs/`` (the rl-zoo hyperparameters and the pipeline profiles) stays at the repository
+root, where ``python -m rl_zoo3.train --conf-file zoo_configs/ppo.yml`` finds it, and is shipped
+inside the package as ``sb3_divmorph/zoo_configs/`` by mapping that package onto the root folder:
+one copy of each file, in wheels and editable installs alike (``sb3_divmorph.zoo`` finds it with
+``importlib.resources``).
+"""
+
+from setuptools import find_packages, setup
+
+setup(
+    packages=[*find_packages(include=["unimal_envs*", "sb3_divmorph*"]), "sb3_divmorph.zoo_configs"],
+    package_dir={"sb3_divmorph.zoo_configs": "zoo_configs"},
+)

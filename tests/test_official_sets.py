@@ -1,0 +1,164 @@
+"""Fetching the official unimals_100 sets: served over loopback HTTP, from a directory and from
+archives; truncated, corrupted, tampered and unsafe archives; the set names everywhere."""
+
+from __future__ import annotations
+
+import functools
+import http.server
+import io
+import tarfile
+import threading
+from pathlib import Path
+
+import gymnasium as gym
+import pytest
+
+import unimal_envs  # noqa: F401
+from unimal_envs.morphology import official as O
+from unimal_envs.morphology.cli import main as cli_main
+from unimal_envs.morphology.loader import MorphologyError, morphology_files
+
+from conftest import OFFICIAL_TRAIN
+
+pytestmark = pytest.mark.skipif(not (OFFICIAL_TRAIN / "xml").is_dir(), reason="official unimals_100 train set not available")
+TOP = f"Universal-Morphology-Control-{O.PINNED_COMMIT}"
+
+
+def make_archive(path: Path, tamper: bool = False, extra: tuple[str, bytes] | None = None) -> Path:
+    """A tarball laid out like GitHub's archive of the authors' repository, holding data/train."""
+    with tarfile.open(path, "w:gz") as tar:
+        readme = tarfile.TarInfo(f"{TOP}/README.md")  # a file outside the sets: never extracted
+        readme.size = 6
+        tar.addfile(readme, io.BytesIO(b"readme"))
+        for sub in ("xml", "metadata"):
+            for i, file in enumerate(sorted((OFFICIAL_TRAIN / sub).iterdir())):
+                data = file.read_bytes()
+                if tamper and sub == "xml" and i == 0:
+                    data = data.replace(b'gear="', b'gear="1', 1)  # still a valid robot, different bytes
+                info = tarfile.TarInfo(f"{TOP}/data/train/{sub}/{file.name}")
+                info.size = len(data)
+                tar.addfile(info, io.BytesIO(data))
+        if extra is not None:
+            info = tarfile.TarInfo(extra[0])
+            info.size = len(extra[1])
+            tar.addfile(info, io.BytesIO(extra[1]))
+    return path
+
+
+@pytest.fixture(scope="module")
+def archive(tmp_path_factory) -> Path:
+    return make_archive(tmp_path_factory.mktemp("src") / "repo.tar.gz")
+
+
+@pytest.fixture
+def server(tmp_path):
+    """An HTTP server on 127.0.0.1 serving ``tmp_path/www``; yields (base url, folder)."""
+    www = tmp_path / "www"
+    www.mkdir()
+    handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(www))
+    handler.log_message = lambda *a, **k: None
+    httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
+    thread.start()
+    yield f"http://127.0.0.1:{httpd.server_address[1]}", www
+    httpd.shutdown()
+    httpd.server_close()
+
+
+def leftovers(cache: Path) -> list[str]:
+    return sorted(p.name for p in cache.iterdir()) if cache.exists() else []
+
+
+def test_fetch_over_http_then_use_the_set_by_name(archive, server, tmp_path, monkeypatch):
+    url, www = server
+    (www / "repo.tar.gz").write_bytes(archive.read_bytes())
+    cache = tmp_path / "cache"
+    folders = O.fetch(f"{url}/repo.tar.gz", ["train"], cache=cache)
+    folder = folders["unimals100-train"]
+    assert leftovers(cache) == ["unimals100-train"]  # no staging folder, no downloaded archive left
+    assert len(list((folder / "xml").glob("*.xml"))) == 100 and len(list((folder / "metadata").glob("*.json"))) == 100
+    assert (folder / "xml" / "floor-1409-0-12-01-12-30-07.xml").read_bytes() == (OFFICIAL_TRAIN / "xml" / "floor-1409-0-12-01-12-30-07.xml").read_bytes()
+    assert (folder / O.MANIFEST).is_file()
+
+    # Idempotent: a cached set is not fetched again (this source would fail).
+    (www / "repo.tar.gz").unlink()
+    assert O.fetch(f"{url}/repo.tar.gz", ["train"], cache=cache) == folders
+
+    monkeypatch.setenv("UNIMAL_DATA", str(cache))
+    files = morphology_files("unimals100-train")
+    assert len(files) == 100 and files[0].parent == folder / "xml"
+    env = gym.make("Unimal-FT-v0", morphologies="unimals100-train")
+    _, info = env.reset(seed=0, options={"morphology": "floor-1409-0-12-01-12-30-07"})
+    assert info["morphology"] == "floor-1409-0-12-01-12-30-07"
+    env.close()
+
+    # The pipeline resolves the name and records which set and source it used.
+    from sb3_divmorph.pipeline.config import load_profile
+    from sb3_divmorph.pipeline.runs import robot_files, robot_set_record
+
+    assert [f.stem for f in robot_files("unimals100-train", 3)] == [f.stem for f in files[:3]]
+    profile = load_profile("demo")
+    profile.train_set, profile.train_robots = "unimals100-train", 2
+    record = robot_set_record(profile)
+    assert record["train"]["set"] == "unimals100-train" and record["train"]["source"] == f"{url}/repo.tar.gz"
+    assert record["train"]["robots"] == [f.stem for f in files[:2]]
+
+
+def test_fetch_from_a_directory_and_the_cli(tmp_path, capsys):
+    cache = tmp_path / "cache"
+    assert cli_main(["fetch", "--source", str(OFFICIAL_TRAIN), "--sets", "train", "--cache", str(cache)]) == 0
+    assert "unimals100-train: 100 robots" in capsys.readouterr().out
+    assert len(list((cache / "unimals100-train" / "xml").glob("*.xml"))) == 100
+
+
+@pytest.mark.parametrize("damage", ["truncated", "corrupted"])
+def test_a_damaged_download_is_a_clear_error_and_installs_nothing(archive, server, tmp_path, damage):
+    url, www = server
+    data = bytearray(archive.read_bytes())
+    if damage == "truncated":
+        data = data[: len(data) // 2]
+    else:
+        for i in range(len(data) // 2, len(data) // 2 + 64):
+            data[i] ^= 0xFF
+    (www / "repo.tar.gz").write_bytes(bytes(data))
+    cache = tmp_path / "cache"
+    with pytest.raises(O.FetchError, match="truncated or corrupted"):
+        O.fetch(f"{url}/repo.tar.gz", ["train"], cache=cache)
+    assert leftovers(cache) == []
+    with pytest.raises(MorphologyError, match="not in the cache"):
+        O.official_set_dir("unimals100-train", cache)
+
+
+def test_a_tampered_robot_fails_the_checksums(tmp_path):
+    cache = tmp_path / "cache"
+    with pytest.raises(O.FetchError, match="checksums"):
+        O.fetch(make_archive(tmp_path / "bad.tar.gz", tamper=True), ["train"], cache=cache)
+    assert leftovers(cache) == []
+
+
+@pytest.mark.parametrize("member", ["../evil.txt", "/tmp/evil.txt", f"{TOP}/data/train/../../evil.txt"])
+def test_unsafe_archive_members_are_refused(tmp_path, member):
+    cache = tmp_path / "cache"
+    with pytest.raises(O.FetchError, match="absolute path or a '..'"):
+        O.fetch(make_archive(tmp_path / "evil.tar.gz", extra=(member, b"x")), ["train"], cache=cache)
+    assert leftovers(cache) == [] and not (tmp_path / "evil.txt").exists()
+
+
+def test_wrong_count_and_missing_folder(tmp_path):
+    with pytest.raises(O.FetchError, match="holds no data/test/xml"):
+        O.fetch(make_archive(tmp_path / "a.tar.gz"), ["test"], cache=tmp_path / "c1")
+    partial = tmp_path / "partial"
+    for sub in ("xml", "metadata"):
+        (partial / "train" / sub).mkdir(parents=True)
+        for file in sorted((OFFICIAL_TRAIN / sub).iterdir())[:5]:
+            (partial / "train" / sub / file.name).write_bytes(file.read_bytes())
+    with pytest.raises(O.FetchError, match="expected 100 robots"):
+        O.fetch(partial, ["train"], cache=tmp_path / "c2")
+
+
+def test_a_set_not_fetched_names_the_command(tmp_path, monkeypatch):
+    monkeypatch.setenv("UNIMAL_DATA", str(tmp_path))
+    with pytest.raises(MorphologyError, match=r"python -m unimal_envs\.morphology fetch --sets test"):
+        morphology_files("unimals100-test")
+    with pytest.raises(MorphologyError, match="fetch --sets mutants"):
+        gym.make("Unimal-FT-v0", morphologies="unimals100-mutants")

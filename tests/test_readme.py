@@ -1,0 +1,120 @@
+"""The README and ``examples/`` as a new user meets them: every Python block of the README and every
+example runs (at the small budgets they declare), and every command a shell block names exists."""
+
+from __future__ import annotations
+
+import importlib.util
+import re
+import runpy
+import shlex
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch as th
+
+from sb3_divmorph.cli import main as cli
+
+REPO = Path(__file__).resolve().parents[1]
+README = (REPO / "README.md").read_text()
+EXAMPLES = REPO / "examples"
+#: every example with the arguments the test runs it with (smaller than the defaults where it matters)
+EXAMPLE_RUNS = [
+    ("distill_dagger.py", ["--steps", "256", "--out", "run"]),
+    ("load_run_model.py", ["run/student", "--task", "FT", "--robots", "1", "--steps", "20"]),
+    ("transfer.py", ["run/student", "--task", "Escape", "--steps", "1024", "--robots", "2"]),
+    ("export_actor.py", ["run/student", "--task", "FT", "--robot", "train-000", "--out", "exported"]),
+]
+
+
+def code_blocks(language: str) -> list[str]:
+    return [code for lang, code in re.findall(r"```(\w*)\n(.*?)```", README, flags=re.S) if lang == language]
+
+
+def run_example(name: str, args: list[str], monkeypatch, capsys) -> str:
+    monkeypatch.setattr(sys, "argv", [str(EXAMPLES / name), *args])
+    runpy.run_path(str(EXAMPLES / name), run_name="__main__")
+    return capsys.readouterr().out
+
+
+@pytest.fixture
+def restore_threads():
+    threads = th.get_num_threads()
+    yield
+    th.set_num_threads(threads)
+
+
+def test_readme_opens_with_make_demo_and_make_test():
+    first = code_blocks("bash")[0].splitlines()
+    assert [line.split()[:2] for line in first[:2]] == [["make", "demo"], ["make", "test"]]
+
+
+def test_every_example_and_python_block_runs(tmp_path, monkeypatch, capsys, restore_threads):
+    assert sorted(p.name for p in EXAMPLES.glob("*.py")) == sorted(name for name, _ in EXAMPLE_RUNS), "an example is not run here"
+    monkeypatch.chdir(tmp_path)
+
+    out = run_example(*EXAMPLE_RUNS[0], monkeypatch, capsys)
+    for folder in ("run/teachers/FT", "run/teachers/Incline", "run/student"):
+        assert (tmp_path / folder / "model.zip").is_file() and (tmp_path / folder / "vecnormalize.pkl").is_file()
+    assert "labelled states" in out
+
+    out = run_example(*EXAMPLE_RUNS[1], monkeypatch, capsys)
+    assert re.search(r"train-000: return -?\d+\.\d over \d+ steps", out)
+
+    out = run_example(*EXAMPLE_RUNS[2], monkeypatch, capsys)
+    ratio = float(re.search(r"update ratio (\S+) \(configured 0.1\)", out).group(1))
+    assert 0.03 < ratio < 0.3  # the measured learngene / selected-tailor ratio is near its 0.1 target
+
+    out = run_example(*EXAMPLE_RUNS[3], monkeypatch, capsys)
+    assert float(re.search(r"max \|ONNX - student\| over 20 steps (\S+)", out).group(1)) <= 1e-5
+    assert (tmp_path / "exported" / "actor.onnx").is_file() and (tmp_path / "exported" / "actor.pt").is_file()
+
+    # The README's Python blocks, in order, in one namespace (a reader pasting them into one
+    # session); the last one runs the actor exported above.
+    blocks = code_blocks("python")
+    assert len(blocks) >= 5
+    namespace: dict = {"__name__": "__readme__"}
+    quick_start = None
+    for index, code in enumerate(blocks):
+        exec(compile(code, f"README.md python block {index}", "exec"), namespace)  # noqa: S102
+        if "zoo_hyperparams(" in code:
+            quick_start = namespace["model"]
+    # the quick-start PPO runs with the zoo's rollout size, not SB3's default 2048 steps x 10 epochs of 64
+    assert quick_start is not None and quick_start.num_timesteps == 2048
+    assert quick_start.n_steps == 512 and quick_start.batch_size == 512 and quick_start.n_epochs == 4
+    assert np.isfinite(namespace["reward"]) and namespace["means"].shape == (1, 24)  # the exported actors ran
+
+
+def _shell_commands() -> list[list[str]]:
+    commands = []
+    for block in code_blocks("bash"):
+        for line in block.replace("\\\n", " ").splitlines():
+            line = line.split("  #")[0].split(" # ")[0].strip()
+            if line and not line.startswith("#"):
+                commands.append(shlex.split(line.replace("[", "").replace("]", "")))
+    return commands
+
+
+def test_every_command_in_the_readme_exists(capsys):
+    commands = _shell_commands()
+    makefile = (REPO / "Makefile").read_text()
+    seen = set()
+    for words in commands:
+        if words[0] == "divmorph":
+            with pytest.raises(SystemExit) as exit_:
+                cli([words[1], "--help"])
+            assert exit_.value.code == 0, words
+            seen.add("divmorph " + words[1])
+        elif words[0] == "make":
+            assert re.search(rf"^{words[1]}:", makefile, flags=re.M), words
+            seen.add("make")
+        elif words[:2] == ["python", "-m"]:
+            assert importlib.util.find_spec(words[2]) is not None, words
+            seen.add("python -m")
+        elif words[0] == "python":
+            assert (REPO / words[1]).is_file(), words
+            seen.add("python script")
+    capsys.readouterr()
+    # the check reads the blocks it is meant to (a parsing slip would make it pass vacuously)
+    assert {"make", "python -m", "python script", "divmorph pipeline", "divmorph record", "divmorph export"} <= seen

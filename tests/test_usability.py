@@ -1,0 +1,260 @@
+"""Everyday paths of a researcher: clear messages, quiet bars when asked, shared files, the tour's
+picture, ``divmorph record``, rl-zoo's extras, and the on-policy algorithms the policies serve."""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import tomllib
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import yaml
+from stable_baselines3 import A2C, PPO
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.vec_env import VecNormalize
+
+import unimal_envs
+from sb3_divmorph.cli import main as cli
+from sb3_divmorph.pipeline import distill, evaluate, export_all, train_teachers, transfer
+from sb3_divmorph.pipeline.config import PPO_HYPERPARAMETERS, ConfigError, Profile, load_profile, load_profiles
+from sb3_divmorph.pipeline.runs import TrainingRun, atomic_write_json, mark_done, save_checkpoint
+from sb3_divmorph.policies import DivMorphPolicy
+from sb3_divmorph.record import RecordError, find_model, record
+from unimal_envs.morphology.loader import MorphologyError, morphology_files
+
+REPO = Path(__file__).resolve().parents[1]
+TINY = {"d_model": 16, "n_layers": 1, "ff_dim": 32, "exteroception": {}}
+
+
+def tiny_profile(folder: Path) -> tuple[Path, Profile]:
+    """The shipped demo profile on 1 + 1 robots, 5-step episodes, one teacher (FT), written to a file."""
+    values = json.loads(json.dumps(load_profiles()["demo"]))
+    values.update(train_robots=1, novel_robots=1, max_episode_steps=5)
+    values["teachers"]["tasks"] = ["FT"]
+    path = folder / "profiles.yml"
+    path.write_text(yaml.safe_dump({"tiny": values}))
+    return path, load_profile("tiny", path)
+
+
+def tiny_model(folder: Path, steps: int = 0) -> PPO:
+    """A tiny MetaMorph PPO on FT with VecNormalize, saved as a finished pipeline stage in ``folder``."""
+    venv = VecNormalize(make_vec_env("Unimal-FT-v0", n_envs=1, env_kwargs=dict(morphologies=morphology_files("train")[:1])),
+                        norm_obs_keys=["proprioceptive"])
+    model = PPO("MetaMorphPolicy", venv, n_steps=32, batch_size=32, n_epochs=1, policy_kwargs=TINY, seed=0)
+    if steps:
+        model.learn(steps)
+    folder.mkdir(parents=True, exist_ok=True)
+    model.save(folder / "model.zip")
+    venv.save(str(folder / "vecnormalize.pkl"))
+    mark_done(folder, num_timesteps=model.num_timesteps)
+    return model
+
+
+# -- environments and robots ----------------------------------------------------------------
+def test_a_morphology_prints_on_one_line():
+    morphology = unimal_envs.load_morphology(morphology_files("train")[0])
+    text = repr(morphology)
+    assert "\n" not in text and len(text) < 200
+    assert text.startswith("Morphology(name='train-000'") and f"dof={morphology.dof}" in text
+
+
+def test_a_missing_directory_is_called_one(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    for missing in (tmp_path / "nowhere", "runs/robots", "./robots"):
+        with pytest.raises(MorphologyError, match="no such directory"):
+            morphology_files(missing)
+    with pytest.raises(MorphologyError, match="no such directory"):
+        gym.make("Unimal-FT-v0", morphologies=str(tmp_path / "nowhere" / "set"))
+    # a bare word is still most likely a set name with a typo
+    with pytest.raises(MorphologyError, match="unknown morphology set 'trian'"):
+        morphology_files("trian")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the display check applies to X11/Wayland")
+def test_human_rendering_without_a_display_is_a_python_error_that_suggests_rgb_array(monkeypatch):
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    for env_id in ("Unimal-FT-v0", "Unimal-MultiTask-v0"):
+        with pytest.raises(RuntimeError, match="rgb_array"):
+            gym.make(env_id, render_mode="human", morphologies=morphology_files("train")[:1])
+
+
+def test_the_tour_picture_titles_every_panel(tmp_path, monkeypatch):
+    from unimal_envs import demo
+
+    figures = []
+
+    def keep(*args, **kwargs):
+        figures.append(real(*args, **kwargs))
+        return figures[-1]
+
+    real = demo.robot_figure
+    monkeypatch.setattr(demo, "robot_figure", keep)
+    demo.main(["--count", "2", "--gaits", "1", "--video-steps", "3", "--out", str(tmp_path), "--no-progress"])
+    (figure,) = figures
+    titles = [ax.get_title() for ax in figure.axes if ax.images]
+    names = [line.split("|")[1].strip() for line in (tmp_path / "summary.md").read_text().splitlines() if line.startswith("| train-")]
+    assert len(titles) == len(names) == 2
+    for title, name in zip(titles, names):
+        assert title.startswith(f"{name}: ") and "limbs" in title and "dof" in title
+    assert "train" in figure._suptitle.get_text() and "seed 0" in figure._suptitle.get_text()
+    assert (tmp_path / "robots.png").stat().st_size > 10_000
+
+
+# -- policies -------------------------------------------------------------------------------
+def test_the_policies_train_with_a2c_too():
+    venv = make_vec_env("Unimal-FT-v0", n_envs=1, env_kwargs=dict(morphologies=morphology_files("train")[:1]))
+    gates = dict(n_morph_tailors=4, n_task_tailors=4, top_k_morph=2, top_k_task=2)
+    for policy, kwargs in (("MetaMorphPolicy", TINY), ("DivMorphPolicy", {**TINY, **gates})):
+        model = A2C(policy, venv, n_steps=4, policy_kwargs=kwargs, seed=0)
+        model.learn(8)
+        assert model.num_timesteps == 8
+
+
+def test_a_bad_top_k_names_its_gate():
+    env = gym.make("Unimal-FT-v0", morphologies=morphology_files("train")[:1])
+    args = (env.observation_space, env.action_space, lambda _: 1e-3)
+    with pytest.raises(ValueError, match=r"morphology gate \(top_k_morph.*\[1, 4\].*got 6"):
+        DivMorphPolicy(*args, **TINY, n_morph_tailors=4, top_k_morph=6)
+    with pytest.raises(ValueError, match=r"task gate \(top_k_task.*got 0"):
+        DivMorphPolicy(*args, **TINY, n_task_tailors=4, top_k_task=0)
+
+
+# -- pipeline messages and files ------------------------------------------------------------
+def test_an_override_typo_names_the_profile_file_and_lists_only_ppo_arguments(tmp_path):
+    values = load_profiles()["demo"]
+    values["teachers"]["overrides"]["n_step"] = 256
+    path = tmp_path / "mine.yml"
+    path.write_text(yaml.safe_dump({"mine": values}))
+    with pytest.raises(ConfigError) as error:
+        load_profile("mine", path)
+    message = str(error.value)
+    assert str(path) in message and "teachers.overrides" in message and "['n_step']" in message
+    listed = message.split("PPO hyperparameters: ")[1]
+    assert "'n_steps'" in listed and "'n_envs'" in listed
+    for not_a_choice in ("_init_setup_model", "env_wrapper", "frame_stack", "'seed'", "'device'", "'verbose'"):
+        assert not_a_choice not in listed
+    import inspect
+
+    assert set(PPO_HYPERPARAMETERS) <= set(inspect.signature(PPO.__init__).parameters)
+
+
+def test_names_are_checked_before_anything_is_announced(tmp_path, capsys):
+    _, profile = tiny_profile(tmp_path)
+    out = tmp_path / "run"
+    with pytest.raises(ConfigError, match="no teacher"):
+        train_teachers(profile, out, ["FT", "Walk"])
+    with pytest.raises(ConfigError, match=r"\['FT'\] not one of"):
+        transfer(profile, out, ["Escape", "FT"])
+    with pytest.raises(ConfigError, match=r"unknown task\(s\) \['Nope'\]"):
+        export_all(profile, out, ["FT", "Nope"])
+    assert capsys.readouterr().out == ""  # nothing was announced as if it were going to run
+
+
+def test_finished_stages_say_they_are_skipped(tmp_path, capsys):
+    _, profile = tiny_profile(tmp_path)
+    out = tmp_path / "run"
+    for folder in ("teachers/FT", "student", "transfer/Escape/divmorph", "transfer/Escape/scratch", "evaluate"):
+        mark_done(out / folder)
+    train_teachers(profile, out)
+    distill(profile, out)
+    transfer(profile, out)
+    evaluate(profile, out)
+    printed = capsys.readouterr().out
+    for stage in ("[teachers] FT", "[distill]", "[transfer] Escape (divmorph)", "[transfer] Escape (scratch)", "[evaluate]"):
+        assert any(line.startswith(stage) and "skipped" in line for line in printed.splitlines()), (stage, printed)
+
+
+def test_a_resumed_run_says_from_which_step(tmp_path, capsys):
+    folder = tmp_path / "teacher"
+    model = tiny_model(tmp_path / "first", steps=32)
+    save_checkpoint(model, folder / "checkpoints")
+    make_env = lambda: make_vec_env("Unimal-FT-v0", n_envs=1, env_kwargs=dict(morphologies=morphology_files("train")[:1]))  # noqa: E731
+    TrainingRun(folder, 64, 1000, make_model=None, make_env=make_env, progress_bar=False).run()
+    assert "resuming from step 32 of 64" in capsys.readouterr().out
+
+
+def test_results_files_are_readable_by_others(tmp_path):
+    old = os.umask(0o022)
+    try:
+        atomic_write_json(tmp_path / "a.json", {"x": 1})
+        os.umask(0o027)
+        atomic_write_json(tmp_path / "b.json", {"x": 1})
+    finally:
+        os.umask(old)
+    assert (tmp_path / "a.json").stat().st_mode & 0o777 == 0o644  # mkstemp alone gives 0600
+    assert (tmp_path / "b.json").stat().st_mode & 0o777 == 0o640  # the umask decides, as for open()
+
+
+def test_no_progress_silences_the_evaluate_bar(tmp_path, capfd):
+    profiles, _ = tiny_profile(tmp_path)
+    for flag, out in ((["--no-progress"], tmp_path / "quiet"), ([], tmp_path / "loud")):
+        tiny_model(out / "teachers" / "FT")
+        assert cli(["evaluate", "--profile", "tiny", "--profiles", str(profiles), "--out", str(out), *flag]) == 0
+        err = capfd.readouterr().err
+        assert ("[evaluate]" in err) == (not flag), err  # the bar is drawn unless --no-progress
+
+
+# -- rl-zoo and recording -------------------------------------------------------------------
+def test_the_zoo_extra_has_what_rl_zoo_plots_imports():
+    extra = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["optional-dependencies"]["zoo"]
+    assert {"pandas", "seaborn"} <= {name.split(">")[0].split("=")[0].strip() for name in extra}
+    import rl_zoo3.plots.plot_from_file  # noqa: F401  (imports pandas and seaborn)
+
+
+def test_the_shipped_zoo_entries_for_rl_zoo_and_for_your_own_ppo(tmp_path, monkeypatch):
+    import sb3_divmorph.zoo as zoo
+
+    monkeypatch.chdir(tmp_path)  # found without the repository as working directory
+    assert zoo.hyperparams == yaml.safe_load((REPO / "zoo_configs" / "ppo.yml").read_text())
+    hp = zoo.zoo_hyperparams("Unimal-FT-v0", overrides={"n_envs": 2})
+    assert (hp.n_envs, hp.ppo_kwargs["n_steps"], hp.ppo_kwargs["batch_size"], hp.policy_kwargs["preset"]) == (2, 512, 512, "small")
+    assert callable(hp.ppo_kwargs["learning_rate"]) and hp.normalize["norm_obs_keys"] == ["proprioceptive"]
+    assert load_profile("demo").name == "demo"
+
+
+def test_record_finds_the_statistics_and_the_task(tmp_path):
+    teacher = tmp_path / "run" / "teachers" / "FT"
+    tiny_model(teacher)
+    saved = find_model(teacher)
+    assert (saved.model, saved.normalizer, saved.env_id) == (teacher / "model.zip", teacher / "vecnormalize.pkl", "Unimal-FT-v0")
+    arm = tmp_path / "run" / "transfer" / "Escape" / "divmorph"
+    arm.mkdir(parents=True)
+    (arm / "model.zip").write_bytes(b"")
+    assert find_model(arm).env_id == "Unimal-Escape-v0" and find_model(arm).normalizer is None
+
+    # an rl-zoo run folder whose config says it normalised, but whose statistics are gone
+    zoo = tmp_path / "logs" / "ppo" / "Unimal-VT-v0_2"
+    (zoo / "Unimal-VT-v0").mkdir(parents=True)
+    (zoo / "Unimal-VT-v0.zip").write_bytes(b"")
+    (zoo / "Unimal-VT-v0" / "config.yml").write_text(
+        "!!python/object/apply:collections.OrderedDict\n- - - n_envs\n    - 4\n  - - normalize\n"
+        "    - dict(norm_obs=True, norm_reward=True, norm_obs_keys=['proprioceptive'])\n")
+    with pytest.raises(RecordError, match="vecnormalize.pkl is missing"):
+        find_model(zoo)
+    with pytest.raises(RecordError, match="no such file or directory"):
+        find_model(tmp_path / "nothing")
+
+
+def test_record_films_a_pipeline_stage(tmp_path, capsys):
+    import argparse
+
+    import imageio.v3 as iio
+
+    from sb3_divmorph.record import add_arguments
+
+    student = tmp_path / "run" / "student"
+    tiny_model(student)
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    with pytest.raises(RecordError, match="pass --task"):  # a multi-task student: which task?
+        record(parser.parse_args([str(student)]))
+    video = record(parser.parse_args([str(student), "--task", "FT", "--steps", "4", "--width", "48", "--height", "48", "--no-progress"]))
+    assert video == student / "videos" / "Unimal-FT-v0.mp4"
+    frames = iio.imread(video)
+    assert frames.shape[1:] == (48, 48, 3) and 2 <= len(frames) <= 5 and np.ptp(frames) > 0
+    assert "episode 0: train-000" in capsys.readouterr().out
