@@ -162,8 +162,9 @@ def distill(profile: Profile, out: Path, progress_bar: bool = True, students: li
     unknown = [n for n in names if n not in STUDENTS]
     if unknown:
         raise ConfigError(f"unknown student(s) {unknown}; students: {list(STUDENTS)}")
-    load_teachers(profile, out)  # a missing teacher is an error before anything starts
     jobs = [Job("student", (name,), student_folder(out, name), f"student {name}") for name in names]
+    if not all(is_done(job.folder) for job in jobs):
+        load_teachers(profile, out)  # a missing teacher is an error before anything starts
     for job in jobs:
         if is_done(job.folder):
             print(f"[distill] {job.args[0]}: skipped, already distilled in {job.folder}")

@@ -351,9 +351,9 @@ def transfer(
     for job in jobs:
         task, arm, seed = job.args
         if is_done(job.folder):
-            print(f"[transfer] {task} ({arm}, seed {seed}): skipped, already trained in {job.folder}")
+            print(f"[transfer] {task} ({arm}) seed {seed}: skipped, already trained in {job.folder}")
         else:
-            print(f"[transfer] {task} ({arm}, seed {seed}): PPO for {cfg.n_timesteps} steps -> {job.folder}")
+            print(f"[transfer] {task} ({arm}) seed {seed}: PPO for {cfg.n_timesteps} steps -> {job.folder}")
     report = run_grid(profile, out, jobs, backend, progress_bar)
     report.raise_on_failure()
     if cfg.eval_every > 0:
