@@ -4,7 +4,7 @@
     python examples/load_run_model.py runs/demo/student --task Patrol
 
 Any folder holding ``model.zip`` and (when training normalised observations) ``vecnormalize.pkl``
-works: the pipeline's ``teachers/<task>``, ``student``, ``transfer/<task>/<arm>``, or the output of
+works: the pipeline's ``teachers/<task>``, ``student``, ``transfer/<task>/<arm>/seed-<s>``, or the output of
 ``examples/distill_dagger.py``. The statistics must be loaded *with* the model: a policy fed
 unnormalised observations acts on inputs it never saw. ``VecNormalize.load`` wraps the env;
 ``training = False`` freezes the statistics and ``norm_reward = False`` reports true returns.

@@ -2,18 +2,22 @@
 
     divmorph pipeline --profile demo                 # every stage, in order (runs/demo)
     divmorph teachers --profile demo [--task FT]     # one MetaMorph teacher per training task
-    divmorph distill  --profile demo                 # DAgger into the DivMorph student
+    divmorph distill  --profile demo [--arms A,B]    # DAgger into the DivMorph student (+ the arms' students)
     divmorph hyperdistill --profile demo             # baseline: HyperDistill student + per-robot MLPs
-    divmorph transfer --profile demo --task Escape [--no-scratch]
+    divmorph grl      --profile demo                 # baseline: GRL's evolved learngene (whole layers)
+    divmorph transfer --profile demo --task Escape --arms divmorph,scratch,closest --seeds 0 1 2
     divmorph export   --profile demo --morphology train-000 --task FT
     divmorph evaluate --profile demo
-    divmorph report   --profile demo
+    divmorph report   --profile demo                 # summary.md + every figure with data
+    divmorph figure transfer-train --profile demo    # one figure (PNG + CSV) in report/figures/
     divmorph record   runs/demo/teachers/FT              # MP4 of a pipeline or rl-zoo model, headless
     divmorph profiles [--profile demo]                   # the profiles and where they are read from
 
 Every stage reads the profile (``zoo_configs/divmorph.yml``, shipped with the package, so any
 working directory will do) and works in ``--out`` (default ``runs/<profile>``); finished stages
-are skipped, interrupted ones resume.
+are skipped, interrupted ones resume. The trainings of ``pipeline``, ``teachers``, ``distill``,
+``grl`` and ``transfer`` are independent runs of a grid: ``--backend ray`` runs them as Ray tasks
+(a local Ray by default, a cluster with ``--address``).
 """
 
 from __future__ import annotations
@@ -42,21 +46,43 @@ def _parser() -> argparse.ArgumentParser:
         p.add_argument("--no-progress", action="store_true", help="no progress bars")
         return p
 
-    command("pipeline", "run every stage in order")
-    p = command("teachers", "train one MetaMorph teacher per training task (PPO)")
+    def grid(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+        p.add_argument("--backend", choices=("local", "ray"), default="local",
+                       help="local: one run after the other in this process (default); ray: every run a Ray task")
+        p.add_argument("--address", default=None, help="Ray cluster address (host:port, ray://host:port or auto); default: a local Ray")
+        p.add_argument("--cpus-per-run", type=float, default=1, help="CPUs Ray reserves per run (default 1)")
+        p.add_argument("--gpus-per-run", type=float, default=0, help="GPUs (fractions allowed) Ray reserves per run (default 0)")
+        p.add_argument("--ray-cpus", type=int, default=None, help="CPUs of the local Ray instance (default: all of this machine's)")
+        return p
+
+    def arms_list(text: str) -> list[str]:
+        return [a.strip() for a in text.split(",") if a.strip()]
+
+    grid(command("pipeline", "run every stage in order"))
+    p = grid(command("teachers", "train one MetaMorph teacher per training task (PPO)"))
     p.add_argument("--task", action="append", help="only this training task (repeatable)")
-    command("distill", "DAgger distillation of the teachers into a DivMorph student")
+    p = grid(command("distill", "DAgger distillation of the teachers into the DivMorph student (and the students of the arms)"))
+    p.add_argument("--arms", type=arms_list, default=None, help="also distil the students these arms start from (comma-separated)")
     command("hyperdistill", "HyperDistill baseline: distil the teachers into a hypernetwork student, export per-robot MLPs")
-    p = command("transfer", "transfer the student to a novel task (and train MetaMorph from scratch)")
+    grid(command("grl", "GRL baseline: evolve a population of MetaMorph agents; the best learngene (whole layers) for the grl arm"))
+    p = grid(command("transfer", "race the transfer arms on novel tasks (arms x tasks x seeds, one run each)"))
     p.add_argument("--task", action="append", help="novel task (repeatable; default: the profile's)")
-    p.add_argument("--no-scratch", action="store_true", help="skip the from-scratch comparison")
+    p.add_argument("--arms", type=arms_list, default=None,
+                   help="comma-separated arms (default: the profile's transfer.arms); see the README for the list")
+    p.add_argument("--seeds", type=int, nargs="+", default=None, help="seeds, one run each (default: the profile's transfer.seeds)")
+    p.add_argument("--closest-by", choices=("embedding", "return"), default=None,
+                   help="closest arm: most similar instruction embedding (default) or best zero-shot teacher return")
+    p.add_argument("--no-scratch", action="store_true", help="leave scratch out of the default arms")
     p = command("export", "prune + merge the student into a compact actor (ONNX and/or TorchScript)")
     p.add_argument("--morphology", action="append", help="robot name in the train/novel sets, or an MJCF path")
     p.add_argument("--task", action="append", help="task (default: the profile's)")
     p.add_argument("--format", choices=("onnx", "torchscript", "all"), default="all",
                    help="onnx (runs with onnxruntime + numpy), torchscript (torch alone), or all (default)")
     command("evaluate", "per-morphology returns on train and novel robots")
-    command("report", "plots and a markdown summary of the run")
+    command("report", "plots, the paper's figures and a markdown summary of the run")
+    p = command("figure", "one of the paper's figures (PNG + CSV in report/figures/)")
+    p.add_argument("name", help="transfer-train, transfer-novel, deployment, ablation or gates")
+
 
     # Commands that read no run: they take no --out and create nothing but what they write.
     from sb3_divmorph.record import add_arguments as record_arguments
@@ -131,18 +157,37 @@ def main(argv: list[str] | None = None) -> int:
     start = time.perf_counter()
     try:
         record_robot_sets(profile, out)  # out/robot_sets.json: which robots this run uses
+        backend = None
+        if getattr(args, "backend", None) is not None:
+            if args.backend == "local" and (args.cpus_per_run != 1 or args.gpus_per_run != 0 or args.ray_cpus is not None):
+                raise P.ConfigError("--cpus-per-run / --gpus-per-run / --ray-cpus need --backend ray")
+            backend = P.make_backend(args.backend, args.address, args.cpus_per_run, args.gpus_per_run, args.ray_cpus)
         if args.command == "pipeline":
-            print(P.run_pipeline(profile, out, progress, command_line))
+            print(P.run_pipeline(profile, out, progress, command_line, backend))
         elif args.command == "teachers":
-            P.train_teachers(profile, out, args.task, progress)
+            P.train_teachers(profile, out, args.task, progress, backend=backend)
         elif args.command == "distill":
-            P.distill(profile, out, progress)
+            from sb3_divmorph.pipeline.arms import students_for
+            from sb3_divmorph.pipeline.config import check_arms
+
+            if args.arms is not None:
+                check_arms(args.arms, "--arms")
+            P.distill(profile, out, progress, None if args.arms is None else ["divmorph", *students_for(args.arms)], backend)
+        elif args.command == "grl":
+            learngene = P.evolve(profile, out, backend, progress)
+            print(f"learngene: {'+'.join(learngene['units'])} (agent {learngene['agent']} of generation {learngene['generation']}, "
+                  f"{learngene['task']}) -> {Path(out) / 'grl' / 'learngene.json'}")
+        elif args.command == "figure":
+            path = P.make_figure(profile, out, args.name)
+            if path is None:
+                raise FileNotFoundError(f"no data for figure {args.name!r} in {out} yet (run the stages it plots first)")
+            print(f"{args.name} -> {path} (numbers: {path.with_suffix('.csv')})")
         elif args.command == "hyperdistill":
             for r in P.hyperdistill(profile, out, progress):
                 print(f"{r['robot']} x {r['task']}: MLP of {r['mlp_weights']:,} weights, max |diff| {r['max_abs_diff']:.1e}, "
                       f"latency {r['latency_mlp_ms']:.3f} ms -> {Path(out) / 'hyperdistill' / 'export'}")
         elif args.command == "transfer":
-            P.transfer(profile, out, args.task, False if args.no_scratch else None, progress)
+            P.transfer(profile, out, args.task, False if args.no_scratch else None, progress, args.arms, args.seeds, backend, args.closest_by)
         elif args.command == "export":
             robots = [_robot_path(m) for m in args.morphology] if args.morphology else None
             formats = ("onnx", "torchscript") if args.format == "all" else (args.format,)
@@ -158,6 +203,9 @@ def main(argv: list[str] | None = None) -> int:
     except (P.ConfigError, FileNotFoundError, ValueError, KeyError, TypeError) as error:
         print(f"divmorph {args.command}: {error}", file=sys.stderr)
         return 2
+    except P.GridError as error:
+        print(f"divmorph {args.command}: {error}", file=sys.stderr)
+        return 1
     print(f"[divmorph] {args.command} finished in {time.perf_counter() - start:.0f} s (threads: {th.get_num_threads()}); outputs in {out}")
     return 0
 

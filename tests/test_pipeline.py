@@ -18,6 +18,7 @@ import torch as th
 import yaml
 
 from sb3_divmorph.cli import main as cli
+from sb3_divmorph.pipeline.arms import ARMS
 from sb3_divmorph.pipeline.config import ConfigError, load_profile, load_profiles, load_zoo_entry
 from sb3_divmorph.policies import DivMorphPolicy, MetaMorphPolicy
 from sb3_divmorph.pipeline.runs import latest_checkpoint, read_done
@@ -43,7 +44,10 @@ TINY = {
     "student": {"policy_kwargs": {**TINY_POLICY, "n_morph_tailors": 6, "n_task_tailors": 6, "top_k_morph": 2, "top_k_task": 2}},
     "distill": {"n_timesteps": 128, "n_envs": 2, "n_steps": 32, "epochs": 1, "batch_size": 32, "buffer_size": 256, "checkpoint_every": 64},
     "transfer": {"tasks": ["Escape"], "n_timesteps": 128, "overrides": {"n_envs": 1, "n_steps": 64, "batch_size": 64, "n_epochs": 1},
-                 "checkpoint_every": 64},
+                 "checkpoint_every": 64, "arms": list(ARMS), "seeds": [0], "eval_every": 64, "eval_episodes": 1},
+    "hyperdistill": {"teacher_policy": "MetaMorphPolicy", "policy_kwargs": {"hidden_dim": 16, "embed_dim": 8},
+                     "rollout_samples": 256, "epochs": 2, "batch_size": 64, "n_envs": 2},
+    "grl": {"population": 2, "generations": 2, "steps_per_agent": 64, "learngene_layers": 2, "tournament": 2, "mutation": 0.5},
     "export": {"tasks": ["FT", "Escape"], "latency_repeats": 5},
     "evaluate": {"episodes": 1},
 }
@@ -82,8 +86,8 @@ def test_every_stage_writes_its_outputs(finished_run):
         columns = next(csv.reader(f))
     assert {"distill/loss", "distill/kl/FT", "distill/kl/Patrol", "gates/task_entropy", "distill/beta"} <= set(columns)
     assert list((out / "student" / "logs").glob("run-*/events.out.tfevents*"))
-    for arm in ("divmorph", "scratch"):
-        assert read_done(out / "transfer" / "Escape" / arm)["num_timesteps"] >= 128
+    for arm in ARMS:
+        assert read_done(out / "transfer" / "Escape" / arm / "seed-0")["num_timesteps"] >= 128
     reports = sorted((out / "export").glob("*/report.json"))
     assert len(reports) == 4  # 2 robots (one per split) x 2 tasks
     for path in reports:
@@ -93,8 +97,8 @@ def test_every_stage_writes_its_outputs(finished_run):
         assert (path.parent / "actor.pt").is_file()
     with open(out / "evaluate" / "returns.csv") as f:
         rows = list(csv.DictReader(f))
-    # teachers (2 tasks) + student (2 train + 1 novel task) + 2 transfer arms, on 2 + 2 robots
-    assert len(rows) == (2 + 3 + 2) * 4
+    # teachers (2 tasks) + student (2 train + 1 novel task) + HyperDistill (2) + 9 transfer arms, on 2 + 2 robots
+    assert len(rows) == (2 + 3 + 2 + len(ARMS)) * 4
     assert {r["split"] for r in rows} == {"train", "novel"}
     assert all(np.isfinite(float(r["return"])) for r in rows)
     with np.load(out / "evaluate" / "gates.npz") as gates:
@@ -102,7 +106,135 @@ def test_every_stage_writes_its_outputs(finished_run):
     for png in ("curves.png", "gates.png", "returns.png"):
         assert (out / "report" / png).stat().st_size > 10_000
     summary = (out / "summary.md").read_text()
-    assert "Deployment" in summary and "transfer-divmorph" in summary
+    assert "Deployment" in summary and "transfer-divmorph" in summary and "Transfer metrics" in summary
+
+
+def test_every_arm_writes_a_curve_and_metrics(finished_run):
+    out, _ = finished_run
+    for arm in ARMS:
+        with open(out / "transfer" / "Escape" / arm / "seed-0" / "eval.csv") as f:
+            rows = list(csv.DictReader(f))
+        # step 0 (zero-shot), every 64 steps, the end; 2 training + 2 novel robots, 1 episode each
+        assert sorted({int(r["timesteps"]) for r in rows}) == [0, 64, 128], arm
+        assert len(rows) == 3 * 4 and {r["split"] for r in rows} == {"train", "novel"}
+        assert all(int(r["length"]) == 40 or float(r["return"]) == float(r["return"]) for r in rows)
+    with open(out / "transfer" / "Escape" / "metrics.csv") as f:
+        metrics = list(csv.DictReader(f))
+    assert {(m["arm"], m["split"]) for m in metrics} == {(arm, split) for arm in ARMS for split in ("train", "novel")}
+    for m in metrics:
+        assert all(np.isfinite(float(m[k])) for k in ("zero_shot", "final", "auc"))
+        assert m["sample_efficiency"] == ">budget" or m["sample_efficiency"].startswith("inf") or m["sample_efficiency"].endswith("x")
+    # the zero-shot metric is the step-0 evaluation, averaged over robots
+    with open(out / "transfer" / "Escape" / "divmorph" / "seed-0" / "eval.csv") as f:
+        step0 = [float(r["return"]) for r in csv.DictReader(f) if r["timesteps"] == "0" and r["split"] == "novel"]
+    divmorph_novel = next(m for m in metrics if m["arm"] == "divmorph" and m["split"] == "novel")
+    assert np.isclose(float(divmorph_novel["zero_shot"]), np.mean(step0))
+
+
+def test_the_papers_figures_come_with_their_numbers(finished_run):
+    out, profiles = finished_run
+    figures = out / "report" / "figures"
+    for name in ("transfer-train", "transfer-novel", "deployment", "ablation", "gates"):
+        assert (figures / f"{name}.png").stat().st_size > 10_000, name
+        with open(figures / f"{name}.csv") as f:
+            assert list(csv.DictReader(f)), name
+    with open(figures / "transfer-train.csv") as f:
+        plotted = {r["arm"] for r in csv.DictReader(f)}
+    assert plotted == {"divmorph", "scratch", "closest", "distilled", "modumorph", "grl"}
+    with open(figures / "ablation.csv") as f:
+        plotted = {r["arm"] for r in csv.DictReader(f)}
+    assert plotted == {"divmorph", "no-kdiv-transformer", "no-kdiv-decoder", "no-orthogonality"}
+    with open(figures / "deployment.csv") as f:
+        bars = list(csv.DictReader(f))
+    assert {r["model"] for r in bars} == {"teacher", "hyperdistill", "student"}
+    sizes = {r["model"]: float(r["value"]) for r in bars if r["panel"].startswith("parameters") and r["task"] == "FT"}
+    assert sizes["student"] < sizes["teacher"]  # the compact actor, pruned
+    (figures / "ablation.png").unlink()
+    assert cli(["figure", "ablation", "--profile", "tiny", "--profiles", str(profiles), "--out", str(out)]) == 0
+    assert (figures / "ablation.png").is_file()
+
+
+def test_closest_starts_from_the_teacher_the_embeddings_say(finished_run):
+    from unimal_envs.instructions import shipped_embeddings
+
+    out, _ = finished_run
+    choice = json.loads((out / "transfer" / "Escape" / "closest-by-embedding.json").read_text())
+    embeddings = shipped_embeddings()
+    cosine = {t: float(embeddings["Escape"] @ embeddings[t] / np.linalg.norm(embeddings["Escape"]) / np.linalg.norm(embeddings[t]))
+              for t in ("FT", "Patrol")}
+    assert choice["closest"] == max(cosine, key=cosine.get)
+    assert choice["scores"] == pytest.approx(cosine, abs=1e-5)
+    source = json.loads((out / "transfer" / "Escape" / "closest" / "seed-0" / "source.json").read_text())
+    assert source["source"] == f"teachers/{choice['closest']}"
+
+
+def test_the_dense_distilled_student_is_metamorph_and_its_imitation_error_falls(finished_run):
+    from stable_baselines3 import PPO
+
+    out, _ = finished_run
+    student = PPO.load(out / "students" / "distilled" / "model.zip", device="cpu")
+    assert type(student.policy) is MetaMorphPolicy
+    assert "task_embedding" in student.policy.features_extractor.exteroception  # how it tells the tasks apart
+    with open(next((out / "students" / "distilled" / "logs").glob("run-*/progress.csv"))) as f:
+        losses = [float(r["distill/loss"]) for r in csv.DictReader(f)]
+    assert len(losses) >= 2 and losses[-1] < losses[0]
+    # transfer fine-tunes it whole, from its distilled weights
+    source = json.loads((out / "transfer" / "Escape" / "distilled" / "seed-0" / "source.json").read_text())
+    assert source["source"] == "students/distilled"
+
+
+def test_ablation_students_lack_what_they_claim(finished_run):
+    from stable_baselines3 import PPO
+
+    from sb3_divmorph.layers import FactorizedLinear
+
+    out, _ = finished_run
+
+    def layers(folder):
+        policy = PPO.load(folder / "model.zip", device="cpu").policy
+        assert isinstance(policy, DivMorphPolicy) and policy.is_gated
+        return {name: layer for name, layer in policy.named_modules()
+                if isinstance(layer, FactorizedLinear) and name.startswith(("features_extractor.encoder", "mlp_extractor.policy_net"))}
+
+    full = layers(out / "student")
+    assert all(layer.n_tailors > 0 and layer.orthogonality_error() < 1e-5 for layer in full.values())
+    for name, layer in layers(out / "students" / "no-kdiv-decoder").items():
+        assert (layer.n_tailors == 0) == name.startswith("mlp_extractor"), name
+    for name, layer in layers(out / "students" / "no-kdiv-transformer").items():
+        assert (layer.n_tailors == 0) == name.startswith("features_extractor"), name
+    free = layers(out / "students" / "no-orthogonality")
+    for layer in free.values():
+        assert not layer.orthogonal and isinstance(layer.square, th.nn.Parameter) and not hasattr(layer, "square_skew")
+        assert layer.orthogonality_error() > 1e-3  # distillation moved the free square factor off the orthogonal group
+    # the ablations are transferred the DivMorph way: fixed gates, learngene/tailor update ratio logged
+    with open(next((out / "transfer" / "Escape" / "no-kdiv-decoder" / "seed-0" / "logs").glob("run-*/progress.csv"))) as f:
+        assert "transfer/update_ratio" in next(csv.reader(f))
+
+
+def test_grl_inherits_exactly_its_learngene_layers(finished_run):
+    from stable_baselines3 import PPO
+
+    from sb3_divmorph.pipeline.config import load_profile
+    from sb3_divmorph.pipeline.grl import agent_folder, agent_run, read_learngene, read_plan, unit_tensors
+    from sb3_divmorph.pipeline.transfer import transfer_run
+
+    out, profiles = finished_run
+    profile = load_profile("tiny", profiles)
+
+    def same(a, b, unit):
+        return all(th.equal(x, y) for x, y in zip(unit_tensors(a, unit), unit_tensors(b, unit), strict=True))
+
+    child_plan = read_plan(out, 1)[0]
+    parent = PPO.load(agent_folder(out, 0, child_plan.parent) / "model.zip", device="cpu").policy
+    child = agent_run(profile, out, 1, child_plan.index, progress_bar=False).make_model().policy  # the child at its start
+    units = ["embedding", "block.0", "exteroception", "decoder"]
+    for unit in units:
+        assert same(child, parent, unit) == (unit in child_plan.learngene), unit
+    learngene = read_learngene(out)
+    best = PPO.load(out / learngene["folder"] / "model.zip", device="cpu").policy
+    arm = transfer_run(profile, out, "Escape", "grl", 0, progress_bar=False).make_model().policy  # the grl arm at step 0
+    for unit in units:
+        assert same(arm, best, unit) == (unit in learngene["units"]), unit
 
 
 def test_a_finished_pipeline_is_skipped_not_recomputed(finished_run):
@@ -233,3 +365,30 @@ def test_a_transfer_instruction_reaches_the_gates_input():
     custom = robot_observations("Unimal-Escape-v0", robots, instruction="Climb out of the crater as fast as you can.")
     assert not np.allclose(default["task_embedding"], custom["task_embedding"])
     assert np.isclose(np.linalg.norm(custom["task_embedding"]), 1.0, atol=1e-4)
+
+
+def test_closest_by_return_picks_the_best_zero_shot_teacher(finished_run):
+    from sb3_divmorph.pipeline.evaluate import evaluate_model
+    from sb3_divmorph.pipeline.runs import profile_robots
+    from sb3_divmorph.pipeline.transfer import closest_task
+
+    out, profiles = finished_run
+    profile = load_profile("tiny", profiles)
+    choice = closest_task(profile, out, "Escape", by="return")
+    robots = profile_robots(profile, "train")
+    returns = {t: np.mean([r["return"] for r in evaluate_model(out / "teachers" / t, "Escape", robots, 1, 40, profile.seed)])
+               for t in ("FT", "Patrol")}
+    assert choice["scores"] == pytest.approx(returns)
+    assert choice["closest"] == max(returns, key=returns.get)
+
+    # a run folder begun from another teacher is refused, never silently replaced or mixed
+    other = out / "transfer" / "Escape" / "closest" / "seed-7"
+    other.mkdir()
+    (other / "source.json").write_text(json.dumps({"arm": "closest", "seed": 7, "source": "teachers/Elsewhere"}))
+    try:
+        assert cli(["transfer", "--profile", "tiny", "--profiles", str(profiles), "--out", str(out), "--arms", "closest",
+                    "--seeds", "7", "--no-progress"]) == 2
+        assert list(other.iterdir()) == [other / "source.json"]
+    finally:
+        (other / "source.json").unlink()
+        other.rmdir()

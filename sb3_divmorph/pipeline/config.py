@@ -128,6 +128,25 @@ class TransferConfig:
     instructions: dict[str, str] = field(default_factory=dict)
     overrides: dict[str, Any] = field(default_factory=dict)
     checkpoint_every: int = 50_000
+    #: the arms to race (see :data:`sb3_divmorph.pipeline.arms.ARMS`); default: ``divmorph`` and,
+    #: with ``compare_scratch``, ``scratch``
+    arms: list[str] | None = None
+    #: one run per arm and seed (the seed offsets the PPO seed; the robots are the same)
+    seeds: list[int] = field(default_factory=lambda: [0])
+    #: how the ``closest`` arm picks its teacher: ``embedding`` (cosine of the instruction
+    #: embeddings) or ``return`` (best zero-shot return on the novel task)
+    closest_by: str = "embedding"
+    #: deterministic evaluation on the training and the novel robots every this many env steps
+    #: (and at step 0 and at the end); 0 = no evaluation curves (no transfer metrics)
+    eval_every: int = 0
+    #: episodes per robot of each of those evaluations
+    eval_episodes: int = 1
+
+    def arm_list(self) -> list[str]:
+        """The arms to run: ``arms``, or the pre-arms default (``divmorph`` [+ ``scratch``])."""
+        if self.arms is not None:
+            return list(self.arms)
+        return ["divmorph", "scratch"] if self.compare_scratch else ["divmorph"]
 
 
 @dataclass
@@ -162,6 +181,27 @@ class HyperDistillConfig:
 
 
 @dataclass
+class GRLConfig:
+    """GRL (Feng et al., 2023) adapted to the Transformer: a population of MetaMorph agents evolved on
+    the training tasks; the inheritable fragment (learngene) is a set of whole layers
+    (see :mod:`sb3_divmorph.pipeline.grl`)."""
+
+    #: agents per generation
+    population: int = 8
+    generations: int = 3
+    #: PPO steps each agent trains (GRL: 50 x 4096)
+    steps_per_agent: int = 50_000
+    #: whole layers in a learngene (GRL: a pair of its 6 layers)
+    learngene_layers: int = 2
+    #: tournament size of parent selection (GRL: 3)
+    tournament: int = 3
+    #: probability that a child's learngene swaps one of its layers for another
+    mutation: float = 0.2
+    #: PPO settings of the agents (updates the training task's zoo entry, like ``teachers.overrides``)
+    overrides: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
 class EvaluateConfig:
     """Per-morphology evaluation."""
 
@@ -193,6 +233,8 @@ class Profile:
     max_episode_steps: int = 1000
     #: the HyperDistill baseline; the pipeline runs it only when the profile has this section
     hyperdistill: HyperDistillConfig | None = None
+    #: GRL's evolution settings (the ``grl`` transfer arm); defaults apply when absent
+    grl: GRLConfig = field(default_factory=GRLConfig)
 
     @classmethod
     def from_dict(cls, name: str, values: dict[str, Any]) -> Profile:
@@ -206,6 +248,10 @@ class Profile:
         }
         values = dict(values)
         parsed = {key: _from_dict(section, values.pop(key, None), f"profile {name!r}, section {key!r}") for key, section in sections.items()}
+        if values.get("grl") is not None:
+            parsed["grl"] = _from_dict(GRLConfig, values.pop("grl"), f"profile {name!r}, section 'grl'")
+        else:
+            values.pop("grl", None)
         if values.get("hyperdistill") is not None:
             parsed["hyperdistill"] = _from_dict(HyperDistillConfig, values.pop("hyperdistill"), f"profile {name!r}, section 'hyperdistill'")
         profile = _from_dict(cls, {**values, **parsed, "name": name}, f"profile {name!r}")
@@ -218,8 +264,11 @@ class Profile:
                 raise ConfigError(f"profile {name!r}: unknown teacher policy {policy!r} in {where}; choose from {list(TEACHER_POLICIES)}")
         if profile.hyperdistill is not None and profile.hyperdistill.loss not in ("nll", "kl"):
             raise ConfigError(f"profile {name!r}: hyperdistill.loss must be 'nll' or 'kl', got {profile.hyperdistill.loss!r}")
-        for section in ("teachers", "transfer"):
+        for section in ("teachers", "transfer", "grl"):
             check_ppo_keys(getattr(profile, section).overrides, f"profile {name!r}, {section}.overrides")
+        check_transfer(profile.transfer, f"profile {name!r}, transfer")
+        if profile.grl.population < 1 or profile.grl.generations < 1 or profile.grl.learngene_layers < 1 or profile.grl.tournament < 1:
+            raise ConfigError(f"profile {name!r}: grl.population, generations, learngene_layers and tournament must be >= 1")
         stray = sorted(set(profile.transfer.instructions) - set(profile.transfer.tasks))
         if stray:
             raise ConfigError(f"profile {name!r}: transfer.instructions for {stray}, which are not in transfer.tasks {profile.transfer.tasks}")
@@ -228,6 +277,36 @@ class Profile:
         if profile.distill.ppo_loss and max(profile.distill.beta_start, profile.distill.beta_end) > 0:
             raise ConfigError(f"profile {name!r}: distill.ppo_loss needs beta_start = beta_end = 0 (mixing is off-policy)")
         return profile
+
+
+def check_arms(arms: list[str], where: str) -> None:
+    """Unknown or repeated arms are an error that lists the valid ones."""
+    from sb3_divmorph.pipeline.arms import ARMS
+
+    unknown = [a for a in arms if a not in ARMS]
+    if unknown:
+        raise ConfigError(f"{where}: unknown arm(s) {unknown}; valid arms: {list(ARMS)}")
+    repeated = sorted({a for a in arms if arms.count(a) > 1})
+    if repeated or not arms:
+        raise ConfigError(f"{where}: arm(s) {repeated or arms} given twice or none given")
+
+
+def check_seeds(seeds: list[int], where: str) -> None:
+    """Seeds must be distinct non-negative integers (a seed given twice would race itself)."""
+    if not seeds or any(not isinstance(s, int) or isinstance(s, bool) or s < 0 for s in seeds):
+        raise ConfigError(f"{where}: seeds must be a non-empty list of integers >= 0, got {seeds}")
+    repeated = sorted({s for s in seeds if seeds.count(s) > 1})
+    if repeated:
+        raise ConfigError(f"{where}: seed(s) {repeated} given twice; each seed is one run folder")
+
+
+def check_transfer(cfg: TransferConfig, where: str) -> None:
+    check_arms(cfg.arm_list(), f"{where}.arms")
+    check_seeds(list(cfg.seeds), f"{where}.seeds")
+    if cfg.closest_by not in ("embedding", "return"):
+        raise ConfigError(f"{where}.closest_by must be 'embedding' or 'return', got {cfg.closest_by!r}")
+    if cfg.eval_every < 0 or cfg.eval_episodes < 1:
+        raise ConfigError(f"{where}: eval_every must be >= 0 and eval_episodes >= 1")
 
 
 def load_profiles(path: str | Path = DEFAULT_PROFILES) -> dict[str, dict[str, Any]]:

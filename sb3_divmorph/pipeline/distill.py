@@ -1,4 +1,5 @@
-"""Stage 2 — diversion: DAgger distillation of the teachers into one DivMorph student.
+"""Stage 2 — diversion: DAgger distillation of the teachers into one DivMorph student (and the students
+of the other transfer arms: the dense MetaMorph⚗ student and the ablated DivMorph students).
 
 The student acts in ``Unimal-MultiTask-v0`` over the training tasks and morphologies (a task is
 drawn per episode), each visited state is labelled by its own task's teacher, and the student
@@ -6,32 +7,94 @@ minimises ``KL(teacher || student)`` (see :mod:`sb3_divmorph.distillation`). Wit
 ``ppo_loss: false`` (default) learning is pure distillation (:class:`ImitationPPO`) and the
 teacher's action is executed with probability beta, annealed from ``beta_start`` to ``beta_end``;
 with ``ppo_loss: true`` the distillation steps run alongside PPO's own update.
+
+Every student (:data:`STUDENTS`) is distilled by the same callback with the same ``distill``
+settings and budget; only its policy differs:
+
+* ``divmorph``: :class:`~sb3_divmorph.policies.DivMorphPolicy` with ``student.policy_kwargs``
+  (folder ``student/``);
+* ``distilled``: a dense :class:`~sb3_divmorph.policies.MetaMorphPolicy` with the teachers'
+  ``policy_kwargs``. MetaMorph has no gates, so nothing in it would tell the five tasks apart: it
+  reads ``task_embedding`` as one more late-fused exteroception input (an MLP of ``d_model`` width
+  whose output is appended to every token, like the height map's), so one network can imitate
+  five teachers and see the novel task's instruction at transfer;
+* ``no-kdiv-transformer`` / ``no-kdiv-decoder`` / ``no-orthogonality``: the DivMorph student with
+  ``divert_transformer`` / ``divert_decoder`` / ``orthogonal`` switched off.
+
+The other students live in ``students/<name>/``.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from stable_baselines3 import PPO
+from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.utils import LinearSchedule
 from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_divmorph.distillation import DAggerCallback, ImitationPPO, TeacherMixingVecEnv
-from sb3_divmorph.pipeline.config import Profile, load_zoo_entry
+from sb3_divmorph.extractors import TASK_EMBEDDING
+from sb3_divmorph.pipeline.config import ConfigError, Profile, load_zoo_entry
 from sb3_divmorph.pipeline.runs import TrainingRun, is_done, make_vec_env, profile_robots, resolve_device
 from sb3_divmorph.pipeline.teachers import load_teachers
-from sb3_divmorph.policies import DivMorphPolicy
+from sb3_divmorph.policies import PRESETS, DivMorphPolicy, MetaMorphPolicy
 from unimal_envs.contract import TASK_NAMES
 
 #: Observation keys the student normalises (masks, context and embeddings must reach it as they are).
 NORM_OBS_KEYS = ["proprioceptive"]
 
 
-def student_folder(out: Path) -> Path:
-    return Path(out) / "student"
+@dataclass(frozen=True)
+class StudentSpec:
+    """A distilled student: its policy and how its ``policy_kwargs`` follow from the profile."""
+
+    name: str
+    policy: type[BasePolicy]
+    policy_kwargs: Callable[[Profile], dict[str, Any]]
+    description: str
 
 
-def distill_run(profile: Profile, out: Path, progress_bar: bool = True) -> TrainingRun:
+def dense_student_kwargs(profile: Profile) -> dict[str, Any]:
+    """The teachers' MetaMorph kwargs, with ``task_embedding`` as one more late-fused input."""
+    kwargs = dict(profile.teachers.policy_kwargs)
+    preset = PRESETS[kwargs.get("preset", "small")]
+    exteroception = dict(kwargs.get("exteroception") or preset["exteroception"])
+    exteroception[TASK_EMBEDDING] = [int(kwargs.get("d_model") or preset["d_model"])]
+    kwargs["exteroception"] = exteroception
+    return kwargs
+
+
+def _ablated(**switch: bool) -> Callable[[Profile], dict[str, Any]]:
+    return lambda profile: {**profile.student.policy_kwargs, **switch}
+
+
+#: Every student the transfer arms start from.
+STUDENTS: dict[str, StudentSpec] = {
+    spec.name: spec
+    for spec in (
+        StudentSpec("divmorph", DivMorphPolicy, lambda profile: dict(profile.student.policy_kwargs), "DivMorph student"),
+        StudentSpec("distilled", MetaMorphPolicy, dense_student_kwargs, "dense MetaMorph student (reads the task embedding)"),
+        StudentSpec("no-kdiv-transformer", DivMorphPolicy, _ablated(divert_transformer=False), "DivMorph student, no diversion in the Transformer"),
+        StudentSpec("no-kdiv-decoder", DivMorphPolicy, _ablated(divert_decoder=False), "DivMorph student, no diversion in the decoder"),
+        StudentSpec("no-orthogonality", DivMorphPolicy, _ablated(orthogonal=False), "DivMorph student, free square factors"),
+    )
+}
+
+
+def student_folder(out: Path, name: str = "divmorph") -> Path:
+    """``student/`` for the DivMorph student, ``students/<name>/`` for the others."""
+    if name not in STUDENTS:
+        raise ConfigError(f"unknown student {name!r}; students: {list(STUDENTS)}")
+    return Path(out) / "student" if name == "divmorph" else Path(out) / "students" / name
+
+
+def distill_run(profile: Profile, out: Path, progress_bar: bool = True, name: str = "divmorph") -> TrainingRun:
+    """The (resumable) DAgger run of student ``name`` (see :data:`STUDENTS`)."""
+    spec = STUDENTS[name]
     cfg = profile.distill
     teachers = load_teachers(profile, out)
     robots = profile_robots(profile, "train")
@@ -42,6 +105,7 @@ def distill_run(profile: Profile, out: Path, progress_bar: bool = True) -> Train
     ppo_kwargs = load_zoo_entry(profile.teachers.hyperparams, "Unimal-FT-v0", profile.teachers.overrides).ppo_kwargs
     ppo_kwargs.update(n_steps=cfg.n_steps, batch_size=cfg.batch_size)
     algo = PPO if cfg.ppo_loss else ImitationPPO
+    policy_kwargs = spec.policy_kwargs(profile)
 
     def make_env():
         venv = make_vec_env(
@@ -52,7 +116,7 @@ def distill_run(profile: Profile, out: Path, progress_bar: bool = True) -> Train
 
     def make_model():
         venv = VecNormalize(make_env(), norm_obs_keys=NORM_OBS_KEYS, norm_reward=False)
-        return algo(DivMorphPolicy, venv, policy_kwargs=dict(profile.student.policy_kwargs), seed=seed, device=device, **ppo_kwargs)
+        return algo(spec.policy, venv, policy_kwargs=dict(policy_kwargs), seed=seed, device=device, **ppo_kwargs)
 
     callback = DAggerCallback(
         teachers,
@@ -66,15 +130,45 @@ def distill_run(profile: Profile, out: Path, progress_bar: bool = True) -> Train
         load_balance=cfg.load_balance,
     )
     return TrainingRun(
-        student_folder(out), cfg.n_timesteps, cfg.checkpoint_every, make_model, make_env,
+        student_folder(out, name), cfg.n_timesteps, cfg.checkpoint_every, make_model, make_env,
         algo=algo, callbacks=[callback], device=device, progress_bar=progress_bar,
     )
 
 
-def distill(profile: Profile, out: Path, progress_bar: bool = True):
-    """Distil the profile's teachers into a DivMorph student (resumes; skips when done)."""
-    if is_done(student_folder(out)):
-        print(f"[distill] skipped, already distilled in {student_folder(out)}")
-        return None
-    print(f"[distill] DAgger into a DivMorph student for {profile.distill.n_timesteps} steps -> {student_folder(out)}")
-    return distill_run(profile, out, progress_bar).run()
+def distill_student(profile: Profile, out: Path, name: str = "divmorph", progress_bar: bool = True) -> Path:
+    """Distil the teachers into student ``name`` (resumes; skips when done); returns its folder."""
+    folder = student_folder(out, name)
+    if is_done(folder):
+        print(f"[distill] {name}: skipped, already distilled in {folder}")
+    else:
+        print(f"[distill] DAgger into the {STUDENTS[name].description} for {profile.distill.n_timesteps} steps -> {folder}")
+        distill_run(profile, out, progress_bar, name).run()
+    return folder
+
+
+def distill(profile: Profile, out: Path, progress_bar: bool = True, students: list[str] | None = None, backend=None) -> list[Path]:
+    """Distil the profile's teachers into the DivMorph student and, by default, into the students
+    the profile's transfer arms need (resumes; skips the ones done).
+
+    :param students: these students instead (names of :data:`STUDENTS`).
+    :param backend: a :mod:`~sb3_divmorph.pipeline.grid` backend (the students are independent runs).
+    :raises FileNotFoundError: the teachers are missing.
+    :raises GridError: some students failed (the others finished).
+    """
+    from sb3_divmorph.pipeline.arms import students_for
+    from sb3_divmorph.pipeline.grid import Job, run_grid
+
+    names = list(dict.fromkeys(students if students is not None else ["divmorph", *students_for(profile.transfer.arm_list())]))
+    unknown = [n for n in names if n not in STUDENTS]
+    if unknown:
+        raise ConfigError(f"unknown student(s) {unknown}; students: {list(STUDENTS)}")
+    jobs = [Job("student", (name,), student_folder(out, name), f"student {name}") for name in names]
+    if not all(is_done(job.folder) for job in jobs):
+        load_teachers(profile, out)  # a missing teacher is an error before anything starts
+    for job in jobs:
+        if is_done(job.folder):
+            print(f"[distill] {job.args[0]}: skipped, already distilled in {job.folder}")
+        else:
+            print(f"[distill] DAgger into the {STUDENTS[job.args[0]].description} for {profile.distill.n_timesteps} steps -> {job.folder}")
+    run_grid(profile, out, jobs, backend, progress_bar).raise_on_failure()
+    return [job.folder for job in jobs]

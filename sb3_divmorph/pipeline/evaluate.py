@@ -3,7 +3,8 @@
 Every model of the run is rolled out deterministically, one env per robot, for ``episodes``
 episodes of at most ``max_episode_steps``: teachers on their task, the student on every training
 task and (zero-shot) on the transfer tasks, transferred and from-scratch policies on their novel
-task. Rows go to ``evaluate/returns.csv``. The student's gates for all ten task instructions and for
+task (every seed's run), and the HyperDistill student (when the baseline ran) on the training tasks.
+Rows go to ``evaluate/returns.csv``. The student's gates for all ten task instructions and for
 every evaluated robot go to ``evaluate/gates.npz`` (for the correlation heatmaps of the report).
 """
 
@@ -14,10 +15,9 @@ import io
 from pathlib import Path
 from typing import Any
 
-import gymnasium as gym
 import numpy as np
 from stable_baselines3 import PPO
-from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor, VecNormalize
+from stable_baselines3.common.vec_env import VecNormalize
 from tqdm import tqdm
 
 from sb3_divmorph.distillation import load_normalizer
@@ -34,36 +34,29 @@ from sb3_divmorph.pipeline.runs import (
     task_env_name,
 )
 from sb3_divmorph.pipeline.teachers import teacher_folder
-from sb3_divmorph.pipeline.transfer import ARMS, robot_observations, transfer_folder
+from sb3_divmorph.pipeline.arms import ARMS
+from sb3_divmorph.pipeline.curves import robot_venv, rollout_returns
+from sb3_divmorph.pipeline.transfer import robot_observations, transfer_folder
 from unimal_envs.contract import TASK_NAMES
 from unimal_envs.instructions import shipped_embeddings
 
 COLUMNS = ["model", "task", "split", "morphology", "episode", "return", "length"]
 
 
-def evaluate_model(folder: Path, task: str, robots: list[Path], episodes: int, max_steps: int, seed: int) -> list[dict[str, Any]]:
-    """Deterministic returns of the model saved in ``folder`` on each robot doing ``task``."""
-    venv = VecMonitor(DummyVecEnv([
-        (lambda robot=robot: gym.make(task_env_name(task), morphologies=[robot], max_episode_steps=max_steps)) for robot in robots
-    ]))
-    venv.seed(seed)
+def evaluate_model(folder: Path, task: str, robots: list[Path], episodes: int, max_steps: int, seed: int,
+                   instruction: str | None = None) -> list[dict[str, Any]]:
+    """Deterministic returns of the model saved in ``folder`` on each robot doing ``task``.
+
+    :param instruction: the task's instruction in other words (default: the built-in one).
+    """
+    venv = robot_venv(task_env_name(task), robots, max_steps, seed, **({"instruction": instruction} if instruction else {}))
     if (folder / NORMALIZER).is_file():
         venv = VecNormalize.load(str(folder / NORMALIZER), venv)
         venv.training, venv.norm_reward = False, False
     model = PPO.load(folder / MODEL, device="cpu")
-    rows: list[dict[str, Any]] = []
-    finished = np.zeros(len(robots), dtype=int)
-    obs = venv.reset()
-    while (finished < episodes).any():
-        actions, _ = model.predict(obs, deterministic=True)
-        obs, _, dones, infos = venv.step(actions)
-        for i in np.flatnonzero(dones):
-            if finished[i] < episodes:
-                rows.append(dict(morphology=robots[i].stem, episode=int(finished[i]), **{
-                    "return": float(infos[i]["episode"]["r"]), "length": int(infos[i]["episode"]["l"])}))
-                finished[i] += 1
+    rows = rollout_returns(model, venv, robots, episodes)
     venv.close()
-    return rows
+    return [{"morphology": row.pop("robot"), **row} for row in rows]
 
 
 def evaluation_plan(profile: Profile, out: Path) -> list[tuple[str, Path, str]]:
@@ -72,10 +65,14 @@ def evaluation_plan(profile: Profile, out: Path) -> list[tuple[str, Path, str]]:
     plan = [("teacher", teacher_folder(out, t), t) for t in profile.teachers.tasks if is_done(teacher_folder(out, t))]
     if is_done(student_folder(out)):
         plan += [("student", student_folder(out), t) for t in (*profile.teachers.tasks, *profile.transfer.tasks)]
+    hyperdistill_student = out / "hyperdistill" / "student"
+    if is_done(hyperdistill_student):
+        plan += [("hyperdistill", hyperdistill_student, t) for t in profile.teachers.tasks]
     for task in profile.transfer.tasks:
         for arm in ARMS:
-            if is_done(transfer_folder(out, task, arm)):
-                plan.append((f"transfer-{arm}", transfer_folder(out, task, arm), task))
+            for seed in profile.transfer.seeds:
+                if is_done(transfer_folder(out, task, arm, seed)):
+                    plan.append((f"transfer-{arm}", transfer_folder(out, task, arm, seed), task))
     return plan
 
 

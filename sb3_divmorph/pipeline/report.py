@@ -2,7 +2,9 @@
 
 Reads what the other stages wrote into the run folder (``logs/run-*/progress.csv`` of every
 training run, ``evaluate/returns.csv`` and ``gates.npz``, ``export/*/report.json``) and writes
-``report/curves.png``, ``report/gates.png``, ``report/returns.png`` and ``summary.md``.
+``report/curves.png``, ``report/gates.png``, ``report/returns.png``, the paper's figures
+(``report/figures/*.png`` + ``.csv``, :mod:`sb3_divmorph.pipeline.figures`), the transfer metrics
+(``transfer/<task>/metrics.csv``) and ``summary.md``.
 """
 
 from __future__ import annotations
@@ -20,23 +22,12 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from sb3_divmorph.pipeline.arms import ARMS  # noqa: E402
 from sb3_divmorph.pipeline.config import Profile  # noqa: E402
-from sb3_divmorph.pipeline.runs import atomic_save, atomic_write_text  # noqa: E402
-
-
-def read_progress(folder: Path) -> dict[str, np.ndarray]:
-    """All ``progress.csv`` rows of a training run (resumed attempts concatenated), by column."""
-    rows: list[dict[str, str]] = []
-    for log in sorted((folder / "logs").glob("run-*/progress.csv"), key=lambda p: int(p.parent.name.split("-")[1])):
-        with open(log) as f:
-            rows += list(csv.DictReader(f))
-    columns: dict[str, list[float]] = defaultdict(list)
-    keys = {k for row in rows for k in row}
-    for row in rows:
-        for key in keys:
-            value = row.get(key, "")
-            columns[key].append(float(value) if value not in ("", None) else np.nan)
-    return {k: np.asarray(v) for k, v in columns.items()}
+from sb3_divmorph.pipeline.distill import STUDENTS  # noqa: E402
+from sb3_divmorph.pipeline.figures import make_figures, metrics_table, write_metrics  # noqa: E402
+from sb3_divmorph.pipeline.runs import atomic_save, atomic_write_text, read_progress  # noqa: E402
+from sb3_divmorph.pipeline.transfer import transfer_folder  # noqa: E402
 
 
 def _curve(ax, progress: dict[str, np.ndarray], key: str, label: str) -> bool:
@@ -63,9 +54,10 @@ def plot_curves(profile: Profile, out: Path, target: Path) -> None:
     axes[1].set_yscale("log")
     axes[1].set_title("distillation: KL(teacher || student)")
     for ax, task in zip(axes[2:], tasks):
-        for arm, label in (("divmorph", "DivMorph transfer"), ("scratch", "MetaMorph from scratch")):
-            _curve(ax, read_progress(out / "transfer" / task / arm), "rollout/ep_rew_mean", label)
-        ax.set_title(f"transfer to {task}: episode return")
+        seed = profile.transfer.seeds[0]
+        for arm in profile.transfer.arm_list():
+            _curve(ax, read_progress(transfer_folder(out, task, arm, seed)), "rollout/ep_rew_mean", ARMS[arm].label)
+        ax.set_title(f"transfer to {task}: training-episode return (seed {seed})")
     for ax in axes:
         ax.set_xlabel("env steps")
         if ax.lines:
@@ -158,6 +150,9 @@ def report(profile: Profile, out: Path, command: str = "") -> str:
         f"- robots: first {profile.train_robots or 'all'} of `{profile.train_set}`, first {profile.novel_robots or 'all'} "
         f"of `{profile.novel_set}` (never a training robot); "
         f"episodes of at most {profile.max_episode_steps} steps",
+        f"- transfer: tasks {profile.transfer.tasks}, arms {profile.transfer.arm_list()}, seeds {profile.transfer.seeds}, "
+        f"{profile.transfer.n_timesteps} env steps per run; teachers {profile.teachers.n_timesteps}, "
+        f"distillation {profile.distill.n_timesteps} env steps",
         "",
         "## Stages",
         "",
@@ -167,24 +162,39 @@ def report(profile: Profile, out: Path, command: str = "") -> str:
     for task in profile.teachers.tasks:
         lines.append(f"| teacher {task} (MetaMorph, PPO) | `teachers/{task}/model.zip` | {_fmt_steps(read_progress(out / 'teachers' / task))} |")
     lines.append(f"| DAgger distillation (DivMorph student) | `student/model.zip` | {_fmt_steps(read_progress(out / 'student'))} |")
+    for name in STUDENTS:
+        if name != "divmorph" and (out / "students" / name / "done.json").is_file():
+            lines.append(f"| DAgger distillation ({STUDENTS[name].description}) | `students/{name}/model.zip` | "
+                         f"{_fmt_steps(read_progress(out / 'students' / name))} |")
+    if (out / "grl" / "done.json").is_file():
+        learngene = json.loads((out / "grl" / "learngene.json").read_text())
+        lines.append(f"| GRL evolution ({profile.grl.generations} generations x {profile.grl.population} agents x "
+                     f"{profile.grl.steps_per_agent} steps); learngene {'+'.join(learngene['units'])} | `grl/learngene.json` | "
+                     f"{profile.grl.generations * profile.grl.population * profile.grl.steps_per_agent} |")
     for task in profile.transfer.tasks:
-        for arm in ("divmorph", "scratch"):
-            if (out / "transfer" / task / arm / "done.json").is_file():
-                lines.append(f"| transfer {task} ({arm}) | `transfer/{task}/{arm}/model.zip` | {_fmt_steps(read_progress(out / 'transfer' / task / arm))} |")
+        for arm in ARMS:
+            for seed in profile.transfer.seeds:
+                run = transfer_folder(out, task, arm, seed)
+                if (run / "done.json").is_file():
+                    lines.append(f"| transfer {task} ({arm}, seed {seed}) | `{run.relative_to(out)}/model.zip` | {_fmt_steps(read_progress(run))} |")
 
     plot_curves(profile, out, folder / "curves.png")
     lines += ["", "## Learning curves", "", "![curves](report/curves.png)", ""]
-    for task in profile.transfer.tasks:
-        finals = {}
-        for arm in ("divmorph", "scratch"):
-            progress = read_progress(out / "transfer" / task / arm)
-            values = progress.get("rollout/ep_rew_mean", np.array([]))
-            values = values[np.isfinite(values)]
-            if len(values):
-                finals[arm] = (values[-1], values.mean())
-        if finals:
-            cells = ", ".join(f"{arm}: last {v[0]:.1f}, mean over training {v[1]:.1f}" for arm, v in finals.items())
-            lines.append(f"- transfer to {task} (training-episode return): {cells}")
+    metrics = [m for task in profile.transfer.tasks for m in write_metrics(profile, out, task)]
+    if metrics:
+        closest = [json.loads(p.read_text()) for p in sorted((out / "transfer").glob("*/closest-by-*.json"))]
+        lines += ["## Transfer metrics", "",
+                  f"Deterministic evaluations every {profile.transfer.eval_every} env steps on the training and the novel robots "
+                  f"({profile.transfer.eval_episodes} episode(s) per robot); mean ± sd over seeds. AUC: area under the curve / "
+                  "steps (the mean return over training). Sample efficiency: env steps scratch needs to reach its own final return "
+                  "(mean of its last 10% of training) / steps the arm needs to reach it (>budget: never).", "",
+                  *metrics_table(metrics), ""]
+        lines += [f"- closest training task to {c['task']} by {c['criterion']}: {c['closest']} "
+                  f"({', '.join(f'{t} {v:.3f}' for t, v in c['scores'].items())})" for c in closest]
+    figures = make_figures(profile, out)
+    if figures:
+        lines += ["", "## Figures", "", *[f"- {name}: `{path.relative_to(out)}` (numbers: `{path.with_suffix('.csv').relative_to(out)}`)"
+                                          for name, path in figures.items()], ""]
 
     returns_file = out / "evaluate" / "returns.csv"
     if returns_file.is_file():

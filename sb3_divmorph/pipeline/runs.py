@@ -9,12 +9,14 @@ complete checkpoint and loses at most one interval.
 
 from __future__ import annotations
 
+import csv
 import hashlib
 import json
 import os
 import shutil
 import tempfile
 import time
+from collections import defaultdict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -296,3 +298,18 @@ def seed_everything(seed: int, threads: int) -> None:
     th.set_num_threads(max(1, threads))
     np.random.seed(seed)
     th.manual_seed(seed)
+
+
+def read_progress(folder: Path) -> dict[str, np.ndarray]:
+    """All ``progress.csv`` rows of a training run (resumed attempts concatenated), by column."""
+    rows: list[dict[str, str]] = []
+    for log in sorted((folder / "logs").glob("run-*/progress.csv"), key=lambda p: int(p.parent.name.split("-")[1])):
+        with open(log) as f:
+            rows += list(csv.DictReader(f))
+    columns: dict[str, list[float]] = defaultdict(list)
+    keys = {k for row in rows for k in row}
+    for row in rows:
+        for key in keys:
+            value = row.get(key, "")
+            columns[key].append(float(value) if value not in ("", None) else np.nan)
+    return {k: np.asarray(v) for k, v in columns.items()}

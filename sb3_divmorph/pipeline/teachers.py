@@ -77,19 +77,34 @@ def teacher_run(
 
 
 def train_teachers(
-    profile: Profile, out: Path, tasks: list[str] | None = None, progress_bar: bool = True, policy: str | None = None, root: str = "teachers"
+    profile: Profile, out: Path, tasks: list[str] | None = None, progress_bar: bool = True, policy: str | None = None,
+    root: str = "teachers", backend=None,
 ) -> list[Path]:
     """Train (or resume, or skip when done) the teachers of ``tasks`` (default: the profile's).
 
     :param policy: train teachers of this policy instead of the profile's (into ``root``).
     :param root: their folder inside the run.
+    :param backend: a :mod:`~sb3_divmorph.pipeline.grid` backend for the run's own teachers (default: local).
+    :raises GridError: some teachers failed (the others finished).
     """
-    done = []
-    tasks = tasks or profile.teachers.tasks
+    from sb3_divmorph.pipeline.grid import Job, run_grid
+
+    tasks = list(tasks or profile.teachers.tasks)
     # every name is checked before the first one is announced and trained
     unknown = [task for task in tasks if task not in profile.teachers.tasks]
     if unknown:
         raise ConfigError(f"task(s) {unknown} have no teacher in profile {profile.name!r}: {profile.teachers.tasks}")
+    if policy is None and root == "teachers":
+        # the run's own teachers: independent jobs of a grid (in this process, or on Ray)
+        jobs = [Job("teacher", (task,), teacher_folder(out, task), f"teacher {task}") for task in tasks]
+        for job in jobs:
+            if is_done(job.folder):
+                print(f"[teachers] {job.args[0]}: skipped, already trained in {job.folder}")
+            else:
+                print(f"[teachers] {job.args[0]}: {teacher_policy(profile, job.args[0])} PPO for {profile.teachers.n_timesteps} steps -> {job.folder}")
+        run_grid(profile, out, jobs, backend, progress_bar).raise_on_failure()
+        return [job.folder for job in jobs]
+    done = []
     for task in tasks:
         folder = teacher_folder(out, task, root)
         if is_done(folder):

@@ -1,18 +1,26 @@
-"""Stage 3 — transfer to a novel task: the student with fixed gates vs MetaMorph from scratch.
+"""Stage 3 — transfer to a novel task: the arms of :mod:`sb3_divmorph.pipeline.arms`, raced on one budget.
 
-The student's weights and observation statistics are loaded into a PPO run on the novel task
-(``Unimal-<task>-v0`` on the training robots); its gates see the embedding of the task's
+Folders: ``transfer/<task>/<arm>/seed-<s>/`` (one resumable run each; with ``transfer.eval_every``
+an ``eval.csv`` of deterministic returns on the training and novel robots, see
+:mod:`sb3_divmorph.pipeline.curves`), and the metrics of every arm in ``transfer/<task>/metrics.csv``.
+
+Every arm trains with the novel task's rl-zoo settings on the training robots (``Unimal-<task>-v0``).
+Arms that start from a trained model (student, teacher, GRL agent) take its weights and
+observation statistics; reward statistics start afresh for the new task. In the DivMorph arm
+(and the ablations, transferred the same way) the gates see the embedding of the task's
 instruction (the built-in one, or ``transfer.instructions[task]`` of the profile, embedded by the
-text encoder) and stay fixed; PPO trains the tailors those gates select and, ``learngene_lr_scale`` times slower, the
-shared knowledge (:func:`sb3_divmorph.finetune.prepare_transfer`). With ``compare_scratch`` the same
-budget trains a MetaMorph policy from scratch with the task's rl-zoo settings, so both learning
-curves come from one command.
+text encoder) and stay fixed; PPO trains the tailors those gates select and, ``learngene_lr_scale``
+times slower, the shared knowledge (:func:`sb3_divmorph.finetune.prepare_transfer`). A part an
+ablation does not divert has no tailors: all its units are learngenes and train at the slow rate.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import json
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch as th
@@ -21,12 +29,16 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_divmorph.finetune import UnitLearningRates, UnitSelection, prepare_transfer
-from sb3_divmorph.pipeline.config import ConfigError, Profile, load_zoo_entry
+from sb3_divmorph.pipeline.arms import ARMS
+from sb3_divmorph.pipeline.config import ConfigError, Profile, check_arms, check_seeds, load_zoo_entry
+from sb3_divmorph.pipeline.curves import EVAL_FILE, EvalCurveCallback
 from sb3_divmorph.pipeline.distill import student_folder
+from sb3_divmorph.pipeline.grid import GridReport, Job, run_grid
+from sb3_divmorph.pipeline.grl import grl_policy_kwargs, inherit, inherited_normalizer, read_learngene
 from sb3_divmorph.pipeline.runs import (
     MODEL,
-    NORMALIZER,
     TrainingRun,
+    atomic_write_json,
     is_done,
     make_vec_env,
     normalizer_for,
@@ -34,14 +46,20 @@ from sb3_divmorph.pipeline.runs import (
     resolve_device,
     task_env_name,
 )
+from sb3_divmorph.pipeline.teachers import teacher_folder
 from sb3_divmorph.policies import DivMorphPolicy
 from unimal_envs.contract import NOVEL_TASKS, TASK_NAMES
+from unimal_envs.instructions import INSTRUCTIONS, embed_instruction, shipped_embeddings
 
-ARMS = ("divmorph", "scratch")
 
 
-def transfer_folder(out: Path, task: str, arm: str) -> Path:
-    return Path(out) / "transfer" / task / arm
+def transfer_folder(out: Path, task: str, arm: str, seed: int = 0) -> Path:
+    """``transfer/<task>/<arm>/seed-<seed>/``; a run begun before seeds existed (in the arm's folder
+    itself) stays seed 0, so an older run folder resumes rather than starting again."""
+    base = Path(out) / "transfer" / task / arm
+    if seed == 0 and ((base / "done.json").is_file() or (base / "checkpoints").is_dir()):
+        return base
+    return base / f"seed-{seed}"
 
 
 def robot_observations(env_name: str, robots: list[Path], seed: int = 0, instruction: str | None = None) -> dict[str, np.ndarray]:
@@ -87,52 +105,185 @@ class UpdateRatioLogger(BaseCallback):
                 self.logger.record("transfer/update_selected_tailor", means["selected_tailor"])
 
 
-def transfer_run(profile: Profile, out: Path, task: str, arm: str, progress_bar: bool = True) -> TrainingRun:
+def closest_file(out: Path, task: str, by: str) -> Path:
+    return Path(out) / "transfer" / task / f"closest-by-{by}.json"
+
+
+def closest_task(profile: Profile, out: Path, task: str, by: str | None = None) -> dict[str, Any]:
+    """The training task whose teacher the ``closest`` arm (MetaMorph→) starts from, and why.
+
+    ``by="embedding"``: the largest cosine between the novel task's instruction embedding (its
+    ``transfer.instructions`` text if given) and each training task's; ``by="return"``: the
+    teacher with the best zero-shot return on the novel task (deterministic, training robots,
+    ``transfer.eval_episodes`` episodes). The choice is written to ``transfer/<task>/closest-by-<by>.json``
+    once, so every seed and every later call uses the same teacher.
+
+    :param task: the novel task.
+    :param by: ``embedding`` or ``return`` (default: ``transfer.closest_by``).
+    :return: ``{"task", "closest", "by", "criterion", "scores": {training task: score}}``.
+    """
+    by = by or profile.transfer.closest_by
+    path = closest_file(out, task, by)
+    if path.is_file():
+        return json.loads(path.read_text())
+    teachers = list(profile.teachers.tasks)
+    if by == "embedding":
+        target = embed_instruction(profile.transfer.instructions.get(task, INSTRUCTIONS[task]))
+        embeddings = shipped_embeddings()
+        scores = {t: float(np.dot(target, embeddings[t]) / (np.linalg.norm(target) * np.linalg.norm(embeddings[t]))) for t in teachers}
+        what = "cosine of the instruction embeddings"
+    elif by == "return":
+        from sb3_divmorph.pipeline.evaluate import evaluate_model
+
+        robots = profile_robots(profile, "train")
+        scores = {}
+        for t in teachers:
+            rows = evaluate_model(teacher_folder(out, t), task, robots, profile.transfer.eval_episodes, profile.max_episode_steps,
+                                  profile.seed, instruction=profile.transfer.instructions.get(task))
+            scores[t] = float(np.mean([r["return"] for r in rows]))
+        what = "zero-shot return of the teacher on the novel task"
+    else:
+        raise ConfigError(f"closest_by must be 'embedding' or 'return', got {by!r}")
+    chosen = max(teachers, key=lambda t: scores[t])
+    choice = {"task": task, "closest": chosen, "by": by, "criterion": what, "scores": scores}
+    atomic_write_json(path, choice)
+    return choice
+
+
+def describe_closest(choice: dict[str, Any]) -> str:
+    """Which teacher the ``closest`` arm starts from, and why, in one line."""
+    scores = choice["scores"]
+    ranked = ", ".join(f"{t} {scores[t]:.3f}" for t in sorted(scores, key=scores.get, reverse=True))
+    return f"{choice['task']}: closest training task {choice['closest']} by {choice['criterion']} ({ranked})"
+
+
+def arm_source(profile: Profile, out: Path, task: str, arm: str) -> Path | None:
+    """The folder an arm starts from (``None``: random init), checked to exist.
+
+    :raises FileNotFoundError: its prerequisite stage has not run; the message names the command.
+    """
+    spec = ARMS[arm]
+    out = Path(out)
+    if spec.student is not None:
+        folder = student_folder(out, spec.student)
+        if not is_done(folder):
+            raise FileNotFoundError(f"no distilled student for arm {arm!r} in {folder}; "
+                                    f"run `divmorph distill --out {out} --arms {arm}` first")
+        return folder
+    if arm == "closest":
+        missing = [t for t in profile.teachers.tasks if not is_done(teacher_folder(out, t))]
+        if missing:
+            raise FileNotFoundError(f"arm 'closest' needs the teachers; {missing} not found in {out / 'teachers'}: "
+                                    f"run `divmorph teachers --out {out}` first")
+        return teacher_folder(out, closest_task(profile, out, task)["closest"])
+    if arm == "grl":
+        return out / read_learngene(out)["folder"]
+    return None
+
+
+def check_arm_prerequisites(profile: Profile, out: Path, tasks: list[str], arms: list[str], seeds: list[int] = (0,)) -> None:
+    """Before any run starts: every arm's prerequisite exists, the ``closest`` choices are made (and
+    printed), and no existing run folder was begun from another source."""
+    for task in tasks:
+        if task not in NOVEL_TASKS:
+            raise ConfigError(f"transfer targets a novel task; {task!r} is not one of {list(NOVEL_TASKS)}")
+        for arm in arms:
+            source = arm_source(profile, out, task, arm)
+            if arm == "closest":
+                print(f"[transfer] {describe_closest(closest_task(profile, out, task))}")
+            for seed in seeds:
+                _check_source(transfer_folder(out, task, arm, seed), _source_record(out, arm, seed, source), write=False)
+
+
+def _source_record(out: Path, arm: str, seed: int, source: Path | None) -> dict[str, Any]:
+    return {"arm": arm, "seed": seed, "source": None if source is None else str(Path(source).relative_to(out))}
+
+
+def _check_source(folder: Path, source: dict[str, Any], write: bool = True) -> None:
+    """Remember what a run started from; a run folder begun from something else is refused (not overwritten)."""
+    path = folder / "source.json"
+    if path.is_file():
+        recorded = json.loads(path.read_text())
+        if recorded != source:
+            raise ConfigError(f"{folder} was started from {recorded['source']}, not {source['source']}; "
+                              "use another --out (or delete that folder) to start it again")
+    elif write:
+        atomic_write_json(path, source)
+
+
+def transfer_seed(profile: Profile, task: str, seed: int) -> int:
+    """PPO seed of one run (seed 0 is the pre-arms seed, so older runs stay comparable)."""
+    return profile.seed + 7000 + TASK_NAMES.index(task) + 100 * seed
+
+
+def transfer_run(profile: Profile, out: Path, task: str, arm: str, seed: int = 0, progress_bar: bool = True) -> TrainingRun:
+    """The (resumable) PPO run of one arm and seed on a novel task (see :mod:`sb3_divmorph.pipeline.arms`).
+
+    :param task: a novel task.
+    :param arm: a name of :data:`~sb3_divmorph.pipeline.arms.ARMS`.
+    :param seed: offsets the PPO seed (the robots, budget and evaluation are the same for every seed).
+    :raises ConfigError: not a novel task, unknown arm, or the run folder was begun from another source.
+    :raises FileNotFoundError: the arm's prerequisite stage has not run.
+    """
     if task not in NOVEL_TASKS:
         raise ConfigError(f"transfer targets a novel task; {task!r} is not one of {list(NOVEL_TASKS)}")
-    if arm not in ARMS:
-        raise ConfigError(f"unknown transfer arm {arm!r}; choose from {ARMS}")
+    check_arms([arm], "transfer")
     cfg = profile.transfer
+    out = Path(out)
     env_name = task_env_name(task)
     entry = load_zoo_entry(profile.teachers.hyperparams, env_name, cfg.overrides)
     robots = profile_robots(profile, "train")
     device = resolve_device(profile.device)
-    seed = profile.seed + 7000 + TASK_NAMES.index(task)
+    run_seed = transfer_seed(profile, task, seed)
     gamma = entry.ppo_kwargs.get("gamma", 0.99)
     env_kwargs = {"morphologies": robots}
     if task in cfg.instructions:
         env_kwargs["instruction"] = cfg.instructions[task]
+    folder = transfer_folder(out, task, arm, seed)
+    spec = ARMS[arm]
+    source = arm_source(profile, out, task, arm)
 
     def make_env():
-        return make_vec_env(env_name, entry.n_envs, seed, profile.max_episode_steps, **env_kwargs)
+        return make_vec_env(env_name, entry.n_envs, run_seed, profile.max_episode_steps, **env_kwargs)
 
     prepare = None
     callbacks: list[BaseCallback] = []
-    if arm == "scratch":
+    if cfg.eval_every > 0:
+        splits = {"train": robots, "novel": profile_robots(profile, "novel")}
+        callbacks.append(EvalCurveCallback(folder / EVAL_FILE, env_name, splits, cfg.eval_every, cfg.eval_episodes,
+                                           profile.max_episode_steps, profile.seed,
+                                           **({"instruction": cfg.instructions[task]} if task in cfg.instructions else {})))
+    if source is None:
+        # scratch and modumorph: the policy from random init, sized like the teachers
+        policy = "ModuMorphPolicy" if arm == "modumorph" else "MetaMorphPolicy"
         policy_kwargs = {**entry.policy_kwargs, **profile.teachers.policy_kwargs}
 
         def make_model():
             venv = normalizer_for(make_env(), entry.normalize, gamma)
-            return PPO("MetaMorphPolicy", venv, policy_kwargs=policy_kwargs, seed=seed, device=device, **entry.ppo_kwargs)
+            return PPO(policy, venv, policy_kwargs=policy_kwargs, seed=run_seed, device=device, **entry.ppo_kwargs)
 
-    else:
-        source = student_folder(out)
-        if not is_done(source):
-            raise FileNotFoundError(f"no distilled student in {source}; run `divmorph distill --out {out}` first")
-        selection_obs = robot_observations(env_name, robots, seed, env_kwargs.get("instruction"))
+    elif arm == "grl":
+        learngene = read_learngene(out)
 
         def make_model():
-            student = PPO.load(source / MODEL, device=device)
-            venv = make_env()
-            if (source / NORMALIZER).is_file():
-                # the student's statistics as a start; the reward statistics start afresh for the new task
-                venv = VecNormalize.load(str(source / NORMALIZER), venv)
-                venv.training, venv.norm_reward = True, True
-                venv.gamma = gamma
-            model = PPO(DivMorphPolicy, venv, policy_kwargs=student.policy_kwargs, seed=seed, device=device, **entry.ppo_kwargs)
-            model.policy.load_state_dict(student.policy.state_dict())
+            # a new MetaMorph; only the learngene's layers (and the observation statistics they were trained with) inherited
+            venv = inherited_normalizer(source, make_env(), gamma)
+            model = PPO("MetaMorphPolicy", venv, policy_kwargs=grl_policy_kwargs(profile), seed=run_seed, device=device, **entry.ppo_kwargs)
+            inherit(model.policy, PPO.load(source / MODEL, device=device).policy, learngene["units"])
             return model
 
+    else:
+
+        def make_model():
+            # the source's weights and observation statistics; reward statistics start afresh for the new task
+            saved = PPO.load(source / MODEL, device=device)
+            venv = inherited_normalizer(source, make_env(), gamma)
+            model = PPO(type(saved.policy), venv, policy_kwargs=saved.policy_kwargs, seed=run_seed, device=device, **entry.ppo_kwargs)
+            model.policy.load_state_dict(saved.policy.state_dict())
+            return model
+
+    if spec.divmorph_transfer:
+        selection_obs = robot_observations(env_name, robots, run_seed, env_kwargs.get("instruction"))
         installed: dict[str, UnitLearningRates] = {}
 
         def prepare(model):
@@ -143,25 +294,71 @@ def transfer_run(profile: Profile, out: Path, task: str, arm: str, progress_bar:
 
         callbacks.append(UpdateRatioLogger(lambda: installed.get("rates")))
 
+    _check_source(folder, _source_record(out, arm, seed, source))
     return TrainingRun(
-        transfer_folder(out, task, arm), cfg.n_timesteps, cfg.checkpoint_every, make_model, make_env,
+        folder, cfg.n_timesteps, cfg.checkpoint_every, make_model, make_env,
         prepare=prepare, callbacks=callbacks, device=device, progress_bar=progress_bar,
     )
 
 
-def transfer(profile: Profile, out: Path, tasks: list[str] | None = None, compare_scratch: bool | None = None, progress_bar: bool = True):
-    """Transfer the student to ``tasks`` (default: the profile's) and, if asked, train MetaMorph from scratch."""
-    compare = profile.transfer.compare_scratch if compare_scratch is None else compare_scratch
-    tasks = tasks or profile.transfer.tasks
+def transfer_jobs(profile: Profile, out: Path, tasks: list[str], arms: list[str], seeds: list[int]) -> list[Job]:
+    """Arms x tasks x seeds as grid jobs."""
+    return [Job("transfer", (task, arm, seed), transfer_folder(out, task, arm, seed), f"transfer {task} {arm} seed {seed}")
+            for task in tasks for arm in arms for seed in seeds]
+
+
+def transfer(
+    profile: Profile,
+    out: Path,
+    tasks: list[str] | None = None,
+    compare_scratch: bool | None = None,
+    progress_bar: bool = True,
+    arms: list[str] | None = None,
+    seeds: list[int] | None = None,
+    backend=None,
+    closest_by: str | None = None,
+) -> GridReport:
+    """Race the arms on the novel tasks: every arm x task x seed is one resumable run (finished ones are skipped).
+
+    :param tasks: novel tasks (default: the profile's).
+    :param compare_scratch: ``False`` drops ``scratch`` from the default arms (pre-arms option).
+    :param arms: arms to run (default: ``transfer.arms``); see :data:`~sb3_divmorph.pipeline.arms.ARMS`.
+    :param seeds: seeds (default: ``transfer.seeds``).
+    :param backend: a :mod:`~sb3_divmorph.pipeline.grid` backend (default: local, in this process).
+    :param closest_by: ``embedding`` or ``return`` for the ``closest`` arm (default: ``transfer.closest_by``).
+    :raises ConfigError: unknown arm or task, seeds given twice.
+    :raises FileNotFoundError: an arm's prerequisite stage has not run.
+    :raises GridError: some runs failed (the others finished).
+    """
+    cfg = profile.transfer
+    if closest_by is not None:
+        profile = dataclasses.replace(profile, transfer=dataclasses.replace(cfg, closest_by=closest_by))
+        cfg = profile.transfer
+    tasks = list(tasks or cfg.tasks)
+    if arms is None:
+        arms = cfg.arm_list()
+        if compare_scratch is False and "scratch" in arms:
+            arms.remove("scratch")
+    seeds = list(cfg.seeds if seeds is None else seeds)
     # every name is checked before the first one is announced and trained
     unknown = [task for task in tasks if task not in NOVEL_TASKS]
     if unknown:
         raise ConfigError(f"transfer targets a novel task; {unknown} not one of {list(NOVEL_TASKS)}")
-    for task in tasks:
-        for arm in ARMS if compare else ARMS[:1]:
-            folder = transfer_folder(out, task, arm)
-            if is_done(folder):
-                print(f"[transfer] {task} ({arm}): skipped, already trained in {folder}")
-            else:
-                print(f"[transfer] {task} ({arm}): PPO for {profile.transfer.n_timesteps} steps -> {folder}")
-                transfer_run(profile, out, task, arm, progress_bar).run()
+    check_arms(list(arms), "--arms")
+    check_seeds(seeds, "--seeds")
+    check_arm_prerequisites(profile, out, tasks, arms, seeds)
+    jobs = transfer_jobs(profile, out, tasks, arms, seeds)
+    for job in jobs:
+        task, arm, seed = job.args
+        if is_done(job.folder):
+            print(f"[transfer] {task} ({arm}) seed {seed}: skipped, already trained in {job.folder}")
+        else:
+            print(f"[transfer] {task} ({arm}) seed {seed}: PPO for {cfg.n_timesteps} steps -> {job.folder}")
+    report = run_grid(profile, out, jobs, backend, progress_bar)
+    report.raise_on_failure()
+    if cfg.eval_every > 0:
+        from sb3_divmorph.pipeline.figures import write_metrics
+
+        for task in tasks:
+            write_metrics(profile, out, task)
+    return report

@@ -1,0 +1,77 @@
+"""The transfer arms: the ways a researcher could start on a novel task, raced on one budget.
+
+Every arm trains with PPO on the novel task, on the profile's training robots, with the novel
+task's rl-zoo settings (``transfer.overrides``), for ``transfer.n_timesteps`` steps, and is
+evaluated the same way (:mod:`sb3_divmorph.pipeline.curves`). They differ in where they start:
+
+========================  ==========================================================================
+arm                       start
+========================  ==========================================================================
+``divmorph``              the distilled DivMorph student; gates fixed, selected tailors trained,
+                          learngenes ``learngene_lr_scale`` times slower
+``scratch``               MetaMorph, random init
+``closest``               (MetaMorph→) the teacher of the most similar training task, fully fine-tuned
+``distilled``             (MetaMorph⚗) a dense MetaMorph student distilled from all teachers (it
+                          reads the task embedding through one more late-fused encoder), fully
+                          fine-tuned
+``modumorph``             ModuMorph, random init
+``grl``                   MetaMorph with GRL's best evolved learngene (whole layers) inherited
+``no-kdiv-transformer``   a DivMorph student distilled without diversion in the Transformer,
+                          transferred the DivMorph way
+``no-kdiv-decoder``       likewise without diversion in the decoder
+``no-orthogonality``      likewise with free (not Cayley-orthogonal) square factors
+========================  ==========================================================================
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Arm:
+    """One transfer arm.
+
+    :param name: the name on the command line and in folders.
+    :param label: the name in plots and tables.
+    :param student: the distilled student it starts from (a key of
+        :data:`sb3_divmorph.pipeline.distill.STUDENTS`), or ``None``.
+    :param divmorph_transfer: transferred the DivMorph way (fixed gates, per-unit learning rates).
+    :param ablation: one of the paper's ablations (plotted in the ablation figure).
+    """
+
+    name: str
+    label: str
+    student: str | None = None
+    divmorph_transfer: bool = False
+    ablation: bool = False
+
+
+_ARMS = (
+    Arm("divmorph", "DivMorph", student="divmorph", divmorph_transfer=True),
+    Arm("scratch", "MetaMorph (scratch)"),
+    Arm("closest", "MetaMorph→ (closest task)"),
+    Arm("distilled", "MetaMorph⚗ (distilled)", student="distilled"),
+    Arm("modumorph", "ModuMorph (scratch)"),
+    Arm("grl", "GRL (evolved learngene)"),
+    Arm("no-kdiv-transformer", "DivMorph w/o KDiv (Transformer)", student="no-kdiv-transformer", divmorph_transfer=True, ablation=True),
+    Arm("no-kdiv-decoder", "DivMorph w/o KDiv (decoder)", student="no-kdiv-decoder", divmorph_transfer=True, ablation=True),
+    Arm("no-orthogonality", "DivMorph w/o orthogonality", student="no-orthogonality", divmorph_transfer=True, ablation=True),
+)
+
+#: Every arm by name, in the order of plots and tables.
+ARMS: dict[str, Arm] = {arm.name: arm for arm in _ARMS}
+
+#: Arms of the transfer figures (Figs 3-4); the ablation figure (Fig 6) shows ``divmorph`` and the ablations.
+MAIN_ARMS = tuple(name for name, arm in ARMS.items() if not arm.ablation)
+ABLATION_ARMS = ("divmorph", *(name for name, arm in ARMS.items() if arm.ablation))
+
+
+def students_for(arms: list[str]) -> list[str]:
+    """The distilled students these arms start from, in order, each once."""
+    students: list[str] = []
+    for name in arms:
+        student = ARMS[name].student
+        if student is not None and student not in students:
+            students.append(student)
+    return students

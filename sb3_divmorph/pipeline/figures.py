@@ -1,0 +1,262 @@
+"""The paper's figures from a run folder, each a PNG with the CSV of every number it plots.
+
+``divmorph figure NAME`` writes one, ``divmorph report`` all those with data, into ``report/figures/``:
+
+================  ==============================================================================
+name              content
+================  ==============================================================================
+transfer-train    (Fig 3) transfer curves per novel task, deterministic return on the training
+                  robots, every non-ablation arm, mean over seeds with a ±1 sd band
+transfer-novel    (Fig 4) the same on the novel robots (never trained on)
+deployment        (Fig 5) single-agent deployment: returns of the teacher, the HyperDistill MLP
+                  (when that baseline ran) and the DivMorph compact actor on training and novel
+                  robots, and their parameter counts
+ablation          (Fig 6) DivMorph and its ablations, both robot splits
+gates             (Figs 7-8) task-gate and morphology-gate correlation heatmaps
+================  ==============================================================================
+
+Transfer curves come from the runs' ``eval.csv`` (:mod:`sb3_divmorph.pipeline.curves`, profile key
+``transfer.eval_every``); the deployment bars from ``evaluate/returns.csv`` and the export
+reports. The DivMorph compact actor's returns are the student's: export checks that the compact
+actor computes the student's actions (max |diff| <= 1e-5), and the evaluation rolls out the student.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from sb3_divmorph.pipeline.arms import ABLATION_ARMS, ARMS, MAIN_ARMS  # noqa: E402
+from sb3_divmorph.pipeline.config import ConfigError, Profile  # noqa: E402
+from sb3_divmorph.pipeline.curves import EVAL_FILE, eval_curve, read_eval  # noqa: E402
+from sb3_divmorph.pipeline.metrics import ArmMetrics, arm_metrics, mean_curve  # noqa: E402
+from sb3_divmorph.pipeline.runs import atomic_save, atomic_write_text, profile_robots  # noqa: E402
+
+FIGURES = ("transfer-train", "transfer-novel", "deployment", "ablation", "gates")
+SPLIT_WORDS = {"train": "training robots", "novel": "novel robots"}
+
+
+def figures_folder(out: Path) -> Path:
+    return Path(out) / "report" / "figures"
+
+
+def _write_csv(path: Path, rows: list[dict[str, Any]], columns: list[str]) -> None:
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=columns)
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write_text(path, buffer.getvalue())
+
+
+def _save(fig, path: Path) -> None:
+    fig.tight_layout()
+    atomic_save(path, lambda p: fig.savefig(p, dpi=110, format="png"))
+    plt.close(fig)
+
+
+def seed_curves(out: Path, task: str, arm: str, split: str) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """``{seed: (steps, mean return)}`` of every seed of an arm with an evaluation curve."""
+    base = Path(out) / "transfer" / task / arm
+    folders = {int(folder.name.split("-")[1]): folder for folder in base.glob("seed-*")}
+    folders.setdefault(0, base)  # a run from before seeds existed is seed 0
+    curves = {}
+    for seed, folder in sorted(folders.items()):
+        steps, returns = eval_curve(read_eval(folder / EVAL_FILE), split)
+        if len(steps):
+            curves[seed] = (steps, returns)
+    return curves
+
+
+def task_metrics(profile: Profile, out: Path, task: str) -> list[ArmMetrics]:
+    """Metrics of every arm with curves on ``task``, both splits (see :mod:`~sb3_divmorph.pipeline.metrics`)."""
+    metrics = []
+    for split in ("train", "novel"):
+        scratch = seed_curves(out, task, "scratch", split)
+        reference = mean_curve(list(scratch.values()))[:2] if scratch else None
+        for arm in ARMS:
+            curves = seed_curves(out, task, arm, split)
+            if curves:
+                metrics.append(arm_metrics(task, arm, split, list(curves.values()), reference))
+    return metrics
+
+
+METRIC_COLUMNS = ["task", "arm", "split", "seeds", "zero_shot", "zero_shot_sd", "final", "final_sd", "auc", "auc_sd",
+                  "sample_efficiency", "budget"]
+
+
+def write_metrics(profile: Profile, out: Path, task: str) -> list[ArmMetrics]:
+    """Write ``transfer/<task>/metrics.csv`` and return its rows."""
+    metrics = task_metrics(profile, out, task)
+    rows = [{**{k: getattr(m, k) for k in METRIC_COLUMNS if hasattr(m, k)}, "sample_efficiency": m.efficiency_text()} for m in metrics]
+    _write_csv(Path(out) / "transfer" / task / "metrics.csv", rows, METRIC_COLUMNS)
+    return metrics
+
+
+def metrics_table(metrics: list[ArmMetrics]) -> list[str]:
+    """Markdown table of transfer metrics."""
+    lines = ["| task | arm | robots | seeds | zero-shot return | final return | AUC (mean return) | sample efficiency vs scratch |",
+             "|---|---|---|---|---|---|---|---|"]
+    for m in metrics:
+        lines.append(f"| {m.task} | {ARMS[m.arm].label} | {m.split} | {m.seeds} | {m.zero_shot:.1f} ± {m.zero_shot_sd:.1f} | "
+                     f"{m.final:.1f} ± {m.final_sd:.1f} | {m.auc:.1f} ± {m.auc_sd:.1f} | {m.efficiency_text()} |")
+    return lines
+
+
+def _curves_figure(profile: Profile, out: Path, name: str, arms: tuple[str, ...], splits: tuple[str, ...], title: str) -> Path | None:
+    tasks = list(profile.transfer.tasks)
+    rows: list[dict[str, Any]] = []
+    fig, axes = plt.subplots(len(splits), len(tasks), figsize=(5.2 * len(tasks), 3.9 * len(splits)), squeeze=False)
+    for r, split in enumerate(splits):
+        n_robots = len(profile_robots(profile, split))
+        for c, task in enumerate(tasks):
+            ax = axes[r][c]
+            seeds: set[int] = set()
+            for arm in arms:
+                curves = seed_curves(out, task, arm, split)
+                if not curves:
+                    continue
+                seeds |= set(curves)
+                steps, mean, sd = mean_curve(list(curves.values()))
+                line = ax.plot(steps, mean, marker="o", markersize=3, label=f"{ARMS[arm].label} (n={len(curves)})")[0]
+                ax.fill_between(steps, mean - sd, mean + sd, color=line.get_color(), alpha=0.2)
+                rows += [{"figure": name, "task": task, "split": split, "arm": arm, "timesteps": int(x), "mean_return": m,
+                          "sd_return": s, "seeds": " ".join(map(str, sorted(curves))), "robots": n_robots}
+                         for x, m, s in zip(steps, mean, sd)]
+            ax.set_xlabel("env steps")
+            ax.set_ylabel(f"episode return (deterministic, mean of {n_robots} robots)")
+            ax.set_title(f"{task}: {n_robots} {SPLIT_WORDS[split]}, seeds {sorted(seeds) or '-'}", fontsize=9)
+            if ax.lines:
+                ax.legend(fontsize=7)
+    if not rows:
+        plt.close(fig)
+        return None
+    fig.suptitle(title)
+    folder = figures_folder(out)
+    _write_csv(folder / f"{name}.csv", rows, ["figure", "task", "split", "arm", "timesteps", "mean_return", "sd_return", "seeds", "robots"])
+    _save(fig, folder / f"{name}.png")
+    return folder / f"{name}.png"
+
+
+def _read_csv(path: Path) -> list[dict[str, str]]:
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+
+DEPLOYED = {"teacher": "Teacher (MetaMorph)", "hyperdistill": "HyperDistill MLP", "student": "DivMorph compact actor"}
+
+
+def deployment_figure(profile: Profile, out: Path) -> Path | None:
+    """Fig 5: per training task, returns on training and novel robots, and parameter counts."""
+    out = Path(out)
+    returns_file = out / "evaluate" / "returns.csv"
+    if not returns_file.is_file():
+        return None
+    tasks = list(profile.teachers.tasks)
+    groups: dict[tuple[str, str, str], list[float]] = defaultdict(list)
+    for row in _read_csv(returns_file):
+        if row["model"] in DEPLOYED and row["task"] in tasks:
+            groups[(row["model"], row["task"], row["split"])].append(float(row["return"]))
+    sizes: dict[tuple[str, str], list[int]] = defaultdict(list)
+    for path in (out / "export").glob("*/report.json"):
+        r = json.loads(path.read_text())
+        sizes[("student", r["task"])].append(r["compact_weights"])
+        sizes[("teacher", r["task"])].append(r["metamorph_folded_weights"])  # like for like: through the same folding
+    for path in (out / "hyperdistill" / "export").glob("*/report.json"):
+        r = json.loads(path.read_text())
+        sizes[("hyperdistill", r["task"])].append(r["mlp_weights"])
+    models = [m for m in DEPLOYED if any(key[0] == m for key in groups)]
+    if not models:
+        return None
+    rows = []
+    fig, axes = plt.subplots(1, 3, figsize=(16, 4.2))
+    x = np.arange(len(tasks))
+    width = 0.8 / len(models)
+    for panel, split in enumerate(("train", "novel")):
+        ax = axes[panel]
+        n_robots = len(profile_robots(profile, split))
+        for i, model in enumerate(models):
+            values = [groups.get((model, t, split), []) for t in tasks]
+            means = [np.mean(v) if v else np.nan for v in values]
+            sds = [np.std(v) if v else np.nan for v in values]
+            ax.bar(x + (i - (len(models) - 1) / 2) * width, means, width, yerr=sds, capsize=2, label=DEPLOYED[model])
+            rows += [{"panel": f"returns ({split} robots)", "model": model, "task": t, "value": m, "sd": s, "n": len(v)}
+                     for t, m, s, v in zip(tasks, means, sds, values)]
+        ax.set_xticks(x, tasks)
+        ax.set_xlabel("training task")
+        ax.set_ylabel("episode return (deterministic, per robot)")
+        ax.set_title(f"({'ab'[panel]}) {n_robots} {SPLIT_WORDS[split]}, {profile.evaluate.episodes} episode(s) each", fontsize=9)
+        ax.legend(fontsize=7)
+    ax = axes[2]
+    size_tasks = [t for t in tasks if any((m, t) in sizes for m in models)]
+    for i, model in enumerate(models):
+        values = [np.mean(sizes[(model, t)]) if (model, t) in sizes else np.nan for t in size_tasks]
+        ax.bar(np.arange(len(size_tasks)) + (i - (len(models) - 1) / 2) * width, values, width, label=DEPLOYED[model])
+        rows += [{"panel": "parameters (actor, one robot)", "model": model, "task": t, "value": v, "sd": "", "n": len(sizes.get((model, t), []))}
+                 for t, v in zip(size_tasks, values)]
+    ax.set_xticks(np.arange(len(size_tasks)), size_tasks)
+    ax.set_yscale("log")
+    ax.set_xlabel("training task (exported robots)")
+    ax.set_ylabel("actor parameters (count, log scale)")
+    ax.set_title("(c) deployed actor size (MetaMorph folded like the compact actor)" + ("" if size_tasks else ": no exports of training tasks"), fontsize=9)
+    if size_tasks:
+        ax.legend(fontsize=7)
+    fig.suptitle(f"Single-agent deployment (profile {profile.name}, seed {profile.seed})")
+    folder = figures_folder(out)
+    _write_csv(folder / "deployment.csv", rows, ["panel", "model", "task", "value", "sd", "n"])
+    _save(fig, folder / "deployment.png")
+    return folder / "deployment.png"
+
+
+def gates_figure(profile: Profile, out: Path) -> Path | None:
+    """Figs 7-8: correlation of task gates across the ten tasks and of morphology gates across robots."""
+    from sb3_divmorph.pipeline.report import _correlation, plot_gates
+
+    gates_file = Path(out) / "evaluate" / "gates.npz"
+    if not gates_file.is_file():
+        return None
+    with np.load(gates_file) as data:
+        gates = {k: data[k] for k in data.files}
+    folder = figures_folder(out)
+    rows = []
+    for key, labels in (("task_gates", gates["tasks"]), ("morphology_gates", gates["robots"])):
+        corr = _correlation(gates[key])
+        rows += [{"gates": key, "row": labels[i], "column": labels[j], "correlation": float(corr[i, j])}
+                 for i in range(len(labels)) for j in range(len(labels))]
+    _write_csv(folder / "gates.csv", rows, ["gates", "row", "column", "correlation"])
+    plot_gates(gates, folder / "gates.png")
+    return folder / "gates.png"
+
+
+def make_figure(profile: Profile, out: Path, name: str) -> Path | None:
+    """Write figure ``name`` (PNG + CSV); ``None`` when the run has no data for it yet.
+
+    :raises ConfigError: unknown figure name.
+    """
+    seeds = list(profile.transfer.seeds)
+    if name == "transfer-train":
+        return _curves_figure(profile, out, name, MAIN_ARMS, ("train",), f"Transfer to novel tasks on the training robots (seeds {seeds})")
+    if name == "transfer-novel":
+        return _curves_figure(profile, out, name, MAIN_ARMS, ("novel",), f"Transfer to novel tasks on novel robots (seeds {seeds})")
+    if name == "ablation":
+        return _curves_figure(profile, out, name, ABLATION_ARMS, ("train", "novel"), f"Ablations of DivMorph (seeds {seeds})")
+    if name == "deployment":
+        return deployment_figure(profile, out)
+    if name == "gates":
+        return gates_figure(profile, out)
+    raise ConfigError(f"unknown figure {name!r}; figures: {list(FIGURES)}")
+
+
+def make_figures(profile: Profile, out: Path) -> dict[str, Path]:
+    """Every figure the run has data for: ``{name: png}``."""
+    made = {name: make_figure(profile, out, name) for name in FIGURES}
+    return {name: path for name, path in made.items() if path is not None}
