@@ -234,20 +234,11 @@ class CompactActor(DeployedActor):
         return self.eval()
 
     def forward(self, proprioceptive: th.Tensor, hfield: th.Tensor, goal: th.Tensor, object: th.Tensor) -> th.Tensor:  # noqa: A002
-        inputs = {"hfield": hfield, "goal": goal, "object": object}
         tokens = self._normalize(PROPRIOCEPTIVE, proprioceptive.index_select(1, self.real_tokens))
         x = self.embed(tokens) + self.token_bias
         for block in self.blocks:
             x = block(x)
-        if self.used_extero:
-            extero = th.cat([self.exteroception[k](self._normalize(k, inputs[k].flatten(1))) for k in self.used_extero], dim=-1)
-            x = th.cat([x, extero[:, None, :].expand(-1, x.shape[1], -1)], dim=-1)
-        for layer, activation in zip(self.decoder, self.decoder_activations):
-            x = activation(layer(x))
-        actions = x * self.action_scale
-        out = x.new_zeros(x.shape[0], self.n_tokens, self.slots)
-        out = out.index_copy(1, self.real_tokens, actions)
-        return out.flatten(1)
+        return self._fuse_and_decode(x, hfield, goal, object)
 
 
 def actor_parameter_count(policy: nn.Module) -> int:

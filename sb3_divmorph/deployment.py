@@ -67,6 +67,22 @@ class DeployedActor(nn.Module):
         x = (x - getattr(self, f"{key}_mean")) * getattr(self, f"{key}_inv_std")
         return x.clamp(-self.clip_obs, self.clip_obs) if math.isfinite(self.clip_obs) else x
 
+    def _fuse_and_decode(self, x: th.Tensor, hfield: th.Tensor, goal: th.Tensor, object: th.Tensor) -> th.Tensor:  # noqa: A002
+        """The Transformer actors' common tail: (B, real tokens, D) token features -> late-fused
+        exteroception -> per-token decoder -> (B, 24) action means, 0 on padded slots.
+
+        Needs ``used_extero``, ``exteroception``, ``decoder``, ``decoder_activations``,
+        ``action_scale``, ``real_tokens``, ``n_tokens`` and ``slots`` (set by ``from_policy``).
+        """
+        inputs = {"hfield": hfield, "goal": goal, "object": object}
+        if self.used_extero:
+            extero = th.cat([self.exteroception[k](self._normalize(k, inputs[k].flatten(1))) for k in self.used_extero], dim=-1)
+            x = th.cat([x, extero[:, None, :].expand(-1, x.shape[1], -1)], dim=-1)
+        for layer, activation in zip(self.decoder, self.decoder_activations):
+            x = activation(layer(x))
+        out = x.new_zeros(x.shape[0], self.n_tokens, self.slots)
+        return out.index_copy(1, self.real_tokens, x * self.action_scale).flatten(1)
+
     def stored_numbers(self) -> dict[str, int]:
         """Numbers stored: ``weights`` (parameters incl. folded constants) and ``normalization``."""
         normalization = sum(b.numel() for n, b in self.named_buffers() if n.endswith(("_mean", "_inv_std")))

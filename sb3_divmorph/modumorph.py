@@ -601,14 +601,7 @@ class ModuMorphActor(DeployedActor):
         return self.eval()
 
     def forward(self, proprioceptive: th.Tensor, hfield: th.Tensor, goal: th.Tensor, object: th.Tensor) -> th.Tensor:  # noqa: A002
-        inputs = {"hfield": hfield, "goal": goal, "object": object}
         x = self.embed(self._normalize(PROPRIOCEPTIVE, proprioceptive.index_select(1, self.real_tokens)))
         for block in self.blocks:
             x = block(x)
-        if self.used_extero:
-            extero = th.cat([self.exteroception[k](self._normalize(k, inputs[k].flatten(1))) for k in self.used_extero], dim=-1)
-            x = th.cat([x, extero[:, None, :].expand(-1, x.shape[1], -1)], dim=-1)
-        for layer, activation in zip(self.decoder, self.decoder_activations):
-            x = activation(layer(x))
-        out = x.new_zeros(x.shape[0], self.n_tokens, self.slots)
-        return out.index_copy(1, self.real_tokens, x * self.action_scale).flatten(1)
+        return self._fuse_and_decode(x, hfield, goal, object)
