@@ -23,7 +23,7 @@ $(STAMP): pyproject.toml setup.py
 install: $(STAMP)
 
 # The main job: the knowledge-diversion pipeline at its tiny "demo" budget (about 3 min on 2 idle
-# cores: 174 s measured, results/pipeline_demo/summary.md).
+# cores; 228 s measured with two training runs sharing the cores, results/pipeline_demo/summary.md).
 demo: $(STAMP)
 	$(VENV)/bin/divmorph pipeline --profile demo --out runs/demo
 
