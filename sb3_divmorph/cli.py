@@ -131,6 +131,15 @@ def _robot_path(name: str) -> Path:
     raise ValueError(f"unknown morphology {name!r}: give a robot of the train/novel sets (e.g. train-000) or an MJCF path")
 
 
+def _remove_if_untouched(out: Path) -> None:
+    """Remove a run folder this command created when nothing but its robot record was written:
+    a command that fails on its arguments leaves no empty run behind (and never deletes results)."""
+    leftovers = [p for p in out.rglob("*") if p.name != "robot_sets.json"]
+    if not leftovers:
+        (out / "robot_sets.json").unlink(missing_ok=True)
+        out.rmdir()
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     if args.command == "record":
@@ -150,6 +159,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"divmorph: {error}", file=sys.stderr)
         return 2
     out = Path(args.out or f"runs/{profile.name}")
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     seed_everything(profile.seed, profile.torch_threads)
     progress = not args.no_progress
@@ -202,6 +212,8 @@ def main(argv: list[str] | None = None) -> int:
             print(P.report(profile, out, command_line))
     except (P.ConfigError, FileNotFoundError, ValueError, KeyError, TypeError) as error:
         print(f"divmorph {args.command}: {error}", file=sys.stderr)
+        if created:
+            _remove_if_untouched(out)
         return 2
     except P.GridError as error:
         print(f"divmorph {args.command}: {error}", file=sys.stderr)

@@ -330,6 +330,30 @@ def test_missing_stages_and_bad_arguments_give_clear_errors(tmp_path, capsys):
     assert "no teacher" in capsys.readouterr().err
     assert cli(["report", "--profile", "missing", "--profiles", str(profiles)]) == 2
     assert "unknown profile" in capsys.readouterr().err
+    # a report of a run where nothing has finished would describe models that do not exist
+    assert cli(["report", *base]) == 2
+    assert "nothing to report" in capsys.readouterr().err
+    # none of these failures left a run folder behind
+    assert not out.exists()
+
+
+def test_a_lost_normaliser_is_an_error_not_a_silent_fallback(finished_run, tmp_path, capsys):
+    import shutil
+
+    source, profiles = finished_run
+    out = tmp_path / "copy"
+    shutil.copytree(source, out)
+    for stage in ("export", "evaluate"):
+        shutil.rmtree(out / stage)
+    (out / "student" / "vecnormalize.pkl").unlink()
+    base = ["--profile", "tiny", "--profiles", str(profiles), "--out", str(out), "--no-progress"]
+    assert cli(["export", *base, "--task", "FT"]) == 2
+    assert "vecnormalize.pkl is missing" in capsys.readouterr().err
+    assert not list((out / "export").glob("*/actor.*")) if (out / "export").exists() else True
+    assert cli(["evaluate", *base]) == 2
+    assert "vecnormalize.pkl is missing" in capsys.readouterr().err
+    # the copy keeps everything else: a failed command never deletes results
+    assert (out / "student" / "model.zip").is_file() and (out / "teachers").is_dir()
 
 
 def test_a_checkpoint_for_another_observation_space_is_refused(finished_run, tmp_path):

@@ -25,12 +25,12 @@ from sb3_divmorph.pipeline.config import Profile
 from sb3_divmorph.pipeline.distill import student_folder
 from sb3_divmorph.pipeline.runs import (
     MODEL,
-    NORMALIZER,
     atomic_save,
     atomic_write_text,
     is_done,
     mark_done,
     profile_robots,
+    stage_normalizer,
     task_env_name,
 )
 from sb3_divmorph.pipeline.teachers import teacher_folder
@@ -50,8 +50,9 @@ def evaluate_model(folder: Path, task: str, robots: list[Path], episodes: int, m
     :param instruction: the task's instruction in other words (default: the built-in one).
     """
     venv = robot_venv(task_env_name(task), robots, max_steps, seed, **({"instruction": instruction} if instruction else {}))
-    if (folder / NORMALIZER).is_file():
-        venv = VecNormalize.load(str(folder / NORMALIZER), venv)
+    statistics = stage_normalizer(folder)
+    if statistics is not None:
+        venv = VecNormalize.load(str(statistics), venv)
         venv.training, venv.norm_reward = False, False
     model = PPO.load(folder / MODEL, device="cpu")
     rows = rollout_returns(model, venv, robots, episodes)
@@ -79,8 +80,8 @@ def evaluation_plan(profile: Profile, out: Path) -> list[tuple[str, Path, str]]:
 def student_gates(out: Path, robots: list[Path], seed: int) -> dict[str, np.ndarray]:
     """The student's task gates for every task instruction and morphology gates for ``robots``."""
     model = PPO.load(student_folder(out) / MODEL, device="cpu")
-    normalizer_file = student_folder(out) / NORMALIZER
-    normalizer = load_normalizer(normalizer_file) if normalizer_file.is_file() else None
+    statistics = stage_normalizer(student_folder(out))
+    normalizer = None if statistics is None else load_normalizer(statistics)
     obs = robot_observations(task_env_name("FT"), robots, seed)
     if normalizer is not None:
         obs = normalizer.normalize_obs(obs)

@@ -39,7 +39,16 @@ from sb3_divmorph.compact import (
 from sb3_divmorph.distillation import load_normalizer
 from sb3_divmorph.pipeline.config import ConfigError, Profile
 from sb3_divmorph.pipeline.distill import student_folder
-from sb3_divmorph.pipeline.runs import MODEL, NORMALIZER, atomic_write_json, atomic_write_text, is_done, mark_done, profile_robots, task_env_name
+from sb3_divmorph.pipeline.runs import (
+    MODEL,
+    atomic_write_json,
+    atomic_write_text,
+    is_done,
+    mark_done,
+    profile_robots,
+    stage_normalizer,
+    task_env_name,
+)
 from sb3_divmorph.pipeline.transfer import transfer_folder
 from sb3_divmorph.policies import DivMorphPolicy
 from unimal_envs.contract import NOVEL_TASKS, TASK_NAMES
@@ -103,7 +112,8 @@ def export_actor(
     policy = model.policy.eval()
     if not isinstance(policy, DivMorphPolicy):
         raise TypeError(f"{source / MODEL} holds a {type(policy).__name__}, not a DivMorph student")
-    normalizer: VecNormalize | None = load_normalizer(source / NORMALIZER) if (source / NORMALIZER).is_file() else None
+    statistics = stage_normalizer(source)
+    normalizer: VecNormalize | None = None if statistics is None else load_normalizer(statistics)
 
     env = gym.make(task_env_name(task), morphologies=[robot_file], max_episode_steps=profile.max_episode_steps)
     try:

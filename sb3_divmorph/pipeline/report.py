@@ -137,8 +137,14 @@ def _fmt_steps(progress: dict[str, np.ndarray]) -> str:
 
 
 def report(profile: Profile, out: Path, command: str = "") -> str:
-    """Write the report of run folder ``out`` and return the markdown summary."""
+    """Write the report of run folder ``out`` and return the markdown summary.
+
+    :raises FileNotFoundError: no stage of the run has finished (a summary of models that do not
+        exist would mislead).
+    """
     out = Path(out)
+    if not any(path.is_file() for path in out.glob("**/done.json")):
+        raise FileNotFoundError(f"nothing to report in {out}: no stage has finished there (no done.json); run the stages first")
     folder = out / "report"
     folder.mkdir(parents=True, exist_ok=True)
     lines = [

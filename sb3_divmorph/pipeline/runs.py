@@ -210,6 +210,22 @@ def save_checkpoint(model: BaseAlgorithm, folder: Path) -> Path:
     return target
 
 
+def stage_normalizer(folder: Path) -> Path | None:
+    """The ``VecNormalize`` statistics a finished stage saved, or ``None`` if it trained without.
+
+    :raises FileNotFoundError: the stage recorded statistics (``done.json``) but the file is gone;
+        using the model without them would silently feed it unnormalised observations.
+    """
+    path = Path(folder) / NORMALIZER
+    recorded = read_done(folder).get("normalizer") if is_done(folder) else None
+    if recorded and not path.is_file():
+        raise FileNotFoundError(
+            f"{path} is missing: {folder} was trained with VecNormalize statistics (done.json), and its model "
+            "would act on unnormalised observations without them. Restore the file or retrain the stage."
+        )
+    return path if path.is_file() else None
+
+
 def latest_checkpoint(folder: Path) -> Path | None:
     pointer = folder / "latest.json"
     if not pointer.is_file():
@@ -268,7 +284,8 @@ class TrainingRun:
         normalizer = model.get_vec_normalize_env()
         if normalizer is not None:
             atomic_save(self.folder / NORMALIZER, lambda p: normalizer.save(str(p)))
-        mark_done(self.folder, num_timesteps=model.num_timesteps)
+        # recorded, so that a lost statistics file is an error later, never a silent "no normalisation"
+        mark_done(self.folder, num_timesteps=model.num_timesteps, normalizer=normalizer is not None)
         shutil.rmtree(self.folder / "checkpoints", ignore_errors=True)
 
     def load_final(self) -> BaseAlgorithm:

@@ -15,13 +15,13 @@ from sb3_divmorph.distillation import Teacher
 from sb3_divmorph.pipeline.config import ConfigError, Profile, load_zoo_entry
 from sb3_divmorph.pipeline.runs import (
     MODEL,
-    NORMALIZER,
     TrainingRun,
     is_done,
     make_vec_env,
     normalizer_for,
     profile_robots,
     resolve_device,
+    stage_normalizer,
     task_env_name,
 )
 from unimal_envs.contract import TASK_NAMES, observation_space
@@ -125,8 +125,7 @@ def load_teachers(profile: Profile, out: Path, root: str = "teachers") -> dict[i
             raise FileNotFoundError(
                 f"teacher for {task} not found in {folder} (no done.json); run `divmorph teachers --out {out}` first"
             )
-        normalizer = folder / NORMALIZER
         teachers[TASK_NAMES.index(task)] = Teacher.load(
-            folder / MODEL, normalizer if normalizer.is_file() else None, name=task, observation_space=observation_space()
+            folder / MODEL, stage_normalizer(folder), name=task, observation_space=observation_space()
         )
     return teachers
