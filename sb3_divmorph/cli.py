@@ -44,6 +44,13 @@ def _parser() -> argparse.ArgumentParser:
         p.add_argument("--profiles", default="zoo_configs/divmorph.yml", help="profiles file (default: the shipped one)")
         p.add_argument("--out", default=None, help="run folder (default: runs/<profile>)")
         p.add_argument("--no-progress", action="store_true", help="no progress bars")
+        p.add_argument("--seed", type=int, default=None, help="override the profile's seed")
+        p.add_argument("--device", default=None, help="override the profile's device (cpu, cuda, auto)")
+        p.add_argument("--train-robots", default=None, metavar="N|SET",
+                       help="override the training robots: a count, or a set (name or directory) used whole")
+        p.add_argument("--novel-robots", default=None, metavar="N|SET", help="override the novel robots likewise")
+        p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                       help="override any profile key, e.g. --set teachers.n_timesteps=5000 (repeatable; validated like the YAML)")
         return p
 
     def grid(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -131,6 +138,26 @@ def _robot_path(name: str) -> Path:
     raise ValueError(f"unknown morphology {name!r}: give a robot of the train/novel sets (e.g. train-000) or an MJCF path")
 
 
+def _overrides(args: argparse.Namespace) -> dict:
+    """The profile overrides given on the command line (``--seed``, ``--device``, robots, ``--set``)."""
+    from sb3_divmorph.pipeline.config import parse_override
+
+    overrides = dict(parse_override(text) for text in args.set)
+    if args.seed is not None:
+        overrides["seed"] = args.seed
+    if args.device is not None:
+        overrides["device"] = args.device
+    for split in ("train", "novel"):
+        value = getattr(args, f"{split}_robots")
+        if value is None:
+            continue
+        if value.isdigit():
+            overrides[f"{split}_robots"] = int(value)
+        else:  # a set name or directory, used whole
+            overrides[f"{split}_set"], overrides[f"{split}_robots"] = value, None
+    return overrides
+
+
 def _remove_if_untouched(out: Path) -> None:
     """Remove a run folder this command created when nothing but its robot record was written:
     a command that fails on its arguments leaves no empty run behind (and never deletes results)."""
@@ -154,7 +181,7 @@ def main(argv: list[str] | None = None) -> int:
     from sb3_divmorph.pipeline.runs import record_robot_sets, seed_everything
 
     try:
-        profile = P.load_profile(args.profile, args.profiles)
+        profile = P.load_profile(args.profile, args.profiles, _overrides(args))
     except P.ConfigError as error:
         print(f"divmorph: {error}", file=sys.stderr)
         return 2

@@ -337,6 +337,30 @@ def test_missing_stages_and_bad_arguments_give_clear_errors(tmp_path, capsys):
     assert not out.exists()
 
 
+def test_command_line_overrides_reach_the_profile_and_are_validated(tmp_path, capsys):
+    import argparse
+
+    from sb3_divmorph.cli import _overrides
+
+    profiles = write_profiles(tmp_path)
+    args = argparse.Namespace(seed=7, device="cpu", train_robots="3", novel_robots="train",
+                              set=["teachers.n_timesteps=4096", "transfer.tasks=[PointNav]", "max_episode_steps=50"])
+    profile = load_profile("tiny", profiles, _overrides(args))
+    assert (profile.seed, profile.device, profile.train_robots, profile.max_episode_steps) == (7, "cpu", 3, 50)
+    assert (profile.novel_set, profile.novel_robots) == ("train", None)
+    assert profile.teachers.n_timesteps == 4096 and profile.transfer.tasks == ["PointNav"]
+    # typos and bad values are refused like the YAML's, before anything runs
+    out = tmp_path / "run"
+    base = ["--profile", "tiny", "--profiles", str(profiles), "--out", str(out), "--no-progress"]
+    assert cli(["teachers", *base, "--set", "teachers.n_timestep=5"]) == 2
+    assert "unknown key(s) ['n_timestep']" in capsys.readouterr().err
+    assert cli(["teachers", *base, "--set", "transfer.tasks=[FT]"]) == 2
+    assert "transfer.tasks" in capsys.readouterr().err
+    assert cli(["teachers", *base, "--set", "nonsense"]) == 2
+    assert "KEY=VALUE" in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_a_lost_normaliser_is_an_error_not_a_silent_fallback(finished_run, tmp_path, capsys):
     import shutil
 

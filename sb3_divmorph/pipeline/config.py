@@ -7,8 +7,10 @@ ignored in a run that takes hours).
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import inspect
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -323,13 +325,43 @@ def load_profiles(path: str | Path = DEFAULT_PROFILES) -> dict[str, dict[str, An
     return data
 
 
-def load_profile(name: str, path: str | Path = DEFAULT_PROFILES) -> Profile:
-    """Load and validate one profile; unknown names list the available ones."""
+def apply_overrides(values: dict[str, Any], overrides: Mapping[str, Any]) -> dict[str, Any]:
+    """A copy of a raw profile with ``{"section.key" or "key": value}`` overrides applied.
+
+    Keys are validated afterwards exactly like the YAML's (an unknown key names the valid ones);
+    a dotted key whose section is not a mapping is an error here.
+    """
+    values = copy.deepcopy(values)
+    for dotted, value in overrides.items():
+        *sections, key = dotted.split(".")
+        target = values
+        for section in sections:
+            node = target.setdefault(section, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"override {dotted}={value!r}: {section!r} is not a section of the profile")
+            target = node
+        target[key] = value
+    return values
+
+
+def parse_override(text: str) -> tuple[str, Any]:
+    """``"teachers.n_timesteps=5000"`` -> ``("teachers.n_timesteps", 5000)`` (the value read as YAML)."""
+    key, sep, raw = text.partition("=")
+    if not sep or not key.strip():
+        raise ConfigError(f"--set takes KEY=VALUE (e.g. teachers.n_timesteps=5000), got {text!r}")
+    return key.strip(), yaml.safe_load(raw)
+
+
+def load_profile(name: str, path: str | Path = DEFAULT_PROFILES, overrides: Mapping[str, Any] | None = None) -> Profile:
+    """Load and validate one profile; unknown names list the available ones.
+
+    :param overrides: ``{"section.key": value}`` applied before validation (``divmorph ... --set``).
+    """
     profiles = load_profiles(path)
     if name not in profiles:
         raise ConfigError(f"unknown profile {name!r}; profiles in {resolve_path(path)}: {sorted(profiles)}")
     try:
-        return Profile.from_dict(name, profiles[name])
+        return Profile.from_dict(name, apply_overrides(profiles[name], overrides or {}))
     except ConfigError as error:  # name the file: the same profile name may live in several
         raise ConfigError(f"{resolve_path(path)}: {error}") from None
 
