@@ -440,3 +440,22 @@ def test_closest_by_return_picks_the_best_zero_shot_teacher(finished_run):
     finally:
         (other / "source.json").unlink()
         other.rmdir()
+
+
+def test_report_figures_label_axes_and_give_each_task_its_own_scale(tmp_path, monkeypatch):
+    import importlib
+
+    R = importlib.import_module("sb3_divmorph.pipeline.report")  # the module (the package exports a function of that name)
+    figures = []
+    monkeypatch.setattr(R.plt, "close", figures.append)
+    groups = {("teacher", "FT", "train"): [900.0, 20.0], ("student", "FT", "train"): [800.0], ("teacher", "Patrol", "novel"): [3.0]}
+    R.plot_returns(groups, tmp_path / "returns.png", "a title naming the robots")
+    gates = {"task_gates": np.eye(3), "tasks": np.array(["FT", "VT", "Patrol"]),
+             "morphology_gates": np.eye(2), "robots": np.array(["a", "b"])}
+    R.plot_gates(gates, tmp_path / "gates.png")
+    returns_fig, gates_fig = figures
+    panels = [ax for ax in returns_fig.axes if ax.get_title()]
+    assert [ax.get_title() for ax in panels] == ["FT", "Patrol"]  # one panel, one y scale per task
+    assert all(ax.get_ylabel() for ax in panels) and returns_fig._suptitle.get_text() == "a title naming the robots"
+    colour_bars = [ax for ax in gates_fig.axes if ax.get_ylabel().startswith("correlation")]
+    assert len(colour_bars) == 2

@@ -41,27 +41,43 @@ def _curve(ax, progress: dict[str, np.ndarray], key: str, label: str) -> bool:
     return True
 
 
+def _robots_phrase(profile: Profile) -> str:
+    return f"{profile.train_robots or 'all'} training robots of {profile.train_set}"
+
+
 def plot_curves(profile: Profile, out: Path, target: Path) -> None:
-    tasks = profile.transfer.tasks
-    fig, axes = plt.subplots(1, 2 + len(tasks), figsize=(5 * (2 + len(tasks)), 3.8), squeeze=False)
-    axes = axes[0]
-    for task in profile.teachers.tasks:
-        _curve(axes[0], read_progress(out / "teachers" / task), "rollout/ep_rew_mean", task)
-    axes[0].set_title("teachers (PPO): episode return")
+    """Teachers' curves (one panel per task: their returns differ in scale), the distillation KL per
+    task, and each transfer task's training-episode curves."""
+    teachers, tasks = list(profile.teachers.tasks), list(profile.transfer.tasks)
+    n = len(teachers) + 1 + len(tasks)
+    columns = min(n, 4)
+    fig, axes = plt.subplots((n + columns - 1) // columns, columns, figsize=(4.6 * columns, 3.6 * ((n + columns - 1) // columns)), squeeze=False)
+    axes = list(axes.flat)
+    for ax, task in zip(axes, teachers):
+        _curve(ax, read_progress(out / "teachers" / task), "rollout/ep_rew_mean", "MetaMorph teacher")
+        ax.set_title(f"teacher {task} (PPO)", fontsize=9)
+        ax.set_ylabel("episode return (training episodes)")
+    kl_ax = axes[len(teachers)]
     student = read_progress(out / "student")
-    for task in profile.teachers.tasks:
-        _curve(axes[1], student, f"distill/kl/{task}", task)
-    axes[1].set_yscale("log")
-    axes[1].set_title("distillation: KL(teacher || student)")
-    for ax, task in zip(axes[2:], tasks):
-        seed = profile.transfer.seeds[0]
+    for task in teachers:
+        _curve(kl_ax, student, f"distill/kl/{task}", task)
+    kl_ax.set_yscale("log")
+    kl_ax.set_title("distillation into the DivMorph student", fontsize=9)
+    kl_ax.set_ylabel("KL(teacher || student), nats per state")
+    seed = profile.transfer.seeds[0]
+    for ax, task in zip(axes[len(teachers) + 1 :], tasks):
         for arm in profile.transfer.arm_list():
             _curve(ax, read_progress(transfer_folder(out, task, arm, seed)), "rollout/ep_rew_mean", ARMS[arm].label)
-        ax.set_title(f"transfer to {task}: training-episode return (seed {seed})")
-    for ax in axes:
+        ax.set_title(f"transfer to {task} (seed {seed})", fontsize=9)
+        ax.set_ylabel("episode return (training episodes)")
+    for ax in axes[:n]:
         ax.set_xlabel("env steps")
         if ax.lines:
             ax.legend(fontsize=7)
+    for ax in axes[n:]:
+        ax.axis("off")
+    fig.suptitle(f"profile {profile.name}: learning curves on {_robots_phrase(profile)}, seed {profile.seed} "
+                 "(stochastic training episodes, one run each)", fontsize=10)
     fig.tight_layout()
     atomic_save(target, lambda p: fig.savefig(p, dpi=110, format="png"))
     plt.close(fig)
@@ -89,8 +105,9 @@ def plot_gates(gates: dict[str, np.ndarray], target: Path) -> None:
         image = ax.imshow(corr, vmin=-1, vmax=1, cmap="RdBu_r")
         ax.set_xticks(range(len(labels)), labels, rotation=90, fontsize=7)
         ax.set_yticks(range(len(labels)), labels, fontsize=7)
-        ax.set_title(title)
-        fig.colorbar(image, ax=ax, fraction=0.046)
+        ax.set_title(f"{title} ({len(labels)})")
+        bar = fig.colorbar(image, ax=ax, fraction=0.046)
+        bar.set_label("correlation of the gate vectors (Pearson)")
     fig.tight_layout()
     atomic_save(target, lambda p: fig.savefig(p, dpi=110, format="png"))
     plt.close(fig)
@@ -115,17 +132,27 @@ def returns_table(rows: list[dict[str, str]]) -> tuple[list[str], dict[tuple[str
     return lines, groups
 
 
-def plot_returns(groups: dict[tuple[str, str, str], list[float]], target: Path) -> None:
-    keys = sorted({(m, t) for m, t, _ in groups}, key=lambda mt: (mt[1], mt[0]))
-    fig, ax = plt.subplots(figsize=(max(6, 0.55 * len(keys)), 4))
-    x = np.arange(len(keys))
-    for offset, split in ((-0.2, "train"), (0.2, "novel")):
-        means = [np.mean(groups.get((m, t, split), [np.nan])) for m, t in keys]
-        sds = [np.std(groups.get((m, t, split), [np.nan])) for m, t in keys]
-        ax.bar(x + offset, means, 0.4, yerr=sds, label=f"{split} robots", capsize=2)
-    ax.set_xticks(x, [f"{t}\n{m}" for m, t in keys], rotation=90, fontsize=7)
-    ax.set_ylabel("episode return (per robot)")
-    ax.legend()
+def plot_returns(groups: dict[tuple[str, str, str], list[float]], target: Path, title: str = "") -> None:
+    """Deterministic returns per model, one panel per task (tasks' returns differ in scale); bars are
+    the mean over robots, error bars their standard deviation."""
+    tasks = sorted({t for _, t, _ in groups})
+    columns = min(len(tasks), 4)
+    rows = (len(tasks) + columns - 1) // columns
+    fig, axes = plt.subplots(rows, columns, figsize=(4.2 * columns, 3.8 * rows), squeeze=False)
+    for ax, task in zip(axes.flat, tasks):
+        models = sorted({m for m, t, _ in groups if t == task})
+        x = np.arange(len(models))
+        for offset, split in ((-0.2, "train"), (0.2, "novel")):
+            means = [np.mean(groups.get((m, task, split), [np.nan])) for m in models]
+            sds = [np.std(groups.get((m, task, split), [np.nan])) for m in models]
+            ax.bar(x + offset, means, 0.4, yerr=sds, label=f"{split} robots", capsize=2)
+        ax.set_xticks(x, models, rotation=45, ha="right", fontsize=7)
+        ax.set_title(task, fontsize=9)
+        ax.set_ylabel("episode return (deterministic)")
+        ax.legend(fontsize=7)
+    for ax in list(axes.flat)[len(tasks):]:
+        ax.axis("off")
+    fig.suptitle(title or "returns per model: mean over robots, error bars = sd over robots", fontsize=10)
     fig.tight_layout()
     atomic_save(target, lambda p: fig.savefig(p, dpi=110, format="png"))
     plt.close(fig)
@@ -205,9 +232,14 @@ def report(profile: Profile, out: Path, command: str = "") -> str:
     returns_file = out / "evaluate" / "returns.csv"
     if returns_file.is_file():
         table, groups = returns_table(read_returns(returns_file))
-        plot_returns(groups, folder / "returns.png")
+        episodes = profile.evaluate.episodes
+        plot_returns(groups, folder / "returns.png",
+                     f"profile {profile.name}, seed {profile.seed}: deterministic return, mean over robots "
+                     f"({_robots_phrase(profile)} / novel robots), {episodes} episode(s) each; error bars = sd over robots")
         lines += ["", "## Per-morphology evaluation (deterministic actions)", "", *table, "",
-                  "Per-robot rows: `evaluate/returns.csv`.", "", "![returns](report/returns.png)"]
+                  f"Mean ± sd over robots ({episodes} deterministic episode(s) per robot; n = robots x episodes); "
+                  "the error bars of the figure are the same sd. Per-robot rows: `evaluate/returns.csv`.", "",
+                  "![returns](report/returns.png)"]
     gates_file = out / "evaluate" / "gates.npz"
     if gates_file.is_file():
         with np.load(gates_file) as data:
