@@ -49,6 +49,8 @@ def _parser() -> argparse.ArgumentParser:
         p.add_argument("--train-robots", default=None, metavar="N|SET",
                        help="override the training robots: a count, or a set (name or directory) used whole")
         p.add_argument("--novel-robots", default=None, metavar="N|SET", help="override the novel robots likewise")
+        p.add_argument("--force", action="store_true",
+                       help="continue a run folder recorded with other settings (run.json) under the new ones")
         p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                        help="override any profile key, e.g. --set teachers.n_timesteps=5000 (repeatable; validated like the YAML)")
         return p
@@ -159,11 +161,12 @@ def _overrides(args: argparse.Namespace) -> dict:
 
 
 def _remove_if_untouched(out: Path) -> None:
-    """Remove a run folder this command created when nothing but its robot record was written:
+    """Remove a run folder this command created when nothing but its records were written:
     a command that fails on its arguments leaves no empty run behind (and never deletes results)."""
-    leftovers = [p for p in out.rglob("*") if p.name != "robot_sets.json"]
-    if not leftovers:
-        (out / "robot_sets.json").unlink(missing_ok=True)
+    records = ("robot_sets.json", "run.json")
+    if not [p for p in out.rglob("*") if p.name not in records]:
+        for name in records:
+            (out / name).unlink(missing_ok=True)
         out.rmdir()
 
 
@@ -178,6 +181,7 @@ def main(argv: list[str] | None = None) -> int:
     import torch as th
 
     from sb3_divmorph import pipeline as P
+    from sb3_divmorph.pipeline.provenance import check_and_record
     from sb3_divmorph.pipeline.runs import record_robot_sets, seed_everything
 
     try:
@@ -193,6 +197,9 @@ def main(argv: list[str] | None = None) -> int:
     command_line = "divmorph " + shlex.join(argv if argv is not None else sys.argv[1:])
     start = time.perf_counter()
     try:
+        # out/run.json: the configuration, robots, versions, commit and device of this run; a run
+        # is only continued with the settings it was started with (unless --force)
+        check_and_record(out, profile, command_line, args.force)
         record_robot_sets(profile, out)  # out/robot_sets.json: which robots this run uses
         backend = None
         if getattr(args, "backend", None) is not None:

@@ -361,6 +361,30 @@ def test_command_line_overrides_reach_the_profile_and_are_validated(tmp_path, ca
     assert not out.exists()
 
 
+def test_a_run_is_only_continued_with_the_settings_it_was_started_with(finished_run, tmp_path, capsys):
+    import shutil
+
+    source, profiles = finished_run
+    out = tmp_path / "copy"
+    shutil.copytree(source, out)
+    record = json.loads((out / "run.json").read_text())
+    assert record["device_used"] == "cpu" and record["configuration"]["seed"] == 0
+    assert record["versions"]["torch"] and record["robots"]["train"]["robots"] and record["history"]
+    base = ["--profile", "tiny", "--profiles", str(profiles), "--out", str(out), "--no-progress"]
+    # the reported scenario: other seed, robots and episode length on a finished run
+    assert cli(["pipeline", *base, "--seed", "3", "--train-robots", "1", "--set", "max_episode_steps=20"]) == 2
+    err = capsys.readouterr().err
+    assert "seed: 0 -> 3" in err and "train_robots: 2 -> 1" in err and "max_episode_steps" in err and "--force" in err
+    summary = (out / "summary.md").read_text()
+    assert cli(["report", *base, "--seed", "3"]) == 2 and (out / "summary.md").read_text() == summary
+    # --force accepts them and records it; cuda where there is none is refused, not silently cpu
+    assert cli(["report", *base, "--seed", "3", "--force"]) == 0
+    assert json.loads((out / "run.json").read_text())["history"][-1]["forced"] is True
+    if not th.cuda.is_available():
+        assert cli(["report", *base, "--seed", "3", "--device", "cuda", "--force"]) == 2
+        assert "no CUDA device" in capsys.readouterr().err
+
+
 def test_a_lost_normaliser_is_an_error_not_a_silent_fallback(finished_run, tmp_path, capsys):
     import shutil
 

@@ -36,7 +36,7 @@ import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
 from unimal_envs import env_id
 from unimal_envs.morphology.loader import is_set_name, morphology_files
 from sb3_divmorph.distillation import check_spaces
-from sb3_divmorph.pipeline.config import Profile, resolve_path
+from sb3_divmorph.pipeline.config import ConfigError, Profile, resolve_path
 
 DONE = "done.json"
 MODEL = "model.zip"
@@ -166,8 +166,15 @@ def task_env_name(task: str) -> str:
 
 
 def resolve_device(device: str) -> str:
+    """The torch device a profile's ``device`` resolves to on this machine.
+
+    :raises ConfigError: ``cuda`` requested where no CUDA device exists (training would otherwise
+        silently run on the CPU while the records said cuda).
+    """
     if device == "auto":
         return "cuda" if th.cuda.is_available() else "cpu"
+    if device.startswith("cuda") and not th.cuda.is_available():
+        raise ConfigError(f"device {device!r} requested but this machine has no CUDA device; use cpu or auto")
     return device
 
 
