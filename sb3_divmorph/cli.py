@@ -72,6 +72,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--task", action="append", help="only this training task (repeatable)")
     p = grid(command("distill", "DAgger distillation of the teachers into the DivMorph student (and the students of the arms)"))
     p.add_argument("--arms", type=arms_list, default=None, help="also distil the students these arms start from (comma-separated)")
+    p.add_argument("--students", type=arms_list, default=None,
+                   help="distil exactly these students (comma-separated; see `sb3_divmorph.pipeline.distill.STUDENTS`), e.g. deploy-g1k1")
     command("hyperdistill", "HyperDistill baseline: distil the teachers into a hypernetwork student, export per-robot MLPs")
     grid(command("grl", "GRL baseline: evolve a population of MetaMorph agents; the best learngene (whole layers) for the grl arm"))
     p = grid(command("transfer", "race the transfer arms on novel tasks (arms x tasks x seeds, one run each)"))
@@ -87,6 +89,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--task", action="append", help="task (default: the profile's)")
     p.add_argument("--format", choices=("onnx", "torchscript", "all"), default="all",
                    help="onnx (runs with onnxruntime + numpy), torchscript (torch alone), or all (default)")
+    p.add_argument("--student", action="append",
+                   help="distilled DivMorph student to deploy (repeatable; default: divmorph and every finished deploy-* student)")
     command("evaluate", "per-morphology returns on train and novel robots")
     command("report", "plots, the paper's figures and a markdown summary of the run")
     p = command("figure", "one of the paper's figures (PNG + CSV in report/figures/)")
@@ -214,9 +218,12 @@ def main(argv: list[str] | None = None) -> int:
             from sb3_divmorph.pipeline.arms import students_for
             from sb3_divmorph.pipeline.config import check_arms
 
+            if args.arms is not None and args.students is not None:
+                raise P.ConfigError("give --arms or --students, not both")
             if args.arms is not None:
                 check_arms(args.arms, "--arms")
-            P.distill(profile, out, progress, None if args.arms is None else ["divmorph", *students_for(args.arms)], backend)
+            students = args.students if args.arms is None else ["divmorph", *students_for(args.arms)]
+            P.distill(profile, out, progress, students, backend)
         elif args.command == "grl":
             learngene = P.evolve(profile, out, backend, progress)
             print(f"learngene: {'+'.join(learngene['units'])} (agent {learngene['agent']} of generation {learngene['generation']}, "
@@ -235,11 +242,12 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "export":
             robots = [_robot_path(m) for m in args.morphology] if args.morphology else None
             formats = ("onnx", "torchscript") if args.format == "all" else (args.format,)
-            for r in P.export_all(profile, out, args.task, robots, formats):
-                print(f"{r['robot']} x {r['task']}: {r['compact_weights']:,} weights "
+            for r in P.export_all(profile, out, args.task, robots, formats, args.student):
+                print(f"{r['student']}: {r['robot']} x {r['task']}: {r['compact_weights']:,} weights "
                       f"({r['reduction_vs_metamorph']:.1f}x smaller than MetaMorph's actor through the same folding), "
                       f"max |diff| {r['max_abs_diff']:.1e}, "
-                      f"latency {r['latency_compact_ms']:.3f} ms vs {r['latency_student_ms']:.3f} ms -> {Path(out) / 'export'}")
+                      f"latency {r['latency_compact_ms']:.3f} ms vs {r['latency_student_ms']:.3f} ms, "
+                      f"return {r['compact_return']:.1f} (student {r['student_return']:.1f})")
         elif args.command == "evaluate":
             print(f"returns -> {P.evaluate(profile, out, progress) / 'returns.csv'}")
         elif args.command == "report":

@@ -95,10 +95,15 @@ def test_every_stage_writes_its_outputs(finished_run):
         assert report["max_abs_diff"] <= 1e-5
         assert report["compact_weights"] < report["student_actor_parameters"]
         assert (path.parent / "actor.pt").is_file()
+        # the deployed actor's own episode does what the student's does
+        assert report["compact_episode_length"] == report["student_episode_length"] > 0
+        assert report["compact_return"] == pytest.approx(report["student_return"], rel=1e-3, abs=1e-3)
     with open(out / "evaluate" / "returns.csv") as f:
         rows = list(csv.DictReader(f))
-    # teachers (2 tasks) + student (2 train + 1 novel task) + HyperDistill (2) + 9 transfer arms, on 2 + 2 robots
-    assert len(rows) == (2 + 3 + 2 + len(ARMS)) * 4
+    # teachers and their untrained twins (2 tasks each) + student (2 train + 1 novel task) + the arms' 4 other
+    # students (2 training tasks each) + HyperDistill (2) + 9 transfer arms, on 2 + 2 robots
+    assert len(rows) == (2 + 2 + 3 + 4 * 2 + 2 + len(ARMS)) * 4
+    assert {r["model"] for r in rows} >= {"teacher-untrained", "student-distilled", "student-no-orthogonality"}
     assert {r["split"] for r in rows} == {"train", "novel"}
     assert all(np.isfinite(float(r["return"])) for r in rows)
     with np.load(out / "evaluate" / "gates.npz") as gates:
@@ -107,6 +112,64 @@ def test_every_stage_writes_its_outputs(finished_run):
         assert (out / "report" / png).stat().st_size > 10_000
     summary = (out / "summary.md").read_text()
     assert "Deployment" in summary and "transfer-divmorph" in summary and "Transfer metrics" in summary
+    assert "## Findings" in summary and "| FT | " in summary
+
+
+def test_an_untrained_teacher_is_the_teacher_runs_initial_policy(finished_run):
+    from stable_baselines3 import PPO
+
+    from sb3_divmorph.pipeline.teachers import teacher_run
+
+    out, profiles = finished_run
+    profile = load_profile("tiny", profiles)
+    initial = teacher_run(profile, out, "FT", progress_bar=False).make_model()
+    trained = PPO.load(out / "teachers" / "FT" / "model.zip", device="cpu")
+    again = teacher_run(profile, out, "FT", progress_bar=False).make_model()
+    first = {k: v.clone() for k, v in initial.policy.state_dict().items()}
+    assert all(th.equal(first[k], v) for k, v in again.policy.state_dict().items())  # same seed, same weights
+    assert any(not th.equal(first[k], v) for k, v in trained.policy.state_dict().items())  # training moved them
+
+
+def test_the_evaluation_reuses_a_transfer_runs_final_evaluation_only_when_it_is_the_same(finished_run):
+    from sb3_divmorph.pipeline.evaluate import evaluate_model, final_evaluation
+    from sb3_divmorph.pipeline.runs import profile_robots
+
+    out, profiles = finished_run
+    profile = load_profile("tiny", profiles)
+    robots = profile_robots(profile, "novel")
+    folder = out / "transfer" / "Escape" / "scratch" / "seed-0"
+    reused = final_evaluation(folder, "novel", robots, 1)
+    rolled = evaluate_model(folder, "Escape", robots, 1, profile.max_episode_steps, profile.seed)
+    key = lambda row: (row["morphology"], row["episode"])  # noqa: E731
+    assert [(key(r), r["length"]) for r in sorted(reused, key=key)] == [(key(r), r["length"]) for r in sorted(rolled, key=key)]
+    assert [r["return"] for r in sorted(reused, key=key)] == pytest.approx([r["return"] for r in sorted(rolled, key=key)], rel=1e-5)
+    assert final_evaluation(folder, "novel", robots, 2) is None  # other episodes: rolled out anew
+    assert final_evaluation(folder, "novel", robots[:1], 1) is None
+
+
+def test_a_deployment_student_is_distilled_exported_and_reported_beside_the_student(finished_run, tmp_path):
+    import shutil
+
+    source, profiles = finished_run
+    out = tmp_path / "copy"
+    shutil.copytree(source, out)
+    shutil.rmtree(out / "evaluate")
+    base = ["--profile", "tiny", "--profiles", str(profiles), "--out", str(out), "--no-progress"]
+    assert cli(["distill", *base, "--students", "deploy-g1k1"]) == 0
+    assert DivMorphPolicy is type(__import__("stable_baselines3").PPO.load(out / "students" / "deploy-g1k1" / "model.zip").policy)
+    assert cli(["export", *base, "--task", "FT", "--student", "deploy-g1k1"]) == 0
+    deployed = [json.loads(p.read_text()) for p in sorted((out / "export" / "deploy-g1k1").glob("*/report.json"))]
+    default = {r["robot"]: r for r in (json.loads(p.read_text()) for p in (out / "export").glob("*-FT/report.json"))}
+    assert len(deployed) == 2 and all(r["student"] == "deploy-g1k1" and r["max_abs_diff"] <= 1e-5 for r in deployed)
+    for r in deployed:  # the sparser diversion deploys a smaller actor than the default student's
+        assert r["compact_weights"] < default[r["robot"]]["compact_weights"]
+    assert cli(["distill", *base, "--students", "deploy-g1k1", "--arms", "scratch"]) == 2
+    assert cli(["export", *base, "--student", "distilled"]) == 2  # a dense student has nothing to prune
+    assert cli(["evaluate", *base]) == 0 and cli(["report", *base]) == 0
+    summary = (out / "summary.md").read_text()
+    assert "| deploy-g1k1 | " in summary and "deploy-g1k1" in summary.split("## Findings")[1]
+    with open(out / "export" / "summary.csv") as f:
+        assert {row["student"] for row in csv.DictReader(f)} == {"divmorph", "deploy-g1k1"}
 
 
 def test_every_arm_writes_a_curve_and_metrics(finished_run):

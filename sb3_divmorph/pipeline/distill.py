@@ -19,7 +19,11 @@ settings and budget; only its policy differs:
   whose output is appended to every token, like the height map's), so one network can imitate
   five teachers and see the novel task's instruction at transfer;
 * ``no-kdiv-transformer`` / ``no-kdiv-decoder`` / ``no-orthogonality``: the DivMorph student with
-  ``divert_transformer`` / ``divert_decoder`` / ``orthogonal`` switched off.
+  ``divert_transformer`` / ``divert_decoder`` / ``orthogonal`` switched off;
+* ``deploy-g4k2`` / ``deploy-g2k1`` / ``deploy-g1k1``: the DivMorph student of the same sizes with a
+  named deployment diversion (:data:`~sb3_divmorph.policies.DIVERSIONS`: few learngenes, TopK 1-2,
+  exteroception diverted), whose compact actors are many times smaller; the export stage measures
+  what each keeps of the default student's return.
 
 The other students live in ``students/<name>/``.
 """
@@ -41,7 +45,7 @@ from sb3_divmorph.extractors import TASK_EMBEDDING
 from sb3_divmorph.pipeline.config import ConfigError, Profile, load_zoo_entry
 from sb3_divmorph.pipeline.runs import TrainingRun, is_done, make_vec_env, profile_robots, resolve_device
 from sb3_divmorph.pipeline.teachers import load_teachers
-from sb3_divmorph.policies import PRESETS, DivMorphPolicy, MetaMorphPolicy
+from sb3_divmorph.policies import DIVERSIONS, PRESETS, DivMorphPolicy, MetaMorphPolicy
 from unimal_envs.contract import TASK_NAMES
 
 #: Observation keys the student normalises (masks, context and embeddings must reach it as they are).
@@ -72,6 +76,18 @@ def _ablated(**switch: bool) -> Callable[[Profile], dict[str, Any]]:
     return lambda profile: {**profile.student.policy_kwargs, **switch}
 
 
+#: Keys a named diversion decides (the profile's own values would override it, see DivMorphPolicy).
+_DIVERSION_KEYS = ("n_morph_tailors", "n_task_tailors", "top_k_morph", "top_k_task", "n_learngenes", "divert_exteroception")
+
+
+def _diverted(diversion: str) -> Callable[[Profile], dict[str, Any]]:
+    def kwargs(profile: Profile) -> dict[str, Any]:
+        sizes = {k: v for k, v in profile.student.policy_kwargs.items() if k not in _DIVERSION_KEYS}
+        return {**sizes, "diversion": diversion}
+
+    return kwargs
+
+
 #: Every student the transfer arms start from.
 STUDENTS: dict[str, StudentSpec] = {
     spec.name: spec
@@ -81,6 +97,8 @@ STUDENTS: dict[str, StudentSpec] = {
         StudentSpec("no-kdiv-transformer", DivMorphPolicy, _ablated(divert_transformer=False), "DivMorph student, no diversion in the Transformer"),
         StudentSpec("no-kdiv-decoder", DivMorphPolicy, _ablated(divert_decoder=False), "DivMorph student, no diversion in the decoder"),
         StudentSpec("no-orthogonality", DivMorphPolicy, _ablated(orthogonal=False), "DivMorph student, free square factors"),
+        *(StudentSpec(name, DivMorphPolicy, _diverted(name), f"DivMorph student with the {name} diversion")
+          for name in DIVERSIONS if name != "default"),
     )
 }
 

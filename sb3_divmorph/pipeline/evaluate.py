@@ -1,10 +1,14 @@
 """Stage 5 — evaluation: per-morphology returns on train and novel robots, and gate activations.
 
 Every model of the run is rolled out deterministically, one env per robot, for ``episodes``
-episodes of at most ``max_episode_steps``: teachers on their task, the student on every training
-task and (zero-shot) on the transfer tasks, transferred and from-scratch policies on their novel
-task (every seed's run), and the HyperDistill student (when the baseline ran) on the training tasks.
-Rows go to ``evaluate/returns.csv``. The student's gates for all ten task instructions and for
+episodes of at most ``max_episode_steps``: teachers on their task, next to the same policy before
+training (``teacher-untrained``: the teacher run's initial weights and normaliser, same seed), the
+student on every training task and (zero-shot) on the transfer tasks, the other distilled students
+(``student-<name>``, e.g. the dense MetaMorph⚗ student and the deployment diversions) on the
+training tasks, transferred and from-scratch policies on their novel task (every seed's run), and
+the HyperDistill student (when the baseline ran) on the training tasks. A transfer run's final
+evaluation (``eval.csv``, the same deterministic episodes with the same seed) is reused rather than
+rolled out again. Rows go to ``evaluate/returns.csv``. The student's gates for all ten task instructions and for
 every evaluated robot go to ``evaluate/gates.npz`` (for the correlation heatmaps of the report).
 """
 
@@ -22,7 +26,7 @@ from tqdm import tqdm
 
 from sb3_divmorph.distillation import load_normalizer
 from sb3_divmorph.pipeline.config import Profile
-from sb3_divmorph.pipeline.distill import student_folder
+from sb3_divmorph.pipeline.distill import STUDENTS, student_folder
 from sb3_divmorph.pipeline.runs import (
     MODEL,
     atomic_save,
@@ -33,9 +37,9 @@ from sb3_divmorph.pipeline.runs import (
     stage_normalizer,
     task_env_name,
 )
-from sb3_divmorph.pipeline.teachers import teacher_folder
+from sb3_divmorph.pipeline.teachers import teacher_folder, teacher_run
 from sb3_divmorph.pipeline.arms import ARMS
-from sb3_divmorph.pipeline.curves import robot_venv, rollout_returns
+from sb3_divmorph.pipeline.curves import EVAL_FILE, read_eval, robot_venv, rollout_returns
 from sb3_divmorph.pipeline.transfer import robot_observations, transfer_folder
 from unimal_envs.contract import TASK_NAMES
 from unimal_envs.instructions import shipped_embeddings
@@ -60,12 +64,44 @@ def evaluate_model(folder: Path, task: str, robots: list[Path], episodes: int, m
     return [{"morphology": row.pop("robot"), **row} for row in rows]
 
 
+def evaluate_untrained_teacher(profile: Profile, out: Path, task: str, robots: list[Path], episodes: int, seed: int) -> list[dict[str, Any]]:
+    """Deterministic returns of ``task``'s teacher *before training*: the model its run starts from
+    (same seed, hence the same initial weights, and its fresh observation normaliser)."""
+    model = teacher_run(profile, out, task, progress_bar=False).make_model()
+    normalizer = model.get_vec_normalize_env()
+    venv = robot_venv(task_env_name(task), robots, profile.max_episode_steps, seed)
+    rows = rollout_returns(model, venv, robots, episodes, normalizer.normalize_obs if normalizer is not None else None)
+    venv.close()
+    model.get_env().close()
+    return [{"morphology": row.pop("robot"), **row} for row in rows]
+
+
+def final_evaluation(folder: Path, split: str, robots: list[Path], episodes: int) -> list[dict[str, Any]] | None:
+    """A transfer run's last ``eval.csv`` evaluation on ``split`` when it covers exactly ``robots`` x
+    ``episodes`` (the evaluation stage's own rollout would repeat it), else ``None``."""
+    rows = read_eval(Path(folder) / EVAL_FILE)
+    if not rows:
+        return None
+    last = max(row["timesteps"] for row in rows)
+    rows = [row for row in rows if row["timesteps"] == last and row["split"] == split]
+    if sorted((row["robot"], row["episode"]) for row in rows) != sorted((r.stem, e) for r in robots for e in range(episodes)):
+        return None
+    return [{"morphology": row["robot"], "episode": row["episode"], "return": row["return"], "length": row["length"]} for row in rows]
+
+
 def evaluation_plan(profile: Profile, out: Path) -> list[tuple[str, Path, str]]:
-    """``(model label, folder, task)`` of everything there is to evaluate."""
+    """``(model label, folder, task)`` of everything there is to evaluate (``teacher-untrained``:
+    the teacher's folder, evaluated with its run's initial model)."""
     out = Path(out)
-    plan = [("teacher", teacher_folder(out, t), t) for t in profile.teachers.tasks if is_done(teacher_folder(out, t))]
+    plan = []
+    for t in profile.teachers.tasks:
+        if is_done(teacher_folder(out, t)):
+            plan += [("teacher", teacher_folder(out, t), t), ("teacher-untrained", teacher_folder(out, t), t)]
     if is_done(student_folder(out)):
         plan += [("student", student_folder(out), t) for t in (*profile.teachers.tasks, *profile.transfer.tasks)]
+    for name in STUDENTS:
+        if name != "divmorph" and is_done(student_folder(out, name)):
+            plan += [(f"student-{name}", student_folder(out, name), t) for t in profile.teachers.tasks]
     hyperdistill_student = out / "hyperdistill" / "student"
     if is_done(hyperdistill_student):
         plan += [("hyperdistill", hyperdistill_student, t) for t in profile.teachers.tasks]
@@ -110,9 +146,15 @@ def evaluate(profile: Profile, out: Path, progress_bar: bool = True) -> Path:
         raise FileNotFoundError(f"nothing to evaluate in {out}: run the teachers/distill/transfer stages first")
     rows = []
     jobs = [(label, model, task, split) for label, model, task in plan for split in splits]
+    episodes = profile.evaluate.episodes
     for label, model, task, split in tqdm(jobs, desc="[evaluate]", unit="model x task x split", disable=not progress_bar):
-        for row in evaluate_model(model, task, splits[split], profile.evaluate.episodes, profile.max_episode_steps, profile.seed):
-            rows.append({"model": label, "task": task, "split": split, **row})
+        if label == "teacher-untrained":
+            found = evaluate_untrained_teacher(profile, out, task, splits[split], episodes, profile.seed)
+        else:
+            found = final_evaluation(model, split, splits[split], episodes) if label.startswith("transfer-") else None
+            if found is None:
+                found = evaluate_model(model, task, splits[split], episodes, profile.max_episode_steps, profile.seed)
+        rows += [{"model": label, "task": task, "split": split, **row} for row in found]
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=COLUMNS)
     writer.writeheader()

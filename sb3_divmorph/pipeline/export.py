@@ -10,7 +10,13 @@ MetaMorph actor of the same task and sizes goes through the same folding, so the
 pruning only (folding is reported on its own); and its batch-1 CPU latency against the full student.
 
 For a novel task the transferred student (``transfer/<task>/divmorph``) is exported when it
-exists, else the distilled student itself (zero-shot).
+exists, else the distilled student itself (zero-shot). The students distilled with a deployment
+diversion (``students/deploy-*``, see :data:`~sb3_divmorph.pipeline.distill.STUDENTS`) are exported
+beside the default one, into ``export/<student>/<robot>-<task>``.
+
+Each report also holds the return of one deterministic episode of the compact actor and of the
+unpruned student on the same robot, task and seed (``compact_return``, ``student_return``): the
+deployed actor does what its student does, measured rather than assumed.
 """
 
 from __future__ import annotations
@@ -38,7 +44,7 @@ from sb3_divmorph.compact import (
 )
 from sb3_divmorph.distillation import load_normalizer
 from sb3_divmorph.pipeline.config import ConfigError, Profile
-from sb3_divmorph.pipeline.distill import student_folder
+from sb3_divmorph.pipeline.distill import STUDENTS, student_folder
 from sb3_divmorph.pipeline.runs import (
     MODEL,
     atomic_write_json,
@@ -60,17 +66,36 @@ TOLERANCE = 1e-5
 FORMATS = ("onnx", "torchscript")
 
 
-def export_folder(out: Path, robot: str, task: str) -> Path:
-    return Path(out) / "export" / f"{robot}-{task}"
+def export_folder(out: Path, robot: str, task: str, student: str = "divmorph") -> Path:
+    """``export/<robot>-<task>`` for the DivMorph student, ``export/<student>/<robot>-<task>`` for another."""
+    folder = Path(out) / "export"
+    return folder / f"{robot}-{task}" if student == "divmorph" else folder / student / f"{robot}-{task}"
 
 
-def source_model(out: Path, task: str) -> tuple[Path, str]:
+def deployment_students(out: Path) -> list[str]:
+    """The students the export stage deploys: the DivMorph student and every finished ``deploy-*`` one."""
+    return ["divmorph", *(name for name in STUDENTS if name.startswith("deploy-") and is_done(student_folder(out, name)))]
+
+
+def source_model(out: Path, task: str, student: str = "divmorph") -> tuple[Path, str]:
     """The model to export for ``task``: the transferred student for a novel task if there is one."""
-    if task in NOVEL_TASKS and is_done(transfer_folder(out, task, "divmorph")):
+    if student == "divmorph" and task in NOVEL_TASKS and is_done(transfer_folder(out, task, "divmorph")):
         return transfer_folder(out, task, "divmorph"), "transferred student"
-    if not is_done(student_folder(out)):
-        raise FileNotFoundError(f"no distilled student in {student_folder(out)}; run `divmorph distill --out {out}` first")
-    return student_folder(out), "distilled student" + (" (zero-shot)" if task in NOVEL_TASKS else "")
+    folder = student_folder(out, student)
+    if not is_done(folder):
+        raise FileNotFoundError(f"no distilled student {student!r} in {folder}; run `divmorph distill --out {out} --students {student}` first")
+    label = "distilled student" if student == "divmorph" else f"distilled {student} student"
+    return folder, label + (" (zero-shot)" if task in NOVEL_TASKS else "")
+
+
+def episode_return(env: gym.Env, act, seed: int) -> tuple[float, int]:
+    """Return and length of one episode of ``act(obs) -> action`` from ``env.reset(seed=seed)``."""
+    obs, _ = env.reset(seed=seed)
+    total, steps, done = 0.0, 0, False
+    while not done:
+        obs, reward, terminated, truncated, _ = env.step(np.clip(act(obs), -1, 1).astype(np.float32))
+        total, steps, done = total + float(reward), steps + 1, terminated or truncated
+    return total, steps
 
 
 def _rollout_observations(env: gym.Env, actor: CompactActor, first: dict[str, np.ndarray], steps: int, seed: int) -> dict[str, np.ndarray]:
@@ -95,19 +120,20 @@ def _onnx_runner(path: Path):
 
 
 def export_actor(
-    profile: Profile, out: Path, robot_file: Path, task: str, steps: int = 64, formats: tuple[str, ...] = FORMATS
+    profile: Profile, out: Path, robot_file: Path, task: str, steps: int = 64, formats: tuple[str, ...] = FORMATS,
+    student: str = "divmorph",
 ) -> dict[str, Any]:
-    """Export one robot x task actor in ``formats``; returns (and writes) its report."""
+    """Export one robot x task actor of ``student`` in ``formats``; returns (and writes) its report."""
     if task not in TASK_NAMES:
         raise ConfigError(f"unknown task {task!r}; choose from {list(TASK_NAMES)}")
     bad = [f for f in formats if f not in FORMATS]
     if bad or not formats:
         raise ConfigError(f"unknown export format(s) {bad or list(formats)}; choose from {list(FORMATS)} or 'all'")
     robot_file = Path(robot_file)
-    folder = export_folder(out, robot_file.stem, task)
+    folder = export_folder(out, robot_file.stem, task, student)
     if is_done(folder):
         return json.loads((folder / "report.json").read_text())
-    source, source_label = source_model(out, task)
+    source, source_label = source_model(out, task, student)
     model = PPO.load(source / MODEL, device="cpu")
     policy = model.policy.eval()
     if not isinstance(policy, DivMorphPolicy):
@@ -120,6 +146,17 @@ def export_actor(
         first, _ = env.reset(seed=profile.seed)
         actor = CompactActor.from_policy(policy, first, TASKS[task].observation_keys, normalizer)
         observations = _rollout_observations(env, actor, first, steps, profile.seed)
+
+        def compact_act(obs):
+            with th.no_grad():
+                return actor(*actor_inputs(obs))[0].numpy()
+
+        def student_act(obs):
+            batch = {k: v[None] for k, v in obs.items()}
+            return policy.predict(batch if normalizer is None else normalizer.normalize_obs(batch), deterministic=True)[0][0]
+
+        compact_return, compact_length = episode_return(env, compact_act, profile.seed)
+        student_return, student_length = episode_return(env, student_act, profile.seed)
     finally:
         env.close()
 
@@ -130,6 +167,7 @@ def export_actor(
     metadata = {
         "robot": robot_file.stem,
         "task": task,
+        "student": student,
         "source": str(source / MODEL),
         "output": "action means (B,24), 0 on padded slots; clip to [-1, 1] before env.step",
     }
@@ -183,17 +221,31 @@ def export_actor(
         "latency_student_ms": student_s * 1e3,
         "speedup_vs_student": student_s * 1e3 / compact_ms,
         "torch_threads": th.get_num_threads(),
+        "compact_return": compact_return,
+        "compact_episode_length": compact_length,
+        "student_return": student_return,
+        "student_episode_length": student_length,
     }
     atomic_write_json(folder / "report.json", report)
     mark_done(folder)
     return report
 
 
+def export_reports(out: Path) -> list[Path]:
+    """Every ``report.json`` of the run's exports (all students)."""
+    folder = Path(out) / "export"
+    return sorted([*folder.glob("*/report.json"), *folder.glob("*/*/report.json")])
+
+
 def export_all(
-    profile: Profile, out: Path, tasks: list[str] | None = None, robots: list[Path] | None = None, formats: tuple[str, ...] = FORMATS
+    profile: Profile, out: Path, tasks: list[str] | None = None, robots: list[Path] | None = None, formats: tuple[str, ...] = FORMATS,
+    students: list[str] | None = None,
 ) -> list[dict[str, Any]]:
     """Export every (robot, task) pair of the profile (or the given ones) in ``formats`` and write
-    ``export/summary.csv``."""
+    ``export/summary.csv``.
+
+    :param students: the students to deploy (default: :func:`deployment_students`).
+    """
     if robots is None:
         n = profile.export.robots_per_split
         robots = profile_robots(profile, "train")[:n] + profile_robots(profile, "novel")[:n]
@@ -205,17 +257,23 @@ def export_all(
     bad = [f for f in formats if f not in FORMATS]
     if bad or not formats:
         raise ConfigError(f"unknown export format(s) {bad or list(formats)}; choose from {list(FORMATS)} or 'all'")
+    students = students or deployment_students(out)
+    unknown = [name for name in students if name not in STUDENTS or STUDENTS[name].policy is not DivMorphPolicy]
+    if unknown:
+        raise ConfigError(f"cannot deploy {unknown}: not DivMorph students; choose from "
+                          f"{[n for n, spec in STUDENTS.items() if spec.policy is DivMorphPolicy]}")
     reports = []
-    for task in tasks:
-        for robot in robots:
-            folder = export_folder(out, Path(robot).stem, task)
-            print(f"[export] {Path(robot).stem} x {task}" + (f": skipped, already exported in {folder}" if is_done(folder) else ""))
-            reports.append(export_actor(profile, out, robot, task, formats=formats))
+    for student in students:
+        for task in tasks:
+            for robot in robots:
+                folder = export_folder(out, Path(robot).stem, task, student)
+                print(f"[export] {student}: {Path(robot).stem} x {task}" + (f": skipped, already exported in {folder}" if is_done(folder) else ""))
+                reports.append(export_actor(profile, out, robot, task, formats=formats, student=student))
     # the summary covers every actor exported into this run folder so far, not only this call's
-    everything = [json.loads(p.read_text()) for p in sorted((Path(out) / "export").glob("*/report.json"))]
+    everything = [json.loads(p.read_text()) for p in export_reports(out)]
     if everything:
         buffer = io.StringIO()
-        writer = csv.DictWriter(buffer, fieldnames=list(everything[0]), extrasaction="ignore")
+        writer = csv.DictWriter(buffer, fieldnames=list(dict.fromkeys(k for r in everything for k in r)), extrasaction="ignore")
         writer.writeheader()
         writer.writerows(everything)
         atomic_write_text(Path(out) / "export" / "summary.csv", buffer.getvalue())

@@ -41,6 +41,8 @@ from sb3_divmorph.pipeline.config import ConfigError, Profile  # noqa: E402
 from sb3_divmorph.pipeline.curves import EVAL_FILE, eval_curve, read_eval  # noqa: E402
 from sb3_divmorph.pipeline.metrics import ArmMetrics, arm_metrics, mean_curve  # noqa: E402
 from sb3_divmorph.pipeline.runs import atomic_save, atomic_write_text, profile_robots  # noqa: E402
+from sb3_divmorph.pipeline.distill import STUDENTS  # noqa: E402
+from sb3_divmorph.pipeline.export import export_reports  # noqa: E402
 
 FIGURES = ("transfer-train", "transfer-novel", "deployment", "ablation", "gates")
 SPLIT_WORDS = {"train": "training robots", "novel": "novel robots"}
@@ -162,19 +164,24 @@ def deployment_figure(profile: Profile, out: Path) -> Path | None:
     if not returns_file.is_file():
         return None
     tasks = list(profile.teachers.tasks)
+    deployed = dict(DEPLOYED)
+    # students distilled with a deployment diversion are deployed too (export/<student>/...)
+    deployed.update({f"student-{name}": f"DivMorph compact actor ({name})" for name in STUDENTS if name.startswith("deploy-")})
     groups: dict[tuple[str, str, str], list[float]] = defaultdict(list)
     for row in _read_csv(returns_file):
-        if row["model"] in DEPLOYED and row["task"] in tasks:
+        if row["model"] in deployed and row["task"] in tasks:
             groups[(row["model"], row["task"], row["split"])].append(float(row["return"]))
     sizes: dict[tuple[str, str], list[int]] = defaultdict(list)
-    for path in (out / "export").glob("*/report.json"):
+    for path in export_reports(out):
         r = json.loads(path.read_text())
-        sizes[("student", r["task"])].append(r["compact_weights"])
-        sizes[("teacher", r["task"])].append(r["metamorph_folded_weights"])  # like for like: through the same folding
+        student = r.get("student", "divmorph")
+        sizes[("student" if student == "divmorph" else f"student-{student}", r["task"])].append(r["compact_weights"])
+        if student == "divmorph":
+            sizes[("teacher", r["task"])].append(r["metamorph_folded_weights"])  # like for like: through the same folding
     for path in (out / "hyperdistill" / "export").glob("*/report.json"):
         r = json.loads(path.read_text())
         sizes[("hyperdistill", r["task"])].append(r["mlp_weights"])
-    models = [m for m in DEPLOYED if any(key[0] == m for key in groups)]
+    models = [m for m in deployed if any(key[0] == m for key in groups)]
     if not models:
         return None
     rows = []
@@ -188,7 +195,7 @@ def deployment_figure(profile: Profile, out: Path) -> Path | None:
             values = [groups.get((model, t, split), []) for t in tasks]
             means = [np.mean(v) if v else np.nan for v in values]
             sds = [np.std(v) if v else np.nan for v in values]
-            ax.bar(x + (i - (len(models) - 1) / 2) * width, means, width, yerr=sds, capsize=2, label=DEPLOYED[model])
+            ax.bar(x + (i - (len(models) - 1) / 2) * width, means, width, yerr=sds, capsize=2, label=deployed[model])
             rows += [{"panel": f"returns ({split} robots)", "model": model, "task": t, "value": m, "sd": s, "n": len(v)}
                      for t, m, s, v in zip(tasks, means, sds, values)]
         ax.set_xticks(x, tasks)
@@ -200,7 +207,7 @@ def deployment_figure(profile: Profile, out: Path) -> Path | None:
     size_tasks = [t for t in tasks if any((m, t) in sizes for m in models)]
     for i, model in enumerate(models):
         values = [np.mean(sizes[(model, t)]) if (model, t) in sizes else np.nan for t in size_tasks]
-        ax.bar(np.arange(len(size_tasks)) + (i - (len(models) - 1) / 2) * width, values, width, label=DEPLOYED[model])
+        ax.bar(np.arange(len(size_tasks)) + (i - (len(models) - 1) / 2) * width, values, width, label=deployed[model])
         rows += [{"panel": "parameters (actor, one robot)", "model": model, "task": t, "value": v, "sd": "", "n": len(sizes.get((model, t), []))}
                  for t, v in zip(size_tasks, values)]
     ax.set_xticks(np.arange(len(size_tasks)), size_tasks)

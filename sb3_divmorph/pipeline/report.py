@@ -25,6 +25,7 @@ import numpy as np  # noqa: E402
 from sb3_divmorph.pipeline.arms import ARMS  # noqa: E402
 from sb3_divmorph.pipeline.config import Profile  # noqa: E402
 from sb3_divmorph.pipeline.distill import STUDENTS  # noqa: E402
+from sb3_divmorph.pipeline.export import export_reports  # noqa: E402
 from sb3_divmorph.pipeline.figures import make_figures, metrics_table, write_metrics  # noqa: E402
 from sb3_divmorph.pipeline.runs import atomic_save, atomic_write_text, read_progress  # noqa: E402
 from sb3_divmorph.pipeline.transfer import transfer_folder  # noqa: E402
@@ -158,6 +159,64 @@ def plot_returns(groups: dict[tuple[str, str, str], list[float]], target: Path, 
     plt.close(fig)
 
 
+def _mean(groups: dict[tuple[str, str, str], list[float]], key: tuple[str, str, str]) -> float:
+    values = groups.get(key)
+    return float(np.mean(values)) if values else float("nan")
+
+
+def _percent(part: float, whole: float) -> str:
+    return f"{100 * part / whole:.0f}%" if np.isfinite(part) and np.isfinite(whole) and whole > 0 else "n/a"
+
+
+#: What the student must keep of its teacher's return, and a deployed actor of the student's.
+STUDENT_SHARE, DEPLOYED_SHARE = 0.9, 0.95
+
+
+def findings(profile: Profile, groups: dict[tuple[str, str, str], list[float]], exports: list[dict]) -> list[str]:
+    """The run's answers, from the evaluation (mean over robots of deterministic returns) and the exports:
+    teachers against the same policy before training, the student against its teachers, zero-shot on
+    the novel robots, and the deployed actors' sizes against the return they keep."""
+    lines = ["## Findings", "",
+             "Means over robots of deterministic returns (`evaluate/returns.csv`); *untrained*: the teacher's run "
+             "before its first update (same seed, same initial weights).", "",
+             f"| task | untrained | teacher | DivMorph student (% of teacher, >= {STUDENT_SHARE:.0%}?) | dense MetaMorph⚗ student "
+             "| zero-shot novel robots: teacher / student |", "|---|---|---|---|---|---|"]
+    for task in profile.teachers.tasks:
+        untrained, teacher = _mean(groups, ("teacher-untrained", task, "train")), _mean(groups, ("teacher", task, "train"))
+        student, dense = _mean(groups, ("student", task, "train")), _mean(groups, ("student-distilled", task, "train"))
+        share = _percent(student, teacher)
+        verdict = "n/a" if share == "n/a" else ("yes" if student >= STUDENT_SHARE * teacher else "no")
+        lines.append(f"| {task} | {untrained:.1f} | {teacher:.1f} | {student:.1f} ({share}, {verdict}) | {dense:.1f} "
+                     f"| {_mean(groups, ('teacher', task, 'novel')):.1f} / {_mean(groups, ('student', task, 'novel')):.1f} |")
+    reductions: dict[tuple[str, str], list[float]] = defaultdict(list)
+    for r in exports:
+        reductions[(r.get("student", "divmorph"), r["task"])].append(r["reduction_vs_metamorph"])
+    students = list(dict.fromkeys(name for name, _ in reductions))
+    if not students:
+        return lines
+    lines += ["", f"Deployment: like-for-like size reduction of each student's compact actor (mean over exported robots) and the "
+              f"return its student keeps of the DivMorph student's on the training robots (the compact actor computes the "
+              f"student's actions to <= 1e-5; `return compact / student` in the table below checks it per robot). Best: the "
+              f"largest reduction keeping >= {DEPLOYED_SHARE:.0%}.", "",
+              f"| task | {' | '.join(students)} | best (>= {DEPLOYED_SHARE:.0%} of the student's return) |",
+              "|---|" + "---|" * (len(students) + 1)]
+    reference_label = {name: "student" if name == "divmorph" else f"student-{name}" for name in students}
+    for task in profile.teachers.tasks:
+        base = _mean(groups, ("student", task, "train"))
+        cells, best = [], None
+        for name in students:
+            if (name, task) not in reductions:
+                cells.append("–")
+                continue
+            reduction = float(np.mean(reductions[(name, task)]))
+            kept = _mean(groups, (reference_label[name], task, "train"))
+            cells.append(f"{reduction:.1f}x, {_percent(kept, base)}")
+            if np.isfinite(kept) and base > 0 and kept >= DEPLOYED_SHARE * base and (best is None or reduction > best[1]):
+                best = (name, reduction)
+        lines.append(f"| {task} | {' | '.join(cells)} | {f'{best[0]} ({best[1]:.1f}x)' if best else 'none'} |")
+    return lines
+
+
 def _fmt_steps(progress: dict[str, np.ndarray]) -> str:
     steps = progress.get("time/total_timesteps")
     return str(int(np.nanmax(steps))) if steps is not None and len(steps) else "?"
@@ -239,7 +298,8 @@ def report(profile: Profile, out: Path, command: str = "") -> str:
         lines += ["", "## Per-morphology evaluation (deterministic actions)", "", *table, "",
                   f"Mean ± sd over robots ({episodes} deterministic episode(s) per robot; n = robots x episodes); "
                   "the error bars of the figure are the same sd. Per-robot rows: `evaluate/returns.csv`.", "",
-                  "![returns](report/returns.png)"]
+                  "![returns](report/returns.png)", "",
+                  *findings(profile, groups, [json.loads(p.read_text()) for p in export_reports(out)])]
     gates_file = out / "evaluate" / "gates.npz"
     if gates_file.is_file():
         with np.load(gates_file) as data:
@@ -253,18 +313,20 @@ def report(profile: Profile, out: Path, command: str = "") -> str:
                   f"{len(gates['robots'])} robots (the correlation of two gate vectors that select the same top-k "
                   "tailors is close to 1 even when their weights differ)."]
 
-    exports = sorted((out / "export").glob("*/report.json"))
+    exports = [json.loads(path.read_text()) for path in export_reports(out)]
     if exports:
         lines += ["", "## Deployment: pruned compact actors", "",
-                  "| robot | task | exported from | MetaMorph actor (folded) | compact DivMorph | reduction (like for like) "
-                  "| MetaMorph actor (unfolded) | folding alone | max abs diff | latency compact / student (ms, batch 1) |",
-                  "|---|---|---|---|---|---|---|---|---|---|"]
-        for path in exports:
-            r = json.loads(path.read_text())
+                  "| student | robot | task | exported from | MetaMorph actor (folded) | compact DivMorph | reduction (like for like) "
+                  "| MetaMorph actor (unfolded) | folding alone | max abs diff | latency compact / student (ms, batch 1) "
+                  "| return compact / student (1 episode) |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|"]
+        for r in exports:
+            returns = f"{r['compact_return']:.1f} / {r['student_return']:.1f}" if "compact_return" in r else "–"
             lines.append(
-                f"| {r['robot']} | {r['task']} | {r['source_label']} | {r['metamorph_folded_weights']:,} | {r['compact_weights']:,} | "
-                f"{r['reduction_vs_metamorph']:.1f}x | {r['metamorph_actor_parameters']:,} | {r['folding_metamorph']:.2f}x | "
-                f"{r['max_abs_diff']:.1e} | {r['latency_compact_ms']:.3f} / {r['latency_student_ms']:.3f} ({r['speedup_vs_student']:.1f}x) |"
+                f"| {r.get('student', 'divmorph')} | {r['robot']} | {r['task']} | {r['source_label']} | {r['metamorph_folded_weights']:,} | "
+                f"{r['compact_weights']:,} | {r['reduction_vs_metamorph']:.1f}x | {r['metamorph_actor_parameters']:,} | "
+                f"{r['folding_metamorph']:.2f}x | {r['max_abs_diff']:.1e} | {r['latency_compact_ms']:.3f} / {r['latency_student_ms']:.3f} "
+                f"({r['speedup_vs_student']:.1f}x) | {returns} |"
             )
         lines += ["", "Like for like: the MetaMorph actor of the same task and sizes is exported through the same folding "
                   "(context rows, position embedding, padded tokens and encoders of observations the task lacks become "
