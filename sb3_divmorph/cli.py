@@ -50,7 +50,11 @@ def _parser() -> argparse.ArgumentParser:
                        help="override the training robots: a count, or a set (name or directory) used whole")
         p.add_argument("--novel-robots", default=None, metavar="N|SET", help="override the novel robots likewise")
         p.add_argument("--force", action="store_true",
-                       help="continue a run folder recorded with other settings (run.json) under the new ones")
+                       help="the settings differ from the run's (run.json): retrain every begun stage they touch "
+                            "(old folders kept in <out>/superseded/)")
+        p.add_argument("--redo", action="append", default=[], metavar="STAGE",
+                       help="retrain this stage and the begun stages built on it (repeatable; teachers, distill, hyperdistill, "
+                            "grl, transfer, export, evaluate); old folders kept in <out>/superseded/")
         p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                        help="override any profile key, e.g. --set teachers.n_timesteps=5000 (repeatable; validated like the YAML)")
         return p
@@ -203,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         # out/run.json: the configuration, robots, versions, commit and device of this run; a run
         # is only continued with the settings it was started with (unless --force)
-        check_and_record(out, profile, command_line, args.force)
+        check_and_record(out, profile, command_line, args.force, args.redo)
         record_robot_sets(profile, out)  # out/robot_sets.json: which robots this run uses
         backend = None
         if getattr(args, "backend", None) is not None:

@@ -135,7 +135,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--width", type=int, default=480)
     parser.add_argument("--height", type=int, default=480)
-    parser.add_argument("--out", help="MP4 file (default: <model folder>/videos/<env id>.mp4)")
+    parser.add_argument("--out", help="MP4 file, or GIF when it ends in .gif (default: <model folder>/videos/<env id>.mp4)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 

@@ -280,4 +280,9 @@ def test_render_rgb_array_and_video(train_files, tmp_path):
     assert frames[0].std() > 5  # an actual picture, not a blank buffer
     path = write_video(frames, tmp_path / "clip.mp4", fps=50)
     assert path.stat().st_size > 1000
+    import imageio.v2 as imageio
+
+    shades = [np.full((64, 96, 3), 10 * i, np.uint8) for i in range(20)]  # distinct frames (a GIF merges repeats)
+    gif = write_video(shades, tmp_path / "clip.gif", fps=50)  # 20 frames at 50 fps -> every 5th: 4 frames
+    assert len(imageio.mimread(gif)) == 4 and imageio.mimread(gif)[0].shape[:2] == (64, 96)
     env.close()

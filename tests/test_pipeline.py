@@ -437,14 +437,32 @@ def test_a_run_is_only_continued_with_the_settings_it_was_started_with(finished_
     # the reported scenario: other seed, robots and episode length on a finished run
     assert cli(["pipeline", *base, "--seed", "3", "--train-robots", "1", "--set", "max_episode_steps=20"]) == 2
     err = capsys.readouterr().err
-    assert "seed: 0 -> 3" in err and "train_robots: 2 -> 1" in err and "max_episode_steps" in err and "--force" in err
+    assert "seed: 0 -> 3" in err and "train_robots: 2 -> 1" in err and "max_episode_steps" in err
+    assert "teachers: " in err and "--redo teachers" in err and "--force" in err
     summary = (out / "summary.md").read_text()
     assert cli(["report", *base, "--seed", "3"]) == 2 and (out / "summary.md").read_text() == summary
-    # --force accepts them and records it; cuda where there is none is refused, not silently cpu
-    assert cli(["report", *base, "--seed", "3", "--force"]) == 0
-    assert json.loads((out / "run.json").read_text())["history"][-1]["forced"] is True
+    assert cli(["report", *base, "--redo", "nonsense"]) == 2 and "unknown stage" in capsys.readouterr().err
+    # a change that only the export depends on: --redo export retrains it, keeping the old one aside
+    old_export = sorted(p.relative_to(out / "export") for p in (out / "export").glob("*/report.json"))
+    assert cli(["export", *base, "--set", "export.latency_repeats=3"]) == 2
+    assert "export: export.latency_repeats: 5 -> 3" in capsys.readouterr().err
+    assert cli(["export", *base, "--set", "export.latency_repeats=3", "--redo", "export"]) == 0
+    superseded = next((out / "superseded").iterdir())
+    assert sorted(p.relative_to(superseded / "export") for p in (superseded / "export").glob("*/report.json")) == old_export
+    assert sorted(p.relative_to(out / "export") for p in (out / "export").glob("*/report.json")) == old_export
+    assert (out / "teachers" / "FT" / "done.json").is_file() and (out / "evaluate" / "done.json").is_file()
+    history = json.loads((out / "run.json").read_text())["history"][-1]
+    assert history["retrained"] == ["export"] and history["changed"] == ["export.latency_repeats: 5 -> 3"]
+    # a change that no begun stage depends on is recorded without ceremony
+    shutil.rmtree(out / "evaluate")
+    assert cli(["report", *base, "--set", "export.latency_repeats=3", "--set", "evaluate.episodes=2"]) == 0
+    assert json.loads((out / "run.json").read_text())["history"][-1]["changed"] == ["evaluate.episodes: 1 -> 2"]
+    # --redo of an upstream stage retrains what was built on it too (here: the export)
+    assert cli(["report", *base, "--set", "export.latency_repeats=3", "--set", "evaluate.episodes=2", "--redo", "transfer"]) == 0
+    assert not (out / "transfer").exists() and not (out / "export").exists() and (out / "student" / "done.json").is_file()
+    # cuda where there is none is refused, not silently cpu
     if not th.cuda.is_available():
-        assert cli(["report", *base, "--seed", "3", "--device", "cuda", "--force"]) == 2
+        assert cli(["report", *base, "--set", "export.latency_repeats=3", "--set", "evaluate.episodes=2", "--device", "cuda"]) == 2
         assert "no CUDA device" in capsys.readouterr().err
 
 
@@ -546,3 +564,30 @@ def test_report_figures_label_axes_and_give_each_task_its_own_scale(tmp_path, mo
     assert all(ax.get_ylabel() for ax in panels) and returns_fig._suptitle.get_text() == "a title naming the robots"
     colour_bars = [ax for ax in gates_fig.axes if ax.get_ylabel().startswith("correlation")]
     assert len(colour_bars) == 2
+
+
+def test_a_transfer_outside_the_profile_is_evaluated_reported_and_exported_from_the_right_model(finished_run, tmp_path):
+    import shutil
+
+    source, profiles = finished_run
+    out = tmp_path / "copy"
+    shutil.copytree(source, out)
+    base = ["--profile", "tiny", "--profiles", str(profiles), "--out", str(out), "--no-progress"]
+    # PointNav is not among the profile's transfer tasks; exported before its transfer: zero-shot
+    assert cli(["export", *base, "--task", "PointNav"]) == 0
+    reports = sorted((out / "export").glob("*-PointNav/report.json"))
+    assert reports and all("zero-shot" in json.loads(p.read_text())["source_label"] for p in reports)
+    assert cli(["transfer", *base, "--task", "PointNav", "--arms", "divmorph,scratch", "--seeds", "0", "4"]) == 0
+    # after the transfer the same command exports the transferred student, not the stale zero-shot actor
+    assert cli(["export", *base, "--task", "PointNav"]) == 0
+    for path in reports:
+        report = json.loads(path.read_text())
+        assert report["source_label"] == "transferred student" and "transfer/PointNav/divmorph" in report["source"]
+    shutil.rmtree(out / "evaluate")
+    assert cli(["evaluate", *base]) == 0 and cli(["report", *base]) == 0
+    with open(out / "evaluate" / "returns.csv") as f:
+        rows = [r for r in csv.DictReader(f) if r["task"] == "PointNav"]
+    assert {r["model"] for r in rows} == {"student", "transfer-divmorph", "transfer-scratch"}
+    assert sum(r["model"] == "transfer-scratch" for r in rows) == 2 * 4  # seeds 0 and 4, on 2 + 2 robots
+    summary = (out / "summary.md").read_text()
+    assert "transfer PointNav (scratch, seed 4)" in summary and "| PointNav | " in summary

@@ -10,14 +10,20 @@ import gymnasium as gym
 import numpy as np
 
 
+#: Frames per second of a GIF (a GIF of every 50 fps frame would be large and slow in browsers).
+GIF_FPS = 10
+
+
 def write_video(frames: Iterable[np.ndarray], path: str | Path, fps: int = 50) -> Path:
-    """Encode RGB frames (H, W, 3, uint8) as an H.264 MP4 with imageio/ffmpeg.
+    """Encode RGB frames (H, W, 3, uint8) as an H.264 MP4 with imageio/ffmpeg, or as an animated
+    GIF when ``path`` ends in ``.gif`` (every ``fps // GIF_FPS``-th frame, still real time: small
+    enough for a README).
 
     The file is written under a temporary name and renamed, so an interrupted call never leaves
     a truncated video behind.
 
     :param frames: the frames, all the same size.
-    :param path: output ``.mp4`` path (parent folders are created).
+    :param path: output ``.mp4`` or ``.gif`` path (parent folders are created).
     :param fps: frames per second (50 = real time for the envs' 0.02 s control step).
     :returns: the path written.
     """
@@ -26,8 +32,14 @@ def write_video(frames: Iterable[np.ndarray], path: str | Path, fps: int = 50) -
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     partial = path.with_name(f".{path.stem}.partial{path.suffix}")
-    # macro_block_size=1 keeps odd frame sizes as they are instead of resizing with a warning.
-    with imageio.get_writer(partial, fps=fps, codec="libx264", macro_block_size=1, quality=7) as writer:
+    if path.suffix.lower() == ".gif":
+        stride = max(1, round(fps / GIF_FPS))
+        writer = imageio.get_writer(partial, format="GIF", mode="I", duration=1000 * stride / fps, loop=0)
+        frames = (frame for i, frame in enumerate(frames) if i % stride == 0)
+    else:
+        # macro_block_size=1 keeps odd frame sizes as they are instead of resizing with a warning.
+        writer = imageio.get_writer(partial, fps=fps, codec="libx264", macro_block_size=1, quality=7)
+    with writer:
         count = 0
         for frame in frames:
             writer.append_data(np.asarray(frame))

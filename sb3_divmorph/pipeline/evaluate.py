@@ -40,7 +40,7 @@ from sb3_divmorph.pipeline.runs import (
 from sb3_divmorph.pipeline.teachers import teacher_folder, teacher_run
 from sb3_divmorph.pipeline.arms import ARMS
 from sb3_divmorph.pipeline.curves import EVAL_FILE, read_eval, robot_venv, rollout_returns
-from sb3_divmorph.pipeline.transfer import robot_observations, transfer_folder
+from sb3_divmorph.pipeline.transfer import robot_observations, transfer_folder, transfer_seeds, transfer_tasks
 from unimal_envs.contract import TASK_NAMES
 from unimal_envs.instructions import shipped_embeddings
 
@@ -98,16 +98,16 @@ def evaluation_plan(profile: Profile, out: Path) -> list[tuple[str, Path, str]]:
         if is_done(teacher_folder(out, t)):
             plan += [("teacher", teacher_folder(out, t), t), ("teacher-untrained", teacher_folder(out, t), t)]
     if is_done(student_folder(out)):
-        plan += [("student", student_folder(out), t) for t in (*profile.teachers.tasks, *profile.transfer.tasks)]
+        plan += [("student", student_folder(out), t) for t in (*profile.teachers.tasks, *transfer_tasks(profile, out))]
     for name in STUDENTS:
         if name != "divmorph" and is_done(student_folder(out, name)):
             plan += [(f"student-{name}", student_folder(out, name), t) for t in profile.teachers.tasks]
     hyperdistill_student = out / "hyperdistill" / "student"
     if is_done(hyperdistill_student):
         plan += [("hyperdistill", hyperdistill_student, t) for t in profile.teachers.tasks]
-    for task in profile.transfer.tasks:
+    for task in transfer_tasks(profile, out):
         for arm in ARMS:
-            for seed in profile.transfer.seeds:
+            for seed in transfer_seeds(profile, out, task, arm):
                 if is_done(transfer_folder(out, task, arm, seed)):
                     plan.append((f"transfer-{arm}", transfer_folder(out, task, arm, seed), task))
     return plan

@@ -46,12 +46,14 @@ from sb3_divmorph.distillation import load_normalizer
 from sb3_divmorph.pipeline.config import ConfigError, Profile
 from sb3_divmorph.pipeline.distill import STUDENTS, student_folder
 from sb3_divmorph.pipeline.runs import (
+    DONE,
     MODEL,
     atomic_write_json,
     atomic_write_text,
     is_done,
     mark_done,
     profile_robots,
+    read_done,
     stage_normalizer,
     task_env_name,
 )
@@ -86,6 +88,16 @@ def source_model(out: Path, task: str, student: str = "divmorph") -> tuple[Path,
         raise FileNotFoundError(f"no distilled student {student!r} in {folder}; run `divmorph distill --out {out} --students {student}` first")
     label = "distilled student" if student == "divmorph" else f"distilled {student} student"
     return folder, label + (" (zero-shot)" if task in NOVEL_TASKS else "")
+
+
+def current_export(folder: Path, source: Path) -> dict[str, Any] | None:
+    """The finished export in ``folder`` if it was made from ``source`` as it is now (same model folder,
+    same finishing time), else ``None``."""
+    if not is_done(folder):
+        return None
+    report = json.loads((folder / "report.json").read_text())
+    same = report.get("source") == str(source / MODEL) and report.get("source_finished") == read_done(source).get("finished")
+    return report if same else None
 
 
 def episode_return(env: gym.Env, act, seed: int) -> tuple[float, int]:
@@ -131,9 +143,14 @@ def export_actor(
         raise ConfigError(f"unknown export format(s) {bad or list(formats)}; choose from {list(FORMATS)} or 'all'")
     robot_file = Path(robot_file)
     folder = export_folder(out, robot_file.stem, task, student)
-    if is_done(folder):
-        return json.loads((folder / "report.json").read_text())
     source, source_label = source_model(out, task, student)
+    previous = current_export(folder, source)
+    if previous is not None:
+        return previous
+    if is_done(folder):
+        # e.g. a zero-shot export of a novel task made before its transfer finished: not reused as if it were the transferred one
+        print(f"[export] {folder}: exported from another model than {source / MODEL} ({source_label}); exporting again")
+        (folder / DONE).unlink()
     model = PPO.load(source / MODEL, device="cpu")
     policy = model.policy.eval()
     if not isinstance(policy, DivMorphPolicy):
@@ -169,6 +186,7 @@ def export_actor(
         "task": task,
         "student": student,
         "source": str(source / MODEL),
+        "source_finished": read_done(source).get("finished"),
         "output": "action means (B,24), 0 on padded slots; clip to [-1, 1] before env.step",
     }
     normalized = observations if normalizer is None else normalizer.normalize_obs(observations)
@@ -267,7 +285,8 @@ def export_all(
         for task in tasks:
             for robot in robots:
                 folder = export_folder(out, Path(robot).stem, task, student)
-                print(f"[export] {student}: {Path(robot).stem} x {task}" + (f": skipped, already exported in {folder}" if is_done(folder) else ""))
+                done = current_export(folder, source_model(out, task, student)[0]) is not None
+                print(f"[export] {student}: {Path(robot).stem} x {task}" + (f": skipped, already exported in {folder}" if done else ""))
                 reports.append(export_actor(profile, out, robot, task, formats=formats, student=student))
     # the summary covers every actor exported into this run folder so far, not only this call's
     everything = [json.loads(p.read_text()) for p in export_reports(out)]

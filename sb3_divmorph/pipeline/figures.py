@@ -43,6 +43,7 @@ from sb3_divmorph.pipeline.metrics import ArmMetrics, arm_metrics, mean_curve  #
 from sb3_divmorph.pipeline.runs import atomic_save, atomic_write_text, profile_robots  # noqa: E402
 from sb3_divmorph.pipeline.distill import STUDENTS  # noqa: E402
 from sb3_divmorph.pipeline.export import export_reports  # noqa: E402
+from sb3_divmorph.pipeline.transfer import transfer_tasks  # noqa: E402
 
 FIGURES = ("transfer-train", "transfer-novel", "deployment", "ablation", "gates")
 SPLIT_WORDS = {"train": "training robots", "novel": "novel robots"}
@@ -97,8 +98,10 @@ METRIC_COLUMNS = ["task", "arm", "split", "seeds", "zero_shot", "zero_shot_sd", 
 
 
 def write_metrics(profile: Profile, out: Path, task: str) -> list[ArmMetrics]:
-    """Write ``transfer/<task>/metrics.csv`` and return its rows."""
+    """Write ``transfer/<task>/metrics.csv`` (when there are runs) and return its rows."""
     metrics = task_metrics(profile, out, task)
+    if not metrics:
+        return []  # no runs of this task: no file (a run folder without transfers stays without them)
     rows = [{**{k: getattr(m, k) for k in METRIC_COLUMNS if hasattr(m, k)}, "sample_efficiency": m.efficiency_text()} for m in metrics]
     _write_csv(Path(out) / "transfer" / task / "metrics.csv", rows, METRIC_COLUMNS)
     return metrics
@@ -115,7 +118,7 @@ def metrics_table(metrics: list[ArmMetrics]) -> list[str]:
 
 
 def _curves_figure(profile: Profile, out: Path, name: str, arms: tuple[str, ...], splits: tuple[str, ...], title: str) -> Path | None:
-    tasks = list(profile.transfer.tasks)
+    tasks = transfer_tasks(profile, out)
     rows: list[dict[str, Any]] = []
     fig, axes = plt.subplots(len(splits), len(tasks), figsize=(5.2 * len(tasks), 3.9 * len(splits)), squeeze=False)
     for r, split in enumerate(splits):

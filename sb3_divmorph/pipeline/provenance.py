@@ -1,11 +1,14 @@
 """What produced a run folder: ``run.json`` (resolved profile, robots, versions, commit, device used).
 
 Every ``divmorph`` stage command writes the record on its first use of a run folder and checks it
-on every later one: a run is continued only with the configuration it was started with. A profile
-that differs (another profile, another seed, other robots, another budget...) stops the command
-with the differing keys listed, before anything is trained, skipped or reported, so a summary can
-never describe settings its models were not trained with. ``--force`` accepts the new settings
-(the stages already finished are kept; delete a stage's folder to retrain it).
+on every later one: a stage already begun is reused (skipped when finished, resumed otherwise) only
+under the settings it was begun with. A profile that changes keys a begun stage depends on
+(:data:`STAGE_KEYS`: another seed, other robots, another budget...) stops the command with the
+stages and differing keys listed, before anything is trained, skipped or reported, so a summary can
+never describe settings its models were not trained with. ``--redo STAGE`` retrains a stage (and
+the begun stages built on it) under the new settings, ``--force`` does so for every stage the
+change touches; the old folders are moved to ``superseded/<time>/``, never deleted. A change that
+touches no begun stage (say, the transfer budget before any transfer ran) is simply recorded.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import platform
+import shutil
 import subprocess
 import time
 from importlib import metadata
@@ -23,6 +27,36 @@ from sb3_divmorph.pipeline.config import ConfigError, Profile
 from sb3_divmorph.pipeline.runs import atomic_write_json, resolve_device, robot_set_record
 
 RECORD = "run.json"
+#: where ``--redo`` / ``--force`` move the folders of the stages they retrain
+SUPERSEDED = "superseded"
+
+_BASE = ("seed", "train_set", "train_robots", "max_episode_steps")
+_NOVEL = ("novel_set", "novel_robots")
+#: The profile keys each stage's outputs depend on: its own section and those of what it is built on.
+STAGE_KEYS: dict[str, tuple[str, ...]] = {
+    "teachers": (*_BASE, "teachers"),
+    "distill": (*_BASE, "teachers", "student", "distill"),
+    "hyperdistill": (*_BASE, "teachers", "hyperdistill"),
+    "grl": (*_BASE, "teachers", "grl"),
+    "transfer": (*_BASE, *_NOVEL, "teachers", "student", "distill", "grl", "transfer"),
+    "export": (*_BASE, *_NOVEL, "teachers", "student", "distill", "transfer", "export"),
+    "evaluate": (*_BASE, *_NOVEL, "teachers", "student", "distill", "hyperdistill", "grl", "transfer", "evaluate"),
+}
+#: Each stage's folders in a run.
+STAGE_FOLDERS: dict[str, tuple[str, ...]] = {
+    "teachers": ("teachers",), "distill": ("student", "students"), "hyperdistill": ("hyperdistill",), "grl": ("grl",),
+    "transfer": ("transfer",), "export": ("export",), "evaluate": ("evaluate",),
+}
+#: The stages built on each stage's outputs (retrained with it).
+DOWNSTREAM: dict[str, tuple[str, ...]] = {
+    "teachers": ("distill", "hyperdistill", "grl", "transfer", "export", "evaluate"),
+    "distill": ("transfer", "export", "evaluate"),
+    "hyperdistill": ("evaluate",),
+    "grl": ("transfer", "evaluate"),
+    "transfer": ("export", "evaluate"),
+    "export": (),
+    "evaluate": (),
+}
 #: packages whose versions a result depends on
 PACKAGES = ("divmorph", "torch", "stable-baselines3", "gymnasium", "mujoco", "numpy")
 
@@ -59,25 +93,65 @@ def _differences(old: Any, new: Any, prefix: str = "") -> list[str]:
     return [] if old == new else [f"{prefix.rstrip('.')}: {old!r} -> {new!r}"]
 
 
-def check_and_record(out: Path, profile: Profile, command: str, force: bool = False) -> dict[str, Any]:
-    """Compare ``profile`` with the configuration recorded in ``out/run.json`` and (re)write the record.
+def begun_stages(out: Path) -> list[str]:
+    """The stages that have begun in run folder ``out`` (a folder of theirs holds anything)."""
+    out = Path(out)
+    return [stage for stage, folders in STAGE_FOLDERS.items()
+            if any((out / f).is_dir() and any((out / f).iterdir()) for f in folders)]
+
+
+def stage_changes(old: dict[str, Any], new: dict[str, Any], stage: str) -> list[str]:
+    """The differing keys between two configurations that ``stage``'s outputs depend on."""
+    return [d for key in STAGE_KEYS[stage] for d in _differences({key: old.get(key)}, {key: new.get(key)})]
+
+
+def supersede(out: Path, stages: list[str]) -> Path | None:
+    """Move the folders of ``stages`` to ``out/superseded/<time>/`` (kept, never deleted); returns it."""
+    out = Path(out)
+    moved = [out / f for stage in stages for f in STAGE_FOLDERS[stage] if (out / f).exists()]
+    if not moved:
+        return None
+    target = out / SUPERSEDED / time.strftime("%Y%m%d-%H%M%S")
+    target.mkdir(parents=True, exist_ok=True)
+    for folder in moved:
+        shutil.move(str(folder), str(target / folder.name))
+    return target
+
+
+def check_and_record(out: Path, profile: Profile, command: str, force: bool = False, redo: tuple[str, ...] | list[str] = ()) -> dict[str, Any]:
+    """Compare ``profile`` with the configuration recorded in ``out/run.json``, retrain what must be
+    retrained, and (re)write the record.
 
     :param out: the run folder (it may not exist yet).
     :param command: the command line, appended to the record's history.
-    :param force: accept a configuration that differs from the recorded one.
-    :raises ConfigError: the configuration differs and ``force`` is off; the message lists the keys.
+    :param force: retrain every begun stage whose settings changed (and the stages built on it).
+    :param redo: retrain these stages (and the begun stages built on them), changed or not.
+    :raises ConfigError: a begun stage's settings changed and neither ``force`` nor ``redo`` covers
+        it (the message lists the stages and keys); an unknown stage in ``redo``.
     """
     path = Path(out) / RECORD
+    unknown = [stage for stage in redo if stage not in STAGE_KEYS]
+    if unknown:
+        raise ConfigError(f"unknown stage(s) {unknown} for --redo; stages: {list(STAGE_KEYS)}")
     config = configuration(profile)
     device = resolve_device(profile.device)
     previous = json.loads(path.read_text()) if path.is_file() else None
-    if previous is not None and previous["configuration"] != config and not force:
-        changed = _differences(previous["configuration"], config)
+    begun = begun_stages(out)
+    changed = {stage: stage_changes(previous["configuration"], config, stage) for stage in begun} if previous else {}
+    changed = {stage: keys for stage, keys in changed.items() if keys}
+    blocked = {stage: keys for stage, keys in changed.items() if stage not in redo and not force}
+    if blocked:
         raise ConfigError(
-            f"{out} was run with other settings ({path}); differing keys:\n  " + "\n  ".join(changed)
-            + "\nUse another --out for the new settings, or --force to continue this run with them "
-            "(finished stages are kept; delete a stage's folder to retrain it)."
+            f"{out} holds stages begun with other settings ({path}):\n  "
+            + "\n  ".join(f"{stage}: " + "; ".join(keys) for stage, keys in blocked.items())
+            + f"\nUse another --out for the new settings, or retrain: --redo {' --redo '.join(blocked)} (or --force for all of "
+            f"them); the old folders are kept in {Path(out) / SUPERSEDED}/."
         )
+    retrain = [stage for stage in begun if stage in redo or stage in changed or any(
+        stage in DOWNSTREAM[s] for s in (*redo, *changed))]
+    moved = supersede(out, retrain)
+    if moved is not None:
+        print(f"[provenance] retraining {', '.join(retrain)}: their previous folders moved to {moved}")
     record = {
         "configuration": config,
         "device_used": device,
@@ -85,7 +159,10 @@ def check_and_record(out: Path, profile: Profile, command: str, force: bool = Fa
         "versions": _versions(),
         "git_commit": _git_commit(),
         "machine": f"{platform.node()} ({platform.machine()}, {platform.system()})",
-        "history": [*(previous or {}).get("history", []), {"command": command, "time": time.strftime("%Y-%m-%d %H:%M:%S"), "forced": bool(force and previous is not None and previous["configuration"] != config)}],
+        "history": [*(previous or {}).get("history", []), {
+            "command": command, "time": time.strftime("%Y-%m-%d %H:%M:%S"),
+            "changed": _differences(previous["configuration"], config) if previous else [],
+            "forced": bool(force and changed), "retrained": retrain, "superseded": str(moved) if moved else None}],
     }
     atomic_write_json(path, record)
     return record

@@ -26,9 +26,10 @@ from sb3_divmorph.pipeline.arms import ARMS  # noqa: E402
 from sb3_divmorph.pipeline.config import Profile  # noqa: E402
 from sb3_divmorph.pipeline.distill import STUDENTS  # noqa: E402
 from sb3_divmorph.pipeline.export import export_reports  # noqa: E402
+from sb3_divmorph.pipeline.provenance import SUPERSEDED  # noqa: E402
 from sb3_divmorph.pipeline.figures import make_figures, metrics_table, write_metrics  # noqa: E402
 from sb3_divmorph.pipeline.runs import atomic_save, atomic_write_text, read_progress  # noqa: E402
-from sb3_divmorph.pipeline.transfer import transfer_folder  # noqa: E402
+from sb3_divmorph.pipeline.transfer import transfer_folder, transfer_seeds, transfer_tasks  # noqa: E402
 
 
 def _curve(ax, progress: dict[str, np.ndarray], key: str, label: str) -> bool:
@@ -49,7 +50,7 @@ def _robots_phrase(profile: Profile) -> str:
 def plot_curves(profile: Profile, out: Path, target: Path) -> None:
     """Teachers' curves (one panel per task: their returns differ in scale), the distillation KL per
     task, and each transfer task's training-episode curves."""
-    teachers, tasks = list(profile.teachers.tasks), list(profile.transfer.tasks)
+    teachers, tasks = list(profile.teachers.tasks), transfer_tasks(profile, out)
     n = len(teachers) + 1 + len(tasks)
     columns = min(n, 4)
     fig, axes = plt.subplots((n + columns - 1) // columns, columns, figsize=(4.6 * columns, 3.6 * ((n + columns - 1) // columns)), squeeze=False)
@@ -67,7 +68,7 @@ def plot_curves(profile: Profile, out: Path, target: Path) -> None:
     kl_ax.set_ylabel("KL(teacher || student), nats per state")
     seed = profile.transfer.seeds[0]
     for ax, task in zip(axes[len(teachers) + 1 :], tasks):
-        for arm in profile.transfer.arm_list():
+        for arm in ARMS:
             _curve(ax, read_progress(transfer_folder(out, task, arm, seed)), "rollout/ep_rew_mean", ARMS[arm].label)
         ax.set_title(f"transfer to {task} (seed {seed})", fontsize=9)
         ax.set_ylabel("episode return (training episodes)")
@@ -229,7 +230,7 @@ def report(profile: Profile, out: Path, command: str = "") -> str:
         exist would mislead).
     """
     out = Path(out)
-    if not any(path.is_file() for path in out.glob("**/done.json")):
+    if not any(path.is_file() and SUPERSEDED not in path.relative_to(out).parts for path in out.glob("**/done.json")):
         raise FileNotFoundError(f"nothing to report in {out}: no stage has finished there (no done.json); run the stages first")
     folder = out / "report"
     folder.mkdir(parents=True, exist_ok=True)
@@ -263,16 +264,16 @@ def report(profile: Profile, out: Path, command: str = "") -> str:
         lines.append(f"| GRL evolution ({profile.grl.generations} generations x {profile.grl.population} agents x "
                      f"{profile.grl.steps_per_agent} steps); learngene {'+'.join(learngene['units'])} | `grl/learngene.json` | "
                      f"{profile.grl.generations * profile.grl.population * profile.grl.steps_per_agent} |")
-    for task in profile.transfer.tasks:
+    for task in transfer_tasks(profile, out):
         for arm in ARMS:
-            for seed in profile.transfer.seeds:
+            for seed in transfer_seeds(profile, out, task, arm):
                 run = transfer_folder(out, task, arm, seed)
                 if (run / "done.json").is_file():
                     lines.append(f"| transfer {task} ({arm}, seed {seed}) | `{run.relative_to(out)}/model.zip` | {_fmt_steps(read_progress(run))} |")
 
     plot_curves(profile, out, folder / "curves.png")
     lines += ["", "## Learning curves", "", "![curves](report/curves.png)", ""]
-    metrics = [m for task in profile.transfer.tasks for m in write_metrics(profile, out, task)]
+    metrics = [m for task in transfer_tasks(profile, out) for m in write_metrics(profile, out, task)]
     if metrics:
         closest = [json.loads(p.read_text()) for p in sorted((out / "transfer").glob("*/closest-by-*.json"))]
         lines += ["## Transfer metrics", "",

@@ -62,6 +62,19 @@ def transfer_folder(out: Path, task: str, arm: str, seed: int = 0) -> Path:
     return base / f"seed-{seed}"
 
 
+def transfer_tasks(profile: Profile, out: Path) -> list[str]:
+    """The profile's transfer tasks, then any other novel task the run folder holds transfer runs of
+    (``divmorph transfer --task PointNav`` outside the profile is evaluated and reported too)."""
+    found = sorted(p.name for p in (Path(out) / "transfer").glob("*") if p.is_dir() and p.name in NOVEL_TASKS)
+    return list(dict.fromkeys([*profile.transfer.tasks, *found]))
+
+
+def transfer_seeds(profile: Profile, out: Path, task: str, arm: str) -> list[int]:
+    """The profile's seeds, then any other seed the run folder holds a run of for ``task`` and ``arm``."""
+    found = sorted(int(p.name.split("-", 1)[1]) for p in (Path(out) / "transfer" / task / arm).glob("seed-*") if p.name.split("-", 1)[1].isdigit())
+    return list(dict.fromkeys([*profile.transfer.seeds, *found]))
+
+
 def robot_observations(env_name: str, robots: list[Path], seed: int = 0, instruction: str | None = None) -> dict[str, np.ndarray]:
     """One reset observation per robot, batched (for gates and selections)."""
     import gymnasium as gym
