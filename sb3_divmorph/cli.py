@@ -40,9 +40,10 @@ def _parser() -> argparse.ArgumentParser:
 
     def command(name: str, help_text: str) -> argparse.ArgumentParser:
         p = sub.add_parser(name, help=help_text, description=help_text)
-        p.add_argument("--profile", default="demo", help="profile name in the profiles file (default: demo)")
+        p.add_argument("--profile", default=None,
+                       help="profile name in the profiles file (default: the one recorded in --out's run.json, else demo)")
         p.add_argument("--profiles", default="zoo_configs/divmorph.yml", help="profiles file (default: the shipped one)")
-        p.add_argument("--out", default=None, help="run folder (default: runs/<profile>)")
+        p.add_argument("--out", "--run", default=None, help="run folder (default: runs/<profile>)")
         p.add_argument("--no-progress", action="store_true", help="no progress bars")
         p.add_argument("--seed", type=int, default=None, help="override the profile's seed")
         p.add_argument("--device", default=None, help="override the profile's device (cpu, cuda, auto)")
@@ -193,7 +194,12 @@ def main(argv: list[str] | None = None) -> int:
     from sb3_divmorph.pipeline.runs import record_robot_sets, seed_everything
 
     try:
-        profile = P.load_profile(args.profile, args.profiles, _overrides(args))
+        recorded = Path(args.out) / "run.json" if args.out and args.profile is None else None
+        if recorded is not None and recorded.is_file():
+            # a run is described by its records: the configuration it was run with, not today's profiles file
+            profile = P.recorded_profile(recorded, _overrides(args))
+        else:
+            profile = P.load_profile(args.profile or "demo", args.profiles, _overrides(args))
     except P.ConfigError as error:
         print(f"divmorph: {error}", file=sys.stderr)
         return 2

@@ -591,3 +591,19 @@ def test_a_transfer_outside_the_profile_is_evaluated_reported_and_exported_from_
     assert sum(r["model"] == "transfer-scratch" for r in rows) == 2 * 4  # seeds 0 and 4, on 2 + 2 robots
     summary = (out / "summary.md").read_text()
     assert "transfer PointNav (scratch, seed 4)" in summary and "| PointNav | " in summary
+
+
+def test_a_run_is_evaluated_and_reported_from_its_own_records(finished_run, tmp_path, monkeypatch):
+    """``divmorph evaluate --run FOLDER`` needs no profile: the run's run.json says what it was."""
+    import shutil
+
+    source, _ = finished_run
+    out = tmp_path / "copy"
+    shutil.copytree(source, out)
+    shutil.rmtree(out / "evaluate")
+    monkeypatch.chdir(tmp_path)  # neither the profiles file of the run nor the source tree is needed
+    assert cli(["evaluate", "--run", str(out), "--no-progress"]) == 0
+    assert cli(["report", "--run", str(out), "--no-progress"]) == 0
+    assert "# DivMorph pipeline — profile `tiny`" in (out / "summary.md").read_text()
+    with open(out / "evaluate" / "returns.csv") as f:
+        assert {r["model"] for r in csv.DictReader(f)} >= {"teacher", "student"}

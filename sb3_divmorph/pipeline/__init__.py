@@ -14,6 +14,7 @@ from sb3_divmorph.pipeline.figures import FIGURES, make_figure, make_figures
 from sb3_divmorph.pipeline.grid import GridError, make_backend
 from sb3_divmorph.pipeline.grl import evolve
 from sb3_divmorph.pipeline.hyperdistill import hyperdistill
+from sb3_divmorph.pipeline.provenance import recorded_profile
 from sb3_divmorph.pipeline.report import report
 from sb3_divmorph.pipeline.teachers import load_teachers, train_teachers
 from sb3_divmorph.pipeline.transfer import transfer
@@ -59,6 +60,7 @@ __all__ = [
     "hyperdistill",
     "load_profile",
     "load_teachers",
+    "recorded_profile",
     "report",
     "run_pipeline",
     "train_teachers",

@@ -23,7 +23,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-from sb3_divmorph.pipeline.config import ConfigError, Profile
+from sb3_divmorph.pipeline.config import ConfigError, Profile, apply_overrides
 from sb3_divmorph.pipeline.runs import atomic_write_json, resolve_device, robot_set_record
 
 RECORD = "run.json"
@@ -84,6 +84,16 @@ def _versions() -> dict[str, str | None]:
 def configuration(profile: Profile) -> dict[str, Any]:
     """The profile as plain values (what a run's models depend on)."""
     return json.loads(json.dumps(dataclasses.asdict(profile), default=str))
+
+
+def recorded_profile(path: Path, overrides: dict[str, Any] | None = None) -> Profile:
+    """The profile a run was run with, from its ``run.json`` (``overrides`` applied, validated like the YAML)."""
+    values = json.loads(Path(path).read_text())["configuration"]
+    name = values.pop("name")
+    try:
+        return Profile.from_dict(name, apply_overrides(values, overrides or {}))
+    except ConfigError as error:
+        raise ConfigError(f"{path}: {error}") from None
 
 
 def _differences(old: Any, new: Any, prefix: str = "") -> list[str]:
