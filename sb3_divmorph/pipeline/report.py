@@ -26,7 +26,7 @@ from sb3_divmorph.pipeline.arms import ARMS  # noqa: E402
 from sb3_divmorph.pipeline.config import Profile  # noqa: E402
 from sb3_divmorph.pipeline.distill import STUDENTS  # noqa: E402
 from sb3_divmorph.pipeline.export import export_reports  # noqa: E402
-from sb3_divmorph.pipeline.provenance import SUPERSEDED  # noqa: E402
+from sb3_divmorph.pipeline.provenance import RECORD, SUPERSEDED  # noqa: E402
 from sb3_divmorph.pipeline.figures import make_figures, metrics_table, write_metrics  # noqa: E402
 from sb3_divmorph.pipeline.runs import atomic_save, atomic_write_text, read_progress  # noqa: E402
 from sb3_divmorph.pipeline.transfer import transfer_folder, transfer_seeds, transfer_tasks  # noqa: E402
@@ -223,6 +223,36 @@ def _fmt_steps(progress: dict[str, np.ndarray]) -> str:
     return str(int(np.nanmax(steps))) if steps is not None and len(steps) else "?"
 
 
+def training_seconds(folder: Path) -> float | None:
+    """Wall time a training run spent learning: the last ``time/time_elapsed`` of each attempt
+    (``logs/run-*``; a resumed run restarts SB3's clock), summed. ``None`` without logs."""
+    total, found = 0.0, False
+    for log in Path(folder).glob("logs/run-*/progress.csv"):
+        with open(log) as f:
+            elapsed = [float(row["time/time_elapsed"]) for row in csv.DictReader(f) if row.get("time/time_elapsed")]
+        if elapsed:
+            total, found = total + max(elapsed), True
+    return total if found else None
+
+
+def _stage_row(label: str, run: Path, output: str) -> str:
+    seconds = training_seconds(run)
+    return f"| {label} | `{output}` | {_fmt_steps(read_progress(run))} | {'?' if seconds is None else f'{seconds:,.0f}'} |"
+
+
+def _run_record_lines(out: Path) -> list[str]:
+    """The machine and the commands of the run, from its ``run.json``."""
+    path = out / RECORD
+    if not path.is_file():
+        return []
+    record = json.loads(path.read_text())
+    commands = list(dict.fromkeys(entry["command"] for entry in record.get("history", [])))
+    versions = ", ".join(f"{k} {v}" for k, v in record.get("versions", {}).items() if v)
+    return [f"- run record (`{RECORD}`): machine {record.get('machine')}, device used `{record.get('device_used')}`, "
+            f"commit `{record.get('git_commit')}`, {versions}",
+            "- commands run in this folder, in order (`run.json` history):", "", "```bash", *commands, "```"]
+
+
 def report(profile: Profile, out: Path, command: str = "") -> str:
     """Write the report of run folder ``out`` and return the markdown summary.
 
@@ -247,29 +277,30 @@ def report(profile: Profile, out: Path, command: str = "") -> str:
         f"{profile.transfer.n_timesteps} env steps per run; teachers {profile.teachers.n_timesteps}, "
         f"distillation {profile.distill.n_timesteps} env steps",
         "",
+        *_run_record_lines(out),
+        "",
         "## Stages",
         "",
-        "| stage | output | env steps |",
-        "|---|---|---|",
+        "| stage | output | env steps | training wall time (s) |",
+        "|---|---|---|---|",
     ]
     for task in profile.teachers.tasks:
-        lines.append(f"| teacher {task} (MetaMorph, PPO) | `teachers/{task}/model.zip` | {_fmt_steps(read_progress(out / 'teachers' / task))} |")
-    lines.append(f"| DAgger distillation (DivMorph student) | `student/model.zip` | {_fmt_steps(read_progress(out / 'student'))} |")
+        lines.append(_stage_row(f"teacher {task} (MetaMorph, PPO)", out / "teachers" / task, f"teachers/{task}/model.zip"))
+    lines.append(_stage_row("DAgger distillation (DivMorph student)", out / "student", "student/model.zip"))
     for name in STUDENTS:
         if name != "divmorph" and (out / "students" / name / "done.json").is_file():
-            lines.append(f"| DAgger distillation ({STUDENTS[name].description}) | `students/{name}/model.zip` | "
-                         f"{_fmt_steps(read_progress(out / 'students' / name))} |")
+            lines.append(_stage_row(f"DAgger distillation ({STUDENTS[name].description})", out / "students" / name, f"students/{name}/model.zip"))
     if (out / "grl" / "done.json").is_file():
         learngene = json.loads((out / "grl" / "learngene.json").read_text())
         lines.append(f"| GRL evolution ({profile.grl.generations} generations x {profile.grl.population} agents x "
                      f"{profile.grl.steps_per_agent} steps); learngene {'+'.join(learngene['units'])} | `grl/learngene.json` | "
-                     f"{profile.grl.generations * profile.grl.population * profile.grl.steps_per_agent} |")
+                     f"{profile.grl.generations * profile.grl.population * profile.grl.steps_per_agent} | ? |")
     for task in transfer_tasks(profile, out):
         for arm in ARMS:
             for seed in transfer_seeds(profile, out, task, arm):
                 run = transfer_folder(out, task, arm, seed)
                 if (run / "done.json").is_file():
-                    lines.append(f"| transfer {task} ({arm}, seed {seed}) | `{run.relative_to(out)}/model.zip` | {_fmt_steps(read_progress(run))} |")
+                    lines.append(_stage_row(f"transfer {task} ({arm}, seed {seed})", run, f"{run.relative_to(out)}/model.zip"))
 
     plot_curves(profile, out, folder / "curves.png")
     lines += ["", "## Learning curves", "", "![curves](report/curves.png)", ""]

@@ -1,0 +1,39 @@
+"""The recorded ``cpu`` run's artifacts (``results/cpu``) load on a fresh clone and do what the run says.
+
+Only the models' robots are external: the official unimals_100 training set, read from ``../shared``
+(skipped cleanly without it).
+"""
+
+from __future__ import annotations
+
+import pickle
+from pathlib import Path
+
+import pytest
+from stable_baselines3 import PPO
+from stable_baselines3.common.vec_env import VecNormalize
+
+from sb3_divmorph import MetaMorphPolicy
+from sb3_divmorph.pipeline.evaluate import evaluate_model
+from sb3_divmorph.pipeline.runs import stage_normalizer
+
+RUN = Path(__file__).resolve().parents[1] / "results" / "cpu"
+#: the FT teacher's best training robot in the run (deterministic return 1888 over 1,000 steps)
+WALKER = "floor-1409-11-14-01-13-30-11"
+
+
+@pytest.mark.parametrize("task", ["FT", "VT", "Incline", "Obstacle", "Patrol"])
+def test_every_teacher_loads_with_its_normaliser(task):
+    folder = RUN / "teachers" / task
+    model = PPO.load(folder / "model.zip", device="cpu")
+    assert isinstance(model.policy, MetaMorphPolicy)
+    statistics = stage_normalizer(folder)
+    assert statistics is not None and statistics.is_file()
+    with open(statistics, "rb") as f:
+        normalizer = pickle.load(f)
+    assert isinstance(normalizer, VecNormalize) and normalizer.obs_rms["proprioceptive"].count > 1e5
+
+
+def test_the_ft_teacher_walks_on_a_fresh_clone(official_train):
+    rows = evaluate_model(RUN / "teachers" / "FT", "FT", [official_train / "xml" / f"{WALKER}.xml"], 1, 1000, 0)
+    assert rows[0]["length"] == 1000 and rows[0]["return"] > 1000  # the whole episode without a fall, far forward
