@@ -45,7 +45,17 @@ from sb3_divmorph.pipeline.distill import STUDENTS  # noqa: E402
 from sb3_divmorph.pipeline.export import export_reports  # noqa: E402
 from sb3_divmorph.pipeline.transfer import transfer_tasks  # noqa: E402
 
-FIGURES = ("transfer-train", "transfer-novel", "deployment", "ablation", "gates")
+#: Each figure's caption: what its lines, bands, bars and error bars are.
+CAPTIONS = {
+    "transfer-train": "deterministic return on the training robots during transfer; line = mean over seeds (each seed: mean "
+                      "over robots), band = ±1 sd over seeds",
+    "transfer-novel": "the same on the novel robots (never trained on); band = ±1 sd over seeds",
+    "deployment": "bars = mean over robots of deterministic episodes, error bars = sd over robots; sizes: stored actor "
+                  "weights, mean over exported robots (log scale)",
+    "ablation": "DivMorph and its ablations, deterministic return; line = mean over seeds, band = ±1 sd over seeds",
+    "gates": "Pearson correlation of the gate vectors of two tasks (left) or two robots (right)",
+}
+FIGURES = tuple(CAPTIONS)
 SPLIT_WORDS = {"train": "training robots", "novel": "novel robots"}
 
 
@@ -61,8 +71,9 @@ def _write_csv(path: Path, rows: list[dict[str, Any]], columns: list[str]) -> No
     atomic_write_text(path, buffer.getvalue())
 
 
-def _save(fig, path: Path) -> None:
-    fig.tight_layout()
+def _save(fig, path: Path, rect: tuple[float, float, float, float] = (0, 0, 1, 1)) -> None:
+    """Lay out (leaving ``rect``'s margins, e.g. for a figure legend) and write a PNG atomically."""
+    fig.tight_layout(rect=rect)
     atomic_save(path, lambda p: fig.savefig(p, dpi=110, format="png"))
     plt.close(fig)
 
@@ -188,42 +199,48 @@ def deployment_figure(profile: Profile, out: Path) -> Path | None:
     if not models:
         return None
     rows = []
-    fig, axes = plt.subplots(1, 3, figsize=(16, 4.2))
-    x = np.arange(len(tasks))
-    width = 0.8 / len(models)
-    for panel, split in enumerate(("train", "novel")):
-        ax = axes[panel]
+    # one panel per task and robot split (tasks' returns differ in scale), sizes in a last column
+    fig = plt.figure(figsize=(2.9 * len(tasks) + 4.5, 7.6))
+    grid = fig.add_gridspec(2, len(tasks) + 1, width_ratios=[1] * len(tasks) + [1.6])
+    x = np.arange(len(models))
+    for r, split in enumerate(("train", "novel")):
         n_robots = len(profile_robots(profile, split))
-        for i, model in enumerate(models):
-            values = [groups.get((model, t, split), []) for t in tasks]
+        for c, task in enumerate(tasks):
+            ax = fig.add_subplot(grid[r, c])
+            values = [groups.get((model, task, split), []) for model in models]
             means = [np.mean(v) if v else np.nan for v in values]
             sds = [np.std(v) if v else np.nan for v in values]
-            ax.bar(x + (i - (len(models) - 1) / 2) * width, means, width, yerr=sds, capsize=2, label=deployed[model])
-            rows += [{"panel": f"returns ({split} robots)", "model": model, "task": t, "value": m, "sd": s, "n": len(v)}
-                     for t, m, s, v in zip(tasks, means, sds, values)]
-        ax.set_xticks(x, tasks)
-        ax.set_xlabel("training task")
-        ax.set_ylabel("episode return (deterministic, per robot)")
-        ax.set_title(f"({'ab'[panel]}) {n_robots} {SPLIT_WORDS[split]}, {profile.evaluate.episodes} episode(s) each", fontsize=9)
-        ax.legend(fontsize=7)
-    ax = axes[2]
+            colors = [f"C{i}" for i in range(len(models))]
+            ax.bar(x, means, 0.7, yerr=sds, capsize=2, color=colors)
+            rows += [{"panel": f"returns ({split} robots)", "model": model, "task": task, "value": m, "sd": sd, "n": len(v)}
+                     for model, m, sd, v in zip(models, means, sds, values)]
+            ax.set_xticks(x, [str(i + 1) for i in range(len(models))])
+            ax.set_title(f"{task}, {n_robots} {SPLIT_WORDS[split]}", fontsize=8)
+            if c == 0:
+                ax.set_ylabel("episode return (deterministic)")
+            if r == 1:
+                ax.set_xlabel("model (legend)")
+    handles = [plt.Rectangle((0, 0), 1, 1, color=f"C{i}") for i in range(len(models))]
+    fig.legend(handles, [f"{i + 1}: {deployed[m]}" for i, m in enumerate(models)], loc="lower center",
+               ncol=min(len(models), 3), fontsize=8)
+    ax = fig.add_subplot(grid[:, -1])
     size_tasks = [t for t in tasks if any((m, t) in sizes for m in models)]
+    width = 0.8 / len(models)
     for i, model in enumerate(models):
         values = [np.mean(sizes[(model, t)]) if (model, t) in sizes else np.nan for t in size_tasks]
-        ax.bar(np.arange(len(size_tasks)) + (i - (len(models) - 1) / 2) * width, values, width, label=deployed[model])
+        ax.bar(np.arange(len(size_tasks)) + (i - (len(models) - 1) / 2) * width, values, width, color=f"C{i}")
         rows += [{"panel": "parameters (actor, one robot)", "model": model, "task": t, "value": v, "sd": "", "n": len(sizes.get((model, t), []))}
                  for t, v in zip(size_tasks, values)]
-    ax.set_xticks(np.arange(len(size_tasks)), size_tasks)
+    ax.set_xticks(np.arange(len(size_tasks)), size_tasks, rotation=45)
     ax.set_yscale("log")
     ax.set_xlabel("training task (exported robots)")
     ax.set_ylabel("actor parameters (count, log scale)")
-    ax.set_title("(c) deployed actor size (MetaMorph folded like the compact actor)" + ("" if size_tasks else ": no exports of training tasks"), fontsize=9)
-    if size_tasks:
-        ax.legend(fontsize=7)
-    fig.suptitle(f"Single-agent deployment (profile {profile.name}, seed {profile.seed})")
+    ax.set_title("deployed actor size\n(MetaMorph folded like the compact actor)" + ("" if size_tasks else ": no exports"), fontsize=8)
+    fig.suptitle(f"Single-agent deployment (profile {profile.name}, seed {profile.seed}): bars = mean over robots of "
+                 f"{profile.evaluate.episodes} deterministic episode(s) each, error bars = sd over robots", fontsize=10)
     folder = figures_folder(out)
     _write_csv(folder / "deployment.csv", rows, ["panel", "model", "task", "value", "sd", "n"])
-    _save(fig, folder / "deployment.png")
+    _save(fig, folder / "deployment.png", rect=(0, 0.07, 1, 0.95))
     return folder / "deployment.png"
 
 

@@ -27,7 +27,7 @@ from sb3_divmorph.pipeline.config import Profile  # noqa: E402
 from sb3_divmorph.pipeline.distill import STUDENTS  # noqa: E402
 from sb3_divmorph.pipeline.export import export_reports  # noqa: E402
 from sb3_divmorph.pipeline.provenance import RECORD, SUPERSEDED  # noqa: E402
-from sb3_divmorph.pipeline.figures import make_figures, metrics_table, write_metrics  # noqa: E402
+from sb3_divmorph.pipeline.figures import CAPTIONS, make_figures, metrics_table, write_metrics  # noqa: E402
 from sb3_divmorph.pipeline.runs import atomic_save, atomic_write_text, read_progress  # noqa: E402
 from sb3_divmorph.pipeline.transfer import transfer_folder, transfer_seeds, transfer_tasks  # noqa: E402
 
@@ -317,8 +317,8 @@ def report(profile: Profile, out: Path, command: str = "") -> str:
                   f"({', '.join(f'{t} {v:.3f}' for t, v in c['scores'].items())})" for c in closest]
     figures = make_figures(profile, out)
     if figures:
-        lines += ["", "## Figures", "", *[f"- {name}: `{path.relative_to(out)}` (numbers: `{path.with_suffix('.csv').relative_to(out)}`)"
-                                          for name, path in figures.items()], ""]
+        lines += ["", "## Figures", "", *[f"- {name}: `{path.relative_to(out)}` (numbers: `{path.with_suffix('.csv').relative_to(out)}`): "
+                                          f"{CAPTIONS[name]}" for name, path in figures.items()], ""]
 
     returns_file = out / "evaluate" / "returns.csv"
     if returns_file.is_file():
