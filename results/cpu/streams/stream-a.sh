@@ -1,9 +1,8 @@
 #!/usr/bin/env bash
-# Stream a of the cpu run after the teachers (one core): the DivMorph student, its transfer arm,
-# the deployment student, and the scratch arm on Exploration. Resumable: rerun to continue.
+# Stream a of the cpu run after the teachers (one core): the DivMorph student, then its transfer arm
+# and the Exploration runs of scratch and closest. Resumable: rerun to continue.
 set -euo pipefail
 D="divmorph"; O="--profile cpu --out results/cpu --no-progress"
-$D distill $O --students divmorph --force
+$D distill $O --students divmorph
 $D transfer $O --arms divmorph
-$D distill $O --students deploy-g1k1
-$D transfer $O --arms scratch --task Exploration
+$D transfer $O --arms scratch,closest --task Exploration

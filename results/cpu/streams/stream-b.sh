@@ -1,9 +1,8 @@
 #!/usr/bin/env bash
-# Stream b of the cpu run after the teachers (one core): the dense MetaMorph student, the scratch
-# and closest arms, and the distilled arm. Resumable: rerun to continue.
+# Stream b of the cpu run after the teachers (one core): the dense MetaMorph student, the scratch and
+# closest arms on Escape and PointNav, and the distilled arm. Resumable: rerun to continue.
 set -euo pipefail
 D="divmorph"; O="--profile cpu --out results/cpu --no-progress"
-$D distill $O --students distilled --force
+$D distill $O --students distilled
 $D transfer $O --arms scratch,closest --task Escape --task PointNav
-$D transfer $O --arms closest --task Exploration
 $D transfer $O --arms distilled

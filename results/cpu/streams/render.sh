@@ -1,0 +1,21 @@
+#!/usr/bin/env bash
+# Videos of the cpu run (headless): the FT teacher on its best training robot, and the DivMorph student
+# on FT on the novel robot (never trained on) where its evaluation return is highest: chosen for
+# display, after the fact; the evaluation table has every robot.
+set -euo pipefail
+RUN=results/cpu; V=$RUN/videos; mkdir -p $V
+pick() {  # robot with the best deterministic return of model $1 on task $2, split $3 (evaluate/returns.csv)
+  python - "$@" <<'PY'
+import csv, sys
+model, task, split = sys.argv[1:4]
+rows = [r for r in csv.DictReader(open("results/cpu/evaluate/returns.csv")) if (r["model"], r["task"], r["split"]) == (model, task, split)]
+print(max(rows, key=lambda r: float(r["return"]))["morphology"])
+PY
+}
+TEACHER_ROBOT=$(pick teacher FT train)
+STUDENT_ROBOT=$(pick student FT novel)
+for ext in mp4 gif; do
+  size=$([ $ext = gif ] && echo "--width 256 --height 192 --steps 500" || echo "--width 480 --height 360")
+  divmorph record $RUN/teachers/FT --morphologies unimals100-train --robot "$TEACHER_ROBOT" $size --out $V/teacher-FT-$TEACHER_ROBOT.$ext --no-progress
+  divmorph record $RUN/student --task FT --morphologies unimals100-train --robot "$STUDENT_ROBOT" $size --out $V/student-FT-novel-$STUDENT_ROBOT.$ext --no-progress
+done
