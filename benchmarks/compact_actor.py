@@ -1,8 +1,10 @@
 """Deployment sizes, like for like: the pruned DivMorph actor vs MetaMorph's, through the same folding.
 
-    python benchmarks/compact_actor.py            # -> results/compact_actor.md
+    python benchmarks/compact_actor.py                                               # -> results/compact_actor.md
+    python benchmarks/compact_actor.py --profile cpu --out results/compact_actor_cpu.md  # a profile's student sizes
 
-For each diversion configuration (``DivMorphPolicy(diversion=...)``) at the ``paper`` width and each
+For each diversion configuration (``DivMorphPolicy(diversion=...)``) at the ``paper`` width (or at the
+sizes of a pipeline profile's student, whose own diversion is then the ``default`` row) and each
 task, a DivMorph student (random init: sizes and FLOPs do not depend on the weights' values) is
 pruned and merged for one robot and task (:class:`sb3_divmorph.compact.CompactActor`), and the
 MetaMorph actor of the same task and sizes is exported through the very same folding. Side by side,
@@ -46,13 +48,23 @@ CONFIGS = ("default", "deploy-g4k2", "deploy-g2k1", "deploy-g1k1")
 TARGETS = {"flat": 20.0, "height map": 12.0}
 
 
-def measure(config: str, task: str, repeats: int, folder: Path) -> dict:
+def policy_kwargs(config: str, profile_name: str | None) -> dict:
+    """The student of ``config``: at the paper width, or as the pipeline distils it for a profile."""
+    if profile_name is None:
+        return dict(preset="paper", diversion=config)
+    from sb3_divmorph.pipeline.config import load_profile
+    from sb3_divmorph.pipeline.distill import STUDENTS
+
+    return STUDENTS["divmorph" if config == "default" else config].policy_kwargs(load_profile(profile_name))
+
+
+def measure(config: str, task: str, repeats: int, folder: Path, kwargs: dict) -> dict:
     th.manual_seed(0)
     robot = morphology_files("train")[0]
     venv = VecNormalize(DummyVecEnv([lambda: gym.make(f"Unimal-{task}-v0", morphologies=[robot])]), norm_obs_keys=["proprioceptive"])
     venv.reset()
     raw = venv.get_original_obs()
-    policy = DivMorphPolicy(venv.observation_space, venv.action_space, lambda _: 3e-4, preset="paper", diversion=config).eval()
+    policy = DivMorphPolicy(venv.observation_space, venv.action_space, lambda _: 3e-4, **kwargs).eval()
     first = {k: v[0] for k, v in raw.items()}
     keys = TASKS[task].observation_keys
     actor = CompactActor.from_policy(policy, first, keys, venv)
@@ -68,7 +80,7 @@ def measure(config: str, task: str, repeats: int, folder: Path) -> dict:
         config=config, task=task, kind="height map" if "hfield" in keys else "flat", **sizes, diff=diff,
         flops=matmul_flops(actor, inputs), flops_metamorph=matmul_flops(reference, inputs),
         compact_ms=batch1_latency(loaded, inputs, repeats) * 1e3, metamorph_ms=batch1_latency(loaded_reference, inputs, repeats) * 1e3,
-        tokens=int(len(actor.real_tokens)),
+        tokens=int(len(actor.real_tokens)), sizes={k: policy.config[k] for k in ("d_model", "n_layers", "ff_dim")},
     )
 
 
@@ -78,19 +90,23 @@ def main() -> None:
     parser.add_argument("--configs", nargs="+", default=list(CONFIGS))
     parser.add_argument("--repeats", type=int, default=300)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--profile", default=None, help="measure the students of this pipeline profile instead of the paper width")
     parser.add_argument("--out", default="results/compact_actor.md")
     args = parser.parse_args()
     th.set_num_threads(args.threads)
     folder = Path("runs/benchmarks")
     folder.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
-    rows = [measure(config, task, args.repeats, folder) for config in args.configs for task in args.tasks]
+    rows = [measure(config, task, args.repeats, folder, policy_kwargs(config, args.profile)) for config in args.configs for task in args.tasks]
+    sizes = rows[0]["sizes"]
+    width = (f"profile `{args.profile}`'s student sizes" if args.profile else "`paper` width") + \
+        f" (d_model {sizes['d_model']}, {sizes['n_layers']} layer(s), FFN {sizes['ff_dim']})"
     lines = [
         "# Deployment sizes, like for like: pruned DivMorph actor vs MetaMorph actor (same folding)",
         "",
-        f"`python benchmarks/compact_actor.py` — {time.strftime('%Y-%m-%d')}, {platform.machine()} CPU "
+        f"`python benchmarks/compact_actor.py{f' --profile {args.profile}' if args.profile else ''}` — {time.strftime('%Y-%m-%d')}, {platform.machine()} CPU "
         f"({os.cpu_count()} cores), torch {th.__version__}, {args.threads} thread(s), batch 1, median of {args.repeats} calls; "
-        f"`paper` width (d_model 128, 5 layers, FFN 1024), robot train-000 ({rows[0]['tokens']} real tokens); "
+        f"{width}, robot train-000 ({rows[0]['tokens']} real tokens); "
         f"{time.perf_counter() - start:.0f} s.",
         "Random-init students: sizes and FLOPs do not depend on the weights' values (whether a student of a "
         "configuration reaches the teachers' return is measured in the reduced-scale reproduction).",
@@ -115,7 +131,7 @@ def main() -> None:
         "pruning only; 'folding alone' is what folding saves MetaMorph (the old table credited it to pruning).",
         "Weights count every stored number (folded constants included); baked normalisation statistics are not counted.",
         "Diversions (`sb3_divmorph.policies.DIVERSIONS`): `default` = the preset's 16 + 16 tailors per layer with top-8",
-        "gates; `deploy-gNkK` = N learngenes per layer, the rest of each layer's rank split into morphology and task",
+        "gates (with `--profile`: the profile's own student); `deploy-gNkK` = N learngenes per layer, the rest of each layer's rank split into morphology and task",
         "tailors, top-K per gate, exteroception encoders diverted too. The paper reports 16.7x (flat) and 8.9x (height map).",
     ]
     text = "\n".join(lines) + "\n"
