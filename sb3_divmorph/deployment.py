@@ -52,8 +52,11 @@ class DeployedActor(nn.Module):
         for key in (PROPRIOCEPTIVE, *keys):
             if key in norm_keys:
                 rms = normalizer.obs_rms[key]
-                mean = th.as_tensor(rms.mean, dtype=th.float32)
-                inv_std = th.as_tensor(1.0 / np.sqrt(rms.var + normalizer.epsilon), dtype=th.float32)
+                # float64 like VecNormalize's own numpy arithmetic: a nearly constant feature has a huge
+                # inverse std, and float32 rounding of (x - mean) would be amplified by it (trained
+                # students differed by 4e-5 from the unpruned student with float32 statistics)
+                mean = th.as_tensor(rms.mean, dtype=th.float64)
+                inv_std = th.as_tensor(1.0 / np.sqrt(rms.var + normalizer.epsilon), dtype=th.float64)
                 if key == PROPRIOCEPTIVE:
                     mean, inv_std = mean[real_tokens], inv_std[real_tokens]
                 self.register_buffer(f"{key}_mean", mean)
@@ -64,8 +67,8 @@ class DeployedActor(nn.Module):
     def _normalize(self, key: str, x: th.Tensor) -> th.Tensor:
         if key not in self.normalized_keys:
             return x
-        x = (x - getattr(self, f"{key}_mean")) * getattr(self, f"{key}_inv_std")
-        return x.clamp(-self.clip_obs, self.clip_obs) if math.isfinite(self.clip_obs) else x
+        x = (x.double() - getattr(self, f"{key}_mean")) * getattr(self, f"{key}_inv_std")
+        return (x.clamp(-self.clip_obs, self.clip_obs) if math.isfinite(self.clip_obs) else x).float()
 
     def _fuse_and_decode(self, x: th.Tensor, hfield: th.Tensor, goal: th.Tensor, object: th.Tensor) -> th.Tensor:  # noqa: A002
         """The Transformer actors' common tail: (B, real tokens, D) token features -> late-fused

@@ -148,3 +148,17 @@ def test_onnx_actor_runs_with_onnxruntime_and_numpy_only(tmp_path):
     assert "'proprioceptive' has shape (12, 10)" in out["errors"][0]
     assert "no 'proprioceptive'" in out["errors"][1]
     assert "exported for" in out["errors"][2] and ROBOTS[0].stem in out["errors"][2]
+
+
+def test_baked_normalisation_keeps_float64_precision_for_nearly_constant_features():
+    """A feature seen nearly constant has a huge inverse std: float32 statistics amplified the rounding
+    of (x - mean) in trained students' exports (4e-5 off); the actor normalises in float64 like VecNormalize."""
+    model, venv, batch = trained_student("FT", n_morph_tailors=4, n_task_tailors=4, top_k_morph=2, top_k_task=2)
+    rms = venv.obs_rms["proprioceptive"]
+    rms.mean[..., 0], rms.var[..., 0] = 100.0 + 3.3e-6, 1e-6  # nearly constant, far from zero, not a float32
+    batch["proprioceptive"][..., 0] = np.float32(100.0) + np.float32(1e-4) * np.arange(len(batch["proprioceptive"]))[:, None]
+    first = {k: v[0] for k, v in batch.items()}
+    actor = CompactActor.from_policy(model.policy, first, TASKS["FT"].observation_keys, venv)
+    with th.no_grad():
+        diff = (student_means(model, venv, batch) - actor(*actor_inputs(batch, batch=True))).abs().max().item()
+    assert diff <= 1e-5
