@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Videos of the cpu run (headless): the FT teacher on its best training robot, and the DivMorph student
-# on FT on the novel robot (never trained on) where its evaluation return is highest: chosen for
+# Videos of the cpu run (headless): the FT teacher on its best training robot, the DivMorph student on
+# FT on its best training robot and on the novel robot (never trained on) where its evaluation
+# return is highest: chosen for
 # display, after the fact; the evaluation table has every robot.
 set -euo pipefail
 RUN=results/cpu; V=$RUN/videos; mkdir -p $V
@@ -14,8 +15,11 @@ PY
 }
 TEACHER_ROBOT=$(pick teacher FT train)
 STUDENT_ROBOT=$(pick student FT novel)
+STUDENT_TRAIN_ROBOT=$(pick student FT train)
 for ext in mp4 gif; do
   size=$([ $ext = gif ] && echo "--width 256 --height 192 --steps 500" || echo "--width 480 --height 360")
   divmorph record $RUN/teachers/FT --morphologies unimals100-train --robot "$TEACHER_ROBOT" $size --out $V/teacher-FT-$TEACHER_ROBOT.$ext --no-progress
   divmorph record $RUN/student --task FT --morphologies unimals100-train --robot "$STUDENT_ROBOT" $size --out $V/student-FT-novel-$STUDENT_ROBOT.$ext --no-progress
 done
+divmorph record $RUN/student --task FT --morphologies unimals100-train --robot "$STUDENT_TRAIN_ROBOT" --width 256 --height 192 --steps 500 \
+  --out $V/student-FT-train-$STUDENT_TRAIN_ROBOT.gif --no-progress
