@@ -37,3 +37,15 @@ def test_every_teacher_loads_with_its_normaliser(task):
 def test_the_ft_teacher_walks_on_a_fresh_clone(official_train):
     rows = evaluate_model(RUN / "teachers" / "FT", "FT", [official_train / "xml" / f"{WALKER}.xml"], 1, 1000, 0)
     assert rows[0]["length"] == 1000 and rows[0]["return"] > 1000  # the whole episode without a fall, far forward
+
+
+@pytest.mark.parametrize("folder, policy", [("student", "DivMorphPolicy"), ("students/distilled", "MetaMorphPolicy")])
+def test_the_students_load_with_their_normalisers(folder, policy):
+    model = PPO.load(RUN / folder / "model.zip", device="cpu")
+    assert type(model.policy).__name__ == policy
+    assert stage_normalizer(RUN / folder) is not None
+
+
+def test_the_compact_actors_ship_in_both_formats():
+    exports = sorted((RUN / "export").glob("*-FT"))
+    assert len(exports) == 4 and all((e / "actor.onnx").is_file() and (e / "actor.pt").is_file() for e in exports)
