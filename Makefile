@@ -32,7 +32,7 @@ demo: $(STAMP)
 tour: $(STAMP)
 	$(PY) -m unimal_envs.demo --out runs/tour
 
-# The whole suite: 7 min 49 s measured on 2 cores shared with other jobs (4 min 49 s of CPU).
+# The whole suite: 6 min 22 s measured on 2 idle cores (6 min of CPU).
 test: $(STAMP)
 	$(PY) -m pytest -q
 
