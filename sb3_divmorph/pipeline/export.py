@@ -148,6 +148,7 @@ def export_actor(
     folder = export_folder(out, robot_file.stem, task, student)
     source, source_label = source_model(out, task, student)
     previous = current_export(folder, source)
+    print(f"[export] {student}: {robot_file.stem} x {task}" + (f": skipped, already exported in {folder}" if previous else ""))
     if previous is not None:
         return previous
     if is_done(folder):
@@ -291,9 +292,6 @@ def export_all(
     for student in students:
         for task in tasks:
             for robot in robots:
-                folder = export_folder(out, Path(robot).stem, task, student)
-                done = current_export(folder, source_model(out, task, student)[0]) is not None
-                print(f"[export] {student}: {Path(robot).stem} x {task}" + (f": skipped, already exported in {folder}" if done else ""))
                 reports.append(export_actor(profile, out, robot, task, formats=formats, student=student))
     # the summary covers every actor exported into this run folder so far, not only this call's
     everything = [json.loads(p.read_text()) for p in export_reports(out)]
