@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml setup.py
 	$(PY) -m pip install --quiet --upgrade pip
 	# torch is pinned first: an unpinned torch would pull several GB of CUDA wheels.
 	$(PY) -m pip install --quiet torch==2.13.0
-	$(PY) -m pip install --quiet torch==2.13.0 -e ".[dev,zoo,ray]"
+	$(PY) -m pip install --quiet torch==2.13.0 -e ".[dev,zoo,ray,warp]"
 	touch $(STAMP)
 
 install: $(STAMP)

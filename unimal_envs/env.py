@@ -45,6 +45,14 @@ def _check_display() -> None:
         )
 
 
+def compile_world(spec: mujoco.MjSpec, name: str) -> mujoco.MjModel:
+    """Compile a world spec; a failure names the morphology (:class:`MorphologyError`)."""
+    try:
+        return spec.compile()
+    except ValueError as err:
+        raise MorphologyError(f"{name}: the world does not compile ({err})") from None
+
+
 @dataclass
 class _World:
     """One compiled world (robot + arena + task props) and its simulation state."""
@@ -164,7 +172,9 @@ class UnimalEnv(gym.Env):
         self.camera_angles = (135.0, -20.0)
 
     # ------------------------------------------------------------------ world
-    def _build_world(self, index: int) -> _World:
+    def world_spec(self, index: int) -> tuple[mujoco.MjSpec, Robot]:
+        """The uncompiled world of morphology ``index`` (robot at the task's spawn pose, arena, task
+        props) and its robot; the batched backend compiles the very same spec."""
         robot = Robot(self.morphologies[index])
         pos, quat = self.task.spawn_pose(robot)
         spec = robot.build_spec(pos, quat)
@@ -172,10 +182,11 @@ class UnimalEnv(gym.Env):
         self.task.build(spec)
         spec.visual.global_.offwidth = max(spec.visual.global_.offwidth, self.width)
         spec.visual.global_.offheight = max(spec.visual.global_.offheight, self.height)
-        try:
-            model = spec.compile()
-        except ValueError as err:
-            raise MorphologyError(f"{robot.morphology.name}: the world does not compile ({err})") from None
+        return spec, robot
+
+    def _build_world(self, index: int) -> _World:
+        spec, robot = self.world_spec(index)
+        model = compile_world(spec, robot.morphology.name)
         data = mujoco.MjData(model)
         robot.bind(model, data)
         return _World(model, data, robot)

@@ -106,13 +106,7 @@ class HeightGrid:
     # ------------------------------------------------------------------ physics
     def add_to_spec(self, spec: mujoco.MjSpec, name: str, material: str | None = None) -> None:
         """Add a MuJoCo heightfield whose vertices are the grid's samples (base 0.5 m below z = 0)."""
-        rows, cols = self.heights.shape
-        # MuJoCo's binary hfield format through an in-memory asset: far faster than userdata lists.
-        blob = struct.pack("<ii", rows, cols) + np.zeros(rows * cols, dtype=np.float32).tobytes()
-        assets = dict(spec.assets)
-        assets[f"{name}.bin"] = blob
-        spec.assets = assets
-        spec.add_hfield(name=name, size=[self.size_x / 2, self.size_y / 2, self.max_height, 0.5], file=f"{name}.bin")
+        self.add_hfield_asset(spec, name)
         geom = spec.worldbody.add_geom(
             name=name,
             type=mujoco.mjtGeom.mjGEOM_HFIELD,
@@ -123,6 +117,16 @@ class HeightGrid:
         )
         if material is not None:
             geom.material = material
+
+    def add_hfield_asset(self, spec: mujoco.MjSpec, name: str) -> None:
+        """Add a flat MuJoCo heightfield asset of this grid's shape and extent (no geom uses it yet)."""
+        rows, cols = self.heights.shape
+        # MuJoCo's binary hfield format through an in-memory asset: far faster than userdata lists.
+        blob = struct.pack("<ii", rows, cols) + np.zeros(rows * cols, dtype=np.float32).tobytes()
+        assets = dict(spec.assets)
+        assets[f"{name}.bin"] = blob
+        spec.assets = assets
+        spec.add_hfield(name=name, size=[self.size_x / 2, self.size_y / 2, self.max_height, 0.5], file=f"{name}.bin")
 
     def bind(self, model: mujoco.MjModel, name: str) -> None:
         """Remember where this grid's heightfield lives in a compiled model."""

@@ -1,0 +1,177 @@
+"""The batched backend (MuJoCo Warp, run here on CPU Warp): agreement with the single env, every
+task and MultiTask stepping with auto-resets, physics faults kept to their world, PPO on it, and
+clear errors for bad input.
+
+Tolerances were measured on this machine (float32 Warp against float64 MuJoCo, random actions,
+the shipped robots): after the first control step observations agree to ~2e-6 and rewards to
+~1e-4; after ten steps to ~1e-5 and ~3e-4. Beyond a few dozen steps the two diverge as contacts
+amplify float32 rounding (chaos, not a bug), so the tests stop at ten.
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("mujoco_warp", reason="the batched backend needs the mujoco-warp extra")
+
+import unimal_envs  # noqa: E402,F401
+from unimal_envs import contract as C  # noqa: E402
+from unimal_envs.batched import make_batched_env  # noqa: E402
+from unimal_envs.morphology.loader import MorphologyError, morphology_files  # noqa: E402
+
+from batched_mirror import mirror_world  # noqa: E402
+
+ROBOTS = morphology_files("train")[:2]
+#: Agreement after the first control step, and after ten (observation max |diff|, reward |diff|).
+FIRST_STEP_OBS, FIRST_STEP_REWARD = 2e-5, 1e-3
+TEN_STEPS_OBS, TEN_STEPS_REWARD = 2e-3, 2e-2
+
+
+def _step_world(benv, world: int, action: np.ndarray):
+    actions = torch.zeros(benv.num_envs, C.ACTION_DIM)
+    actions[world] = torch.as_tensor(action)
+    return benv.step_tensors(actions)
+
+
+@pytest.mark.parametrize("task", ["FT", "VT", "Patrol", "Escape", "ManipulateBox", "Obstacle", "PointNav", "Exploration", "Incline", "PushBoxIncline"])
+def test_a_world_agrees_with_the_single_env_from_the_same_state_with_the_same_actions(task):
+    benv = make_batched_env(task, morphologies=ROBOTS, worlds_per_robot=2, device="cpu", seed=0, terrain_variants=2)
+    benv.reset()
+    for robot in range(2):
+        env = gym.make(f"Unimal-{task}-v0", morphologies=ROBOTS).unwrapped
+        single_obs, _ = env.reset(seed=robot, options={"morphology": robot})
+        world = 2 * robot + 1
+        batched_obs = mirror_world(benv, world, env)
+        for key in C.observation_space().spaces:
+            np.testing.assert_allclose(batched_obs[key][world].numpy(), single_obs[key], atol=1e-5, err_msg=key)
+        rng = np.random.default_rng(robot)
+        for t in range(10):
+            action = rng.uniform(-1, 1, C.ACTION_DIM).astype(np.float32)
+            single_obs, reward, terminated, _, info = env.step(action)
+            _, batched_reward, batched_terminated, _, batched_info = _step_world(benv, world, action)
+            final = batched_info["final_observation"]
+            obs_tol, reward_tol = (FIRST_STEP_OBS, FIRST_STEP_REWARD) if t == 0 else (TEN_STEPS_OBS, TEN_STEPS_REWARD)
+            for key in C.observation_space().spaces:
+                np.testing.assert_allclose(final[key][world].numpy(), single_obs[key], atol=obs_tol, err_msg=f"{key} step {t}")
+            assert abs(float(batched_reward[world]) - reward) <= reward_tol, (t, reward, float(batched_reward[world]))
+            for term in (k for k in info if k.startswith("reward_")):
+                assert abs(float(batched_info[term][world]) - info[term]) <= reward_tol, (t, term)
+            assert bool(batched_terminated[world]) == terminated
+            if terminated:
+                break
+
+
+@pytest.mark.parametrize("task", [*C.TASK_NAMES, "MultiTask"])
+def test_every_task_steps_with_finite_values_and_resets_each_world_on_its_own(task):
+    benv = make_batched_env(task, morphologies=ROBOTS, worlds_per_robot=4, device="cpu", seed=1,
+                            max_episode_steps=20, terrain_variants=2,
+                            tasks=["FT", "Patrol"] if task == "MultiTask" else None)
+    n = benv.num_envs
+    assert n == 2 * 4 * (2 if task == "MultiTask" else 1)
+    obs = benv.reset()
+    assert set(obs) == set(C.observation_space().spaces)
+    assert all(obs[k].shape == (n, *space.shape) for k, space in C.observation_space().spaces.items())
+    rng = np.random.default_rng(0)
+    episode_steps = np.zeros(n, dtype=int)
+    ended = 0
+    for _ in range(50):
+        obs, reward, done, infos = benv.step(rng.uniform(-1, 1, (n, C.ACTION_DIM)).astype(np.float32))
+        episode_steps += 1
+        assert all(np.isfinite(v).all() for v in obs.values()) and np.isfinite(reward).all()
+        for i in np.flatnonzero(done):
+            info = infos[i]
+            assert info["TimeLimit.truncated"] == (episode_steps[i] == 20 and "termination" not in info)
+            assert episode_steps[i] <= 20
+            assert set(info["terminal_observation"]) == set(obs)
+            ended += 1
+        episode_steps[done] = 0
+    assert ended >= n, "every world is truncated at 20 steps, so 50 steps end at least one episode each"
+    assert [info["task"] for info in infos[:: 8]] == (["FT", "Patrol"] if task == "MultiTask" else [task] * (n // 8))
+
+
+def test_a_reset_world_is_back_at_the_spawn_pose_and_the_others_go_on():
+    benv = make_batched_env("FT", morphologies=ROBOTS[:1], worlds_per_robot=3, device="cpu", seed=0, max_episode_steps=1000)
+    benv.reset_tensors()
+    group = benv.blocks[0].groups[0]
+    spawn = group.qpos0[:3].clone()
+    for _ in range(15):
+        benv.step_tensors(torch.full((3, C.ACTION_DIM), 0.8))
+    moved = group.torso_position().clone()
+    done = torch.tensor([False, True, False])
+    benv.blocks[0].reset(done, benv.reset_noise_scale)
+    after = group.torso_position()
+    assert torch.allclose(after[1], spawn, atol=0.01)
+    assert torch.equal(after[[0, 2]], moved[[0, 2]])
+
+
+def test_a_physics_fault_ends_only_its_own_world():
+    twins = [make_batched_env("FT", morphologies=ROBOTS, worlds_per_robot=2, device="cpu", seed=3) for _ in range(2)]
+    for env in twins:
+        env.reset_tensors()
+    twins[1].blocks[0].groups[0].qvel[1, 0] = float("nan")  # world 1 blows up
+    actions = torch.full((4, C.ACTION_DIM), 0.3)
+    (obs_a, reward_a, term_a, _, info_a), (obs_b, reward_b, term_b, _, info_b) = (env.step_tensors(actions) for env in twins)
+    assert info_b["physics_fault"].tolist() == [False, True, False, False]
+    assert bool(term_b[1]) and float(reward_b[1]) == 0.0
+    others = [0, 2, 3]
+    assert torch.equal(reward_a[others], reward_b[others])
+    assert torch.equal(obs_a["proprioceptive"][others], obs_b["proprioceptive"][others])
+    assert torch.isfinite(obs_b["proprioceptive"]).all(), "the faulted world was reset"
+    twins[1].step_async(np.zeros((4, C.ACTION_DIM), dtype=np.float32))
+    twins[1].blocks[0].groups[1].qpos[0, 2] = float("inf")
+    _, _, dones, infos = twins[1].step_wait()
+    assert dones[2] and infos[2]["physics_fault"] and infos[2]["termination"] == "physics_fault"
+    assert np.isfinite(infos[2]["terminal_observation"]["proprioceptive"]).all()
+
+
+def test_ppo_trains_saves_and_loads_on_the_batched_env(tmp_path):
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
+
+    import sb3_divmorph  # noqa: F401  (registers the policy aliases)
+
+    tiny = dict(d_model=16, n_layers=1, ff_dim=32, exteroception=dict(hfield=[8], goal=[4], object=[4]))
+    venv = VecNormalize(VecMonitor(make_batched_env("VT", morphologies=ROBOTS, worlds_per_robot=4, device="cpu",
+                                                    seed=0, max_episode_steps=16, terrain_variants=2)),
+                        norm_obs_keys=["proprioceptive", "hfield"])
+    model = PPO("DivMorphPolicy", venv, n_steps=16, batch_size=64, n_epochs=1, seed=0,
+                policy_kwargs=dict(tiny, n_morph_tailors=4, n_task_tailors=4, top_k_morph=2, top_k_task=2))
+    before = [p.detach().clone() for p in model.policy.parameters()]
+    model.learn(total_timesteps=2 * 16 * 8)
+    assert any(not torch.equal(a, b) for a, b in zip(before, model.policy.parameters()))
+    assert len(model.ep_info_buffer) >= 8, "16-step episodes were monitored"
+    model.save(tmp_path / "ppo")
+    loaded = PPO.load(tmp_path / "ppo", env=venv)
+    obs = venv.reset()
+    np.testing.assert_allclose(loaded.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0], atol=1e-6)
+
+
+def test_bad_input_is_refused_with_a_message_that_names_the_problem(write_robot):
+    from conftest import unimal_xml
+
+    with pytest.raises(ValueError, match="device 'cuda:7' does not exist here; available Warp devices"):
+        make_batched_env("FT", morphologies=ROBOTS, worlds_per_robot=2, device="cuda:7")
+    with pytest.raises(ValueError, match=r"need about .* GiB on cpu .* lower worlds_per_robot to at most"):
+        make_batched_env("FT", morphologies=ROBOTS, worlds_per_robot=10**8, device="cpu")
+    with pytest.raises(ValueError, match="worlds_per_robot must be at least 1"):
+        make_batched_env("FT", morphologies=ROBOTS, worlds_per_robot=0, device="cpu")
+    pgs = write_robot(unimal_xml().replace('<option timestep="0.005"/>', '<option timestep="0.005" solver="PGS"/>'), "pgs_robot")
+    with pytest.raises(MorphologyError, match="pgs_robot: MuJoCo Warp cannot simulate this robot's world: mjSOL_PGS"):
+        make_batched_env("FT", morphologies=[pgs], worlds_per_robot=2, device="cpu")
+    env = make_batched_env("FT", morphologies=ROBOTS[:1], worlds_per_robot=2, device="cpu")
+    env.reset()
+    with pytest.raises(ValueError, match=r"actions have shape \(3, 24\); this env takes \(2, 24\)"):
+        env.step_tensors(torch.zeros(3, C.ACTION_DIM))
+    with pytest.raises(NotImplementedError, match="robot sampling .* does not apply"):
+        env.env_method("set_morphology_probabilities", None)
+
+
+def test_without_mujoco_warp_the_message_names_the_extra(monkeypatch):
+    import unimal_envs.batched as batched
+
+    monkeypatch.setattr(batched, "_MISSING", ImportError("No module named 'mujoco_warp'"))
+    with pytest.raises(ImportError, match=r'pip install "divmorph\[warp\]"'):
+        batched.make_batched_env("FT")

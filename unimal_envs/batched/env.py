@@ -1,0 +1,375 @@
+"""The batched UNIMAL env: every task and MultiTask on MuJoCo Warp, as an SB3 VecEnv and in torch."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import warp as wp
+from stable_baselines3.common.vec_env import VecEnv
+
+from unimal_envs import contract as C
+from unimal_envs.batched.tasks import FALL, PHYSICS_FAULT, REASONS, Readings, make_batched_task
+from unimal_envs.batched.terrain import HeightMaps, TerrainPool
+from unimal_envs.batched.worlds import RobotWorlds
+from unimal_envs.env import UnimalEnv
+from unimal_envs.morphology.loader import load_morphologies
+
+#: Observation keys, in the contract's order.
+KEYS = tuple(C.observation_space().spaces)
+#: Refuse a batch whose estimated memory exceeds this share of the device's free memory.
+MEMORY_SHARE = 0.8
+
+
+class _TaskBlock:
+    """The worlds of one task: one :class:`RobotWorlds` per robot, ``worlds`` each, and the
+    task's batched twin over all of them (rows ordered robot by robot)."""
+
+    def __init__(self, env: UnimalEnv, worlds: int, device: str, variants: int, seed: int, generator: torch.Generator):
+        self.env, self.task_name = env, env.task.name
+        probe = env._get_world(0)  # the single env's own compiled world draws the terrain pool
+        self.pool = TerrainPool.draw(env.arena, probe.model, probe.data, variants, np.random.default_rng(seed))
+        env.close()
+        self.groups = [RobotWorlds(env, i, worlds, device, self.pool) for i in range(len(env.morphologies))]
+        dev = self.groups[0].torch_device
+        self.n, self.worlds, self.device, self.generator = worlds * len(self.groups), worlds, dev, generator
+        self.heightmaps = HeightMaps(self.pool, dev) if self.pool is not None else None
+        self.layout = torch.as_tensor(self.pool.obstacle_layout, dtype=torch.float32, device=dev) \
+            if self.pool is not None and self.pool.obstacle_layout is not None else None
+        self.task = make_batched_task(env.task, self.n, dev, self.heightmaps, generator)
+        self.variant = torch.zeros(self.n, dtype=torch.long, device=dev)
+        per_robot = lambda values: torch.as_tensor(np.repeat(np.stack(values), worlds, axis=0), device=dev)  # noqa: E731
+        morphologies = [g.morphology for g in self.groups]
+        self.static = {
+            "context": per_robot([m.context for m in morphologies]),
+            "obs_padding_mask": per_robot([m.obs_padding_mask for m in morphologies]),
+            "act_padding_mask": per_robot([m.act_padding_mask for m in morphologies]),
+            "task_embedding": torch.as_tensor(env._task_embedding, device=dev).expand(self.n, -1),
+            "task_index": torch.as_tensor(env._task_index, device=dev).expand(self.n, -1),
+        }
+        self.real_slots = 1.0 - self.static["act_padding_mask"]
+        self.fall_height = per_robot([[g.fall_height] for g in self.groups])[:, 0].float()
+        self.names = [m.name for m in morphologies for _ in range(worlds)]
+
+    def rows(self, i: int) -> slice:
+        return slice(i * self.worlds, (i + 1) * self.worlds)
+
+    def read(self) -> Readings:
+        cat = lambda f: torch.cat([f(g) for g in self.groups])  # noqa: E731
+        r = Readings(cat(RobotWorlds.torso_position), cat(RobotWorlds.torso_velocity), cat(RobotWorlds.torso_xmat), self.variant)
+        if self.task.has_box:
+            box = [g.box_state() for g in self.groups]
+            r.box, r.box_velocity, r.box_angular = (torch.cat(parts) for parts in zip(*box))
+            r.reach = cat(RobotWorlds.reach_distance)
+        return r
+
+    def observe(self, r: Readings) -> dict[str, torch.Tensor]:
+        obs = {
+            "proprioceptive": torch.cat([g.proprioception() for g in self.groups]),
+            **self.static,
+            "hfield": torch.zeros(self.n, C.HFIELD_DIM, device=self.device),
+            "goal": torch.zeros(self.n, C.GOAL_DIM, device=self.device),
+            "object": torch.zeros(self.n, C.OBJECT_DIM, device=self.device),
+        }
+        obs.update(self.task.observations(r))
+        return obs
+
+    def reset(self, mask: torch.Tensor, noise: float) -> None:
+        """New episodes where ``mask`` (N,) is true: terrain variant, props, robot state, task state."""
+        if self.pool is not None:
+            draw = torch.randint(self.pool.variants, (self.n,), generator=self.generator, device=self.device)
+            self.variant = torch.where(mask, draw, self.variant)
+        props = self.task.props(mask)
+        for i, group in enumerate(self.groups):
+            rows = self.rows(i)
+            if self.pool is not None:
+                group.select_terrain(mask[rows], self.variant[rows], self.layout)
+            placed = (group.box_qpos, props[rows]) if props is not None else None
+            group.reset(mask[rows], noise, self.generator, placed)
+            group.sync()
+        self.task.reset(mask, self.read())
+
+    def step(self, actions: torch.Tensor, ctrl_cost_weight: float):
+        """One control step of every world: (readings, reward, reward terms, reason codes)."""
+        before = torch.cat([g.torso_position() for g in self.groups]).clone()
+        faults = torch.cat([g.step(actions[self.rows(i)]) for i, g in enumerate(self.groups)])
+        r = self.read()
+        terms = self.task.reward_terms(r, before)
+        if ctrl_cost_weight:
+            real = actions.clamp(-1.0, 1.0) * self.real_slots
+            terms["ctrl"] = -ctrl_cost_weight * (real * real).sum(1)
+        reward = sum(terms.values())
+        reason = self.task.termination(r)
+        fell = r.torso[:, 2] - self.task.ground_height(r) <= self.fall_height
+        reason = torch.where(fell, FALL, reason)
+        reason = torch.where(faults, PHYSICS_FAULT, reason)
+        reward = torch.where(faults, 0.0, reward)
+        return r, reward, terms, reason
+
+
+class BatchedUnimalEnv(VecEnv):
+    """A UNIMAL task (or MultiTask) in ``robots x worlds_per_robot`` MuJoCo Warp worlds.
+
+    Every world follows :class:`~unimal_envs.env.UnimalEnv` -- same compiled world, observation
+    contract, reward terms, terminations and 1000-step truncation -- with two differences that
+    batching imposes: each world keeps its robot (world ``i`` simulates robot
+    ``i // worlds_per_robot``; MetaMorph's robot sampling does not apply), and random terrain is
+    drawn from a pool of ``terrain_variants`` arenas (every reset picks one per world).
+
+    Two interfaces on one object:
+
+    * **SB3 VecEnv** (numpy): ``reset()`` / ``step(actions)`` with dict observations of shape
+      ``(num_envs, ...)``, per-world auto-reset with ``info["terminal_observation"]`` and
+      ``info["TimeLimit.truncated"]``, so ``PPO(DivMorphPolicy, env)`` and ``VecNormalize`` work.
+    * **torch** (on the device): :meth:`reset_tensors` and :meth:`step_tensors`.
+
+    A world whose state becomes non-finite (or beyond MuJoCo's 1e10 limit) ends its episode with
+    ``info["physics_fault"] = True`` and reward 0, as in the single env; other worlds go on.
+
+    Build it with :func:`unimal_envs.batched.make_batched_env`.
+    """
+
+    def __init__(self, blocks: list[_TaskBlock], device: str, seed: int, max_episode_steps: int,
+                 ctrl_cost_weight: float, reset_noise_scale: float):
+        self.blocks = blocks
+        self.warp_device = device
+        self.torch_device = blocks[0].device
+        self.max_episode_steps = int(max_episode_steps)
+        self.ctrl_cost_weight = float(ctrl_cost_weight)
+        self.reset_noise_scale = float(reset_noise_scale)
+        self.worlds_per_robot = blocks[0].worlds
+        n = sum(b.n for b in blocks)
+        self.render_mode = None
+        super().__init__(n, C.observation_space(), C.action_space())
+        self.morphology_names = [name for b in blocks for name in b.names]
+        self.task_names = [b.task_name for b in blocks for _ in range(b.n)]
+        self.steps = torch.zeros(n, dtype=torch.long, device=self.torch_device)
+        self._actions: np.ndarray | None = None
+        self._seed = seed
+        self.seed(seed)
+
+    # ------------------------------------------------------------------ torch interface
+    def reset_tensors(self) -> dict[str, torch.Tensor]:
+        """Start an episode in every world; observations as (num_envs, ...) tensors on the device."""
+        everywhere = torch.ones(self.num_envs, dtype=torch.bool, device=self.torch_device)
+        self.steps.zero_()
+        for block, rows in self._rows():
+            block.reset(everywhere[rows], self.reset_noise_scale)
+        return self._observe()
+
+    def step_tensors(self, actions: torch.Tensor):
+        """Step every world with (num_envs, 24) actions on the device.
+
+        :return: ``(obs, reward, terminated, truncated, info)``: ``obs`` after auto-reset; ``info``
+            holds ``final_observation`` (the observations before the reset), ``termination``
+            (reason codes, :data:`unimal_envs.batched.tasks.REASONS`), ``physics_fault`` and the
+            reward terms ``reward_<term>`` (tensors; terms of tasks a world does not run are 0).
+        """
+        actions = torch.as_tensor(actions, dtype=torch.float32, device=self.torch_device)
+        if actions.shape != (self.num_envs, C.ACTION_DIM):
+            raise ValueError(f"actions have shape {tuple(actions.shape)}; this env takes ({self.num_envs}, {C.ACTION_DIM})")
+        reward = torch.empty(self.num_envs, device=self.torch_device)
+        reason = torch.empty(self.num_envs, dtype=torch.long, device=self.torch_device)
+        terms: dict[str, torch.Tensor] = {}
+        readings = []
+        for block, rows in self._rows():
+            r, reward[rows], block_terms, reason[rows] = block.step(actions[rows], self.ctrl_cost_weight)
+            readings.append(r)
+            for term, value in block_terms.items():
+                terms.setdefault("reward_" + term, torch.zeros(self.num_envs, device=self.torch_device))[rows] = value
+        self.steps += 1
+        terminated = reason > 0
+        truncated = (self.steps >= self.max_episode_steps) & ~terminated
+        final = self._observe(readings)
+        done = terminated | truncated
+        info = {"final_observation": final, "termination": reason, "physics_fault": reason == PHYSICS_FAULT, **terms}
+        info["metrics"] = {k: v for block, r in zip(self.blocks, readings) for k, v in block.task.metrics(r).items()} \
+            if len(self.blocks) == 1 else {}
+        if bool(done.any()):
+            self.steps.masked_fill_(done, 0)
+            for block, rows in self._rows():
+                block.reset(done[rows], self.reset_noise_scale)
+            obs = self._observe()
+        else:
+            obs = final
+        return obs, reward, terminated, truncated, info
+
+    def _rows(self):
+        start = 0
+        for block in self.blocks:
+            yield block, slice(start, start + block.n)
+            start += block.n
+
+    def _observe(self, readings: list[Readings] | None = None) -> dict[str, torch.Tensor]:
+        parts = [b.observe(r) for b, r in zip(self.blocks, readings or [b.read() for b in self.blocks])]
+        if len(parts) == 1:
+            return parts[0]
+        return {k: torch.cat([p[k] for p in parts]) for k in KEYS}
+
+    # ------------------------------------------------------------------ SB3 VecEnv
+    def reset(self) -> dict[str, np.ndarray]:
+        self.reset_infos = [{"morphology": m, "task": t} for m, t in zip(self.morphology_names, self.task_names)]
+        return _numpy(self.reset_tensors())
+
+    def step_async(self, actions: np.ndarray) -> None:
+        self._actions = actions
+
+    def step_wait(self):
+        obs, reward, terminated, truncated, info = self.step_tensors(torch.as_tensor(np.asarray(self._actions)))
+        obs_np = _numpy(obs)
+        reward_np = reward.cpu().numpy()
+        terminated_np, truncated_np = terminated.cpu().numpy(), truncated.cpu().numpy()
+        dones = terminated_np | truncated_np
+        infos: list[dict[str, Any]] = [{"morphology": m, "task": t} for m, t in zip(self.morphology_names, self.task_names)]
+        ended = np.flatnonzero(dones)
+        if ended.size:
+            index = torch.as_tensor(ended, device=self.torch_device)
+            final = {k: v[index].cpu().numpy() for k, v in info["final_observation"].items()}
+            faults = info["physics_fault"][index].cpu().numpy()
+            reasons = info["termination"][index].cpu().numpy()
+            metrics = {k: v[index].cpu().numpy() for k, v in info["metrics"].items()}
+            for j, i in enumerate(ended):
+                terminal = {k: np.nan_to_num(v[j]) if faults[j] else v[j] for k, v in final.items()}
+                infos[i].update(terminal_observation=terminal, physics_fault=bool(faults[j]),
+                                **{k: float(v[j]) for k, v in metrics.items()})
+                infos[i]["TimeLimit.truncated"] = bool(truncated_np[i])
+                if reasons[j]:
+                    infos[i]["termination"] = REASONS[reasons[j]]
+        return obs_np, reward_np.astype(np.float32), dones, infos
+
+    def close(self) -> None:
+        self.blocks = []
+
+    def seed(self, seed: int | None = None) -> list[int | None]:
+        """Seed the device generator (terrain draws, reset noise, goals, props)."""
+        seed = self._seed if seed is None else int(seed)
+        for block in self.blocks:
+            block.generator.manual_seed(seed)
+        return [seed] * self.num_envs
+
+    def get_attr(self, attr_name: str, indices=None) -> list[Any]:
+        """Per-world ``morphology`` / ``task`` names, else this env's attribute once per world."""
+        rows = self._get_indices(indices)
+        if attr_name == "morphology":
+            return [self.morphology_names[i] for i in rows]
+        if attr_name == "task":
+            return [self.task_names[i] for i in rows]
+        return [getattr(self, attr_name)] * len(list(self._get_indices(indices)))
+
+    def set_attr(self, attr_name: str, value: Any, indices=None) -> None:
+        raise AttributeError(f"the batched env's worlds have no settable attribute {attr_name!r}")
+
+    def env_method(self, method_name: str, *method_args, indices=None, **method_kwargs) -> list[Any]:
+        if method_name == "set_morphology_probabilities":
+            raise NotImplementedError(
+                "the batched backend simulates every robot in its own fixed worlds (worlds_per_robot each), "
+                "so robot sampling (set_morphology_probabilities, the balanced robot sampler) does not apply; "
+                "use the single backend for MetaMorph's robot sampler"
+            )
+        raise AttributeError(f"the batched env has no per-world method {method_name!r}")
+
+    def env_is_wrapped(self, wrapper_class, indices=None) -> list[bool]:
+        return [False] * len(list(self._get_indices(indices)))
+
+    def get_images(self):
+        raise NotImplementedError("the batched env does not render; render a world with the single env (gym.make)")
+
+
+def _numpy(obs: dict[str, torch.Tensor]) -> dict[str, np.ndarray]:
+    return {k: obs[k].cpu().numpy() for k in KEYS}
+
+
+def _warp_device(device: str) -> str:
+    """A Warp device name for ``device`` (``cpu``, ``cuda``, ``cuda:N``, ``auto``), checked to exist."""
+    if device == "auto":
+        device = "cuda" if wp.is_cuda_available() else "cpu"
+    if device == "cuda":
+        device = "cuda:0"
+    available = [str(d) for d in wp.get_devices()]
+    if device not in available:
+        raise ValueError(f"device {device!r} does not exist here; available Warp devices: {available}"
+                         + ("" if wp.is_cuda_available() else " (no CUDA driver found)"))
+    return device
+
+
+def _free_memory(device: str) -> int:
+    if device == "cpu":
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    return int(wp.get_device(device).free_memory)
+
+
+def estimate_memory(env: UnimalEnv, worlds: int, device: str) -> tuple[int, int]:
+    """(bytes per world, fixed bytes) of one robot's worlds, measured from a 1- and a 2-world
+    allocation of the first robot's world on ``device``."""
+    import mujoco_warp as mjw
+
+    from unimal_envs.batched.worlds import CONSTRAINTS_PER_WORLD, CONTACTS_PER_WORLD
+
+    spec, _ = env.world_spec(0)
+    model = spec.compile()
+
+    def size(n: int) -> int:
+        with wp.ScopedDevice(device):
+            data = mjw.make_data(model, nworld=n, nconmax=CONTACTS_PER_WORLD, njmax=CONSTRAINTS_PER_WORLD)
+        return sum(v.capacity for v in vars(data).values() if isinstance(v, wp.array))
+
+    one, two = size(1), size(2)
+    return two - one, 2 * one - two
+
+
+def make_batched_env(
+    task: str = "FT",
+    morphologies: str | Path | Iterable[str | Path] = "train",
+    worlds_per_robot: int = 16,
+    device: str = "auto",
+    seed: int = 0,
+    max_episode_steps: int = 1000,
+    tasks: Sequence[str] | None = None,
+    terrain_variants: int = 8,
+    ctrl_cost_weight: float = 0.0,
+    reset_noise_scale: float = 0.005,
+) -> BatchedUnimalEnv:
+    """A UNIMAL task on MuJoCo Warp: ``len(morphologies) x worlds_per_robot`` worlds (see
+    :class:`BatchedUnimalEnv`).
+
+    :param task: a task name (``"FT"``, ...) or ``"MultiTask"`` (the worlds of every robot are
+        repeated for each of ``tasks``, so a batch mixes tasks evenly).
+    :param morphologies: as for :class:`~unimal_envs.env.UnimalEnv` (a set name, a folder, paths).
+    :param worlds_per_robot: worlds simulated per robot (and per task for MultiTask).
+    :param device: ``"cuda"``, ``"cuda:N"``, ``"cpu"`` (CPU Warp: slow, for tests) or ``"auto"``.
+    :param seed: seeds terrain pools, reset noise, goals and props.
+    :param max_episode_steps: truncation, as ``gym.make``'s (1000).
+    :param tasks: MultiTask's tasks (default: the five training tasks).
+    :param terrain_variants: arenas drawn per terrain task; each reset picks one per world.
+    :param ctrl_cost_weight: as for the single env.
+    :param reset_noise_scale: as for the single env.
+    :raises ValueError: unknown task, a device that does not exist, fewer than one world, or more
+        worlds than the device's free memory holds (estimated before anything is allocated).
+    :raises MorphologyError: a robot whose world MuJoCo Warp cannot simulate (named, with the feature).
+    """
+    if int(worlds_per_robot) < 1:
+        raise ValueError(f"worlds_per_robot must be at least 1, got {worlds_per_robot}")
+    if int(terrain_variants) < 1:
+        raise ValueError(f"terrain_variants must be at least 1, got {terrain_variants}")
+    warp_device = _warp_device(device)
+    names = list(tasks or C.TRAIN_TASKS) if task == "MultiTask" else [task]
+    robots = load_morphologies(morphologies)
+    envs = [UnimalEnv(name, robots, ctrl_cost_weight=ctrl_cost_weight, reset_noise_scale=reset_noise_scale) for name in names]
+    total = len(robots) * int(worlds_per_robot) * len(envs)
+    per_world, fixed = estimate_memory(envs[0], int(worlds_per_robot), warp_device)
+    needed, free = per_world * total + fixed * len(robots) * len(envs), _free_memory(warp_device)
+    if needed > MEMORY_SHARE * free:
+        raise ValueError(
+            f"{total} worlds ({len(robots)} robots x {worlds_per_robot} worlds x {len(envs)} task(s)) need about "
+            f"{needed / 2**30:.1f} GiB on {warp_device} (estimated from the first robot: {per_world / 2**20:.2f} MiB "
+            f"per world), but only {free / 2**30:.1f} GiB is free; lower worlds_per_robot to at most "
+            f"{max(1, int(MEMORY_SHARE * free / max(per_world, 1) / (len(robots) * len(envs))))}"
+        )
+    generator = torch.Generator(device=torch.device(warp_device))
+    blocks = [_TaskBlock(env, int(worlds_per_robot), warp_device, int(terrain_variants), seed + k, generator)
+              for k, env in enumerate(envs)]
+    return BatchedUnimalEnv(blocks, warp_device, seed, max_episode_steps, ctrl_cost_weight, reset_noise_scale)
