@@ -175,3 +175,35 @@ def test_without_mujoco_warp_the_message_names_the_extra(monkeypatch):
     monkeypatch.setattr(batched, "_MISSING", ImportError("No module named 'mujoco_warp'"))
     with pytest.raises(ImportError, match=r'pip install "divmorph\[warp\]"'):
         batched.make_batched_env("FT")
+
+
+def test_the_pipeline_trains_its_stages_on_the_batched_backend_when_the_profile_says_so(tmp_path, monkeypatch):
+    import json
+
+    import unimal_envs.batched as batched
+    from sb3_divmorph.cli import main as cli
+    from test_pipeline import write_profiles
+
+    built = []
+    original = batched.make_batched_env
+
+    def counting(task, **kwargs):
+        built.append((task, kwargs["worlds_per_robot"], kwargs["device"]))
+        return original(task, **kwargs)
+
+    monkeypatch.setattr(batched, "make_batched_env", counting)
+    on_warp = {"env_backend": "batched", "worlds_per_robot": 2}
+    profiles = write_profiles(
+        tmp_path, teachers__n_timesteps=64, teachers__overrides={"n_steps": 16, "batch_size": 32, "n_epochs": 1}, **{
+            f"{stage}__{key}": value for stage in ("teachers", "distill", "transfer") for key, value in on_warp.items()},
+        transfer__tasks=["PointNav"], transfer__arms=["divmorph"], transfer__eval_every=0,
+        transfer__overrides={"n_steps": 16, "batch_size": 32, "n_epochs": 1}, transfer__n_timesteps=64,
+        distill__n_steps=16, distill__n_timesteps=64)
+    out = tmp_path / "run"
+    for stage in ("teachers", "distill", "transfer"):
+        assert cli([stage, "--profile", "tiny", "--profiles", str(profiles), "--out", str(out), "--no-progress"]) == 0
+    assert [task for task, _, _ in built] == ["FT", "Patrol", "MultiTask", "PointNav"]
+    assert all(worlds == 2 and device == "cpu" for _, worlds, device in built)
+    assert (out / "transfer" / "PointNav" / "divmorph" / "seed-0" / "model.zip").is_file()
+    recorded = json.loads((out / "run.json").read_text())["configuration"]
+    assert recorded["teachers"]["env_backend"] == recorded["distill"]["env_backend"] == "batched"

@@ -69,6 +69,8 @@ def _check_tasks(tasks: list[str], allowed: tuple[str, ...], where: str) -> None
         raise ConfigError(f"{where}: unknown or unsuitable task(s) {bad or tasks}; choose from {list(allowed)}")
 
 
+#: Simulation backends a training stage may use (``env_backend``).
+ENV_BACKENDS = ("single", "batched")
 #: Policies a teacher may be (``teachers.policy``, ``hyperdistill.teacher_policy``).
 TEACHER_POLICIES = ("MetaMorphPolicy", "ModuMorphPolicy", "DivMorphPolicy")
 
@@ -89,6 +91,10 @@ class TeachersConfig:
     #: MetaMorph's training recipe (cosine lr with warm-up, Adam eps 1e-5, KL stop at 0.2,
     #: normalisation clipped at 10, balanced robot sampler; see ``sb3_divmorph.recipe``)
     recipe: str = ""
+    #: ``single``: ``n_envs`` C-MuJoCo envs; ``batched``: MuJoCo Warp (:mod:`unimal_envs.batched`),
+    #: ``worlds_per_robot`` worlds of every robot on the profile's device (``n_envs`` is then unused)
+    env_backend: str = "single"
+    worlds_per_robot: int = 16
 
 
 @dataclass
@@ -115,6 +121,10 @@ class DistillConfig:
     checkpoint_every: int = 50_000
     #: weight of the optional gate load-balancing term (0 = off; see ``DAggerCallback``)
     load_balance: float = 0.0
+    #: ``single``: ``n_envs`` C-MuJoCo envs; ``batched``: MuJoCo Warp (:mod:`unimal_envs.batched`),
+    #: ``worlds_per_robot`` worlds of every robot on the profile's device (``n_envs`` is then unused)
+    env_backend: str = "single"
+    worlds_per_robot: int = 16
 
 
 @dataclass
@@ -138,6 +148,10 @@ class TransferConfig:
     #: how the ``closest`` arm picks its teacher: ``embedding`` (cosine of the instruction
     #: embeddings) or ``return`` (best zero-shot return on the novel task)
     closest_by: str = "embedding"
+    #: ``single``: ``n_envs`` C-MuJoCo envs; ``batched``: MuJoCo Warp (:mod:`unimal_envs.batched`),
+    #: ``worlds_per_robot`` worlds of every robot on the profile's device (``n_envs`` is then unused)
+    env_backend: str = "single"
+    worlds_per_robot: int = 16
     #: deterministic evaluation on the training and the novel robots every this many env steps
     #: (and at step 0 and at the end); 0 = no evaluation curves (no transfer metrics)
     eval_every: int = 0
@@ -266,6 +280,11 @@ class Profile:
                 raise ConfigError(f"profile {name!r}: unknown teacher policy {policy!r} in {where}; choose from {list(TEACHER_POLICIES)}")
         if profile.hyperdistill is not None and profile.hyperdistill.loss not in ("nll", "kl"):
             raise ConfigError(f"profile {name!r}: hyperdistill.loss must be 'nll' or 'kl', got {profile.hyperdistill.loss!r}")
+        for section in ("teachers", "distill", "transfer"):
+            cfg = getattr(profile, section)
+            if cfg.env_backend not in ENV_BACKENDS or cfg.worlds_per_robot < 1:
+                raise ConfigError(f"profile {name!r}: {section}.env_backend must be one of {list(ENV_BACKENDS)} "
+                                  f"and {section}.worlds_per_robot >= 1, got {cfg.env_backend!r}, {cfg.worlds_per_robot}")
         for section in ("teachers", "transfer", "grl"):
             check_ppo_keys(getattr(profile, section).overrides, f"profile {name!r}, {section}.overrides")
         check_transfer(profile.transfer, f"profile {name!r}, transfer")

@@ -96,6 +96,16 @@ def recorded_profile(path: Path, overrides: dict[str, Any] | None = None) -> Pro
         raise ConfigError(f"{path}: {error}") from None
 
 
+def _with_defaults(recorded: dict[str, Any]) -> dict[str, Any]:
+    """A recorded configuration with the defaults of keys added to the profile since it was
+    recorded (a new key at its default changes nothing a run did); as recorded if it no longer parses."""
+    values = dict(recorded)
+    try:
+        return configuration(Profile.from_dict(values.pop("name", "recorded"), values))
+    except ConfigError:
+        return recorded
+
+
 def _differences(old: Any, new: Any, prefix: str = "") -> list[str]:
     if isinstance(old, dict) and isinstance(new, dict):
         keys = sorted(set(old) | set(new))
@@ -147,7 +157,8 @@ def check_and_record(out: Path, profile: Profile, command: str, force: bool = Fa
     device = resolve_device(profile.device)
     previous = json.loads(path.read_text()) if path.is_file() else None
     begun = begun_stages(out)
-    changed = {stage: stage_changes(previous["configuration"], config, stage) for stage in begun} if previous else {}
+    recorded = _with_defaults(previous["configuration"]) if previous else None
+    changed = {stage: stage_changes(recorded, config, stage) for stage in begun} if previous else {}
     changed = {stage: keys for stage, keys in changed.items() if keys}
     blocked = {stage: keys for stage, keys in changed.items() if stage not in redo and not force}
     if blocked:
@@ -171,7 +182,7 @@ def check_and_record(out: Path, profile: Profile, command: str, force: bool = Fa
         "machine": f"{platform.node()} ({platform.machine()}, {platform.system()})",
         "history": [*(previous or {}).get("history", []), {
             "command": command, "time": time.strftime("%Y-%m-%d %H:%M:%S"),
-            "changed": _differences(previous["configuration"], config) if previous else [],
+            "changed": _differences(recorded, config) if previous else [],
             "forced": bool(force and changed), "retrained": retrain, "superseded": str(moved) if moved else None}],
     }
     atomic_write_json(path, record)

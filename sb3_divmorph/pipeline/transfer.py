@@ -257,7 +257,8 @@ def transfer_run(profile: Profile, out: Path, task: str, arm: str, seed: int = 0
     source = arm_source(profile, out, task, arm)
 
     def make_env():
-        return make_vec_env(env_name, entry.n_envs, run_seed, profile.max_episode_steps, **env_kwargs)
+        return make_vec_env(env_name, entry.n_envs, run_seed, profile.max_episode_steps, cfg.env_backend,
+                            cfg.worlds_per_robot, device, **env_kwargs)
 
     prepare = None
     callbacks: list[BaseCallback] = []
