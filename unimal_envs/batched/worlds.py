@@ -8,6 +8,8 @@ Warp arrays (zero-copy). Nothing here loops over worlds.
 
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 import torch
 
@@ -76,6 +78,7 @@ class RobotWorlds:
         self._views()
         self._indices(model, env)
         self._graphs: dict[str, object] = {}
+        self._warm: set[str] = set()
 
     # ------------------------------------------------------------------ set-up
     def _views(self) -> None:
@@ -143,11 +146,18 @@ class RobotWorlds:
             torch_stream = wp.stream_from_torch(torch.cuda.current_stream(self.torch_device))
             warp_stream.wait_stream(torch_stream)
         graph = self._graphs.get(name)
-        if graph is None:
-            with wp.ScopedDevice(self.device), wp.ScopedCapture(device=self.device, stream=warp_stream if cuda else None) as capture:
+        if graph is None and name not in self._warm:
+            # The first call runs kernel by kernel: MuJoCo Warp builds and compiles its kernels
+            # on first use, which a graph capture cannot contain.
+            with wp.ScopedDevice(self.device), wp.ScopedStream(warp_stream) if cuda else contextlib.nullcontext():
                 fn()
-            graph = self._graphs[name] = capture.graph
-        wp.capture_launch(graph, stream=warp_stream if cuda else None)
+            self._warm.add(name)
+        else:
+            if graph is None:
+                with wp.ScopedDevice(self.device), wp.ScopedCapture(device=self.device, stream=warp_stream if cuda else None) as capture:
+                    fn()
+                graph = self._graphs[name] = capture.graph
+            wp.capture_launch(graph, stream=warp_stream if cuda else None)
         if cuda:
             torch_stream.wait_stream(warp_stream)
 
