@@ -41,7 +41,7 @@ def mirror_world(benv, world: int, env: UnimalEnv) -> dict[str, torch.Tensor]:
         group_mask = torch.zeros(group.worlds, dtype=torch.bool)
         group_mask[w] = True
         group.select_terrain(group_mask, block.variant[local - w : local - w + group.worlds], block.layout)
-    group.sync()
+    group.launch("sync")
     task, single = block.task, env.task
     readings = block.read()
     state = {}

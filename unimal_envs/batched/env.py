@@ -15,7 +15,7 @@ from stable_baselines3.common.vec_env import VecEnv
 from unimal_envs import contract as C
 from unimal_envs.batched.tasks import FALL, PHYSICS_FAULT, REASONS, Readings, make_batched_task
 from unimal_envs.batched.terrain import HeightMaps, TerrainPool
-from unimal_envs.batched.worlds import RobotWorlds
+from unimal_envs.batched.worlds import RobotWorlds, run_physics
 from unimal_envs.env import UnimalEnv
 from unimal_envs.morphology.loader import load_morphologies
 
@@ -90,13 +90,16 @@ class _TaskBlock:
                 group.select_terrain(mask[rows], self.variant[rows], self.layout)
             placed = (group.box_qpos, props[rows]) if props is not None else None
             group.reset(mask[rows], noise, self.generator, placed)
-            group.sync()
+        run_physics(self.groups, "sync")
         self.task.reset(mask, self.read())
 
     def step(self, actions: torch.Tensor, ctrl_cost_weight: float):
         """One control step of every world: (readings, reward, reward terms, reason codes)."""
         before = torch.cat([g.torso_position() for g in self.groups]).clone()
-        faults = torch.cat([g.step(actions[self.rows(i)]) for i, g in enumerate(self.groups)])
+        for i, group in enumerate(self.groups):
+            group.apply(actions[self.rows(i)])
+        run_physics(self.groups, "step")
+        faults = torch.cat([g.faults() for g in self.groups])
         r = self.read()
         terms = self.task.reward_terms(r, before)
         if ctrl_cost_weight:

@@ -36,6 +36,24 @@ def _view(array: wp.array) -> torch.Tensor:
     return wp.to_torch(array)
 
 
+def run_physics(groups: list[RobotWorlds], name: str) -> None:
+    """Run physics program ``name`` (see :meth:`RobotWorlds.launch`) on every robot's worlds.
+
+    On CUDA the robots' graphs run concurrently, each on its robot's stream, after the torch work
+    queued so far (actions, resets) and before the torch work queued next (observations)."""
+    if not groups or groups[0].stream is None:
+        for group in groups:
+            group.launch(name)
+        return
+    torch_stream = wp.stream_from_torch(torch.cuda.current_stream(groups[0].torch_device))
+    ready = torch_stream.record_event()
+    for group in groups:
+        group.stream.wait_event(ready)
+        group.launch(name)
+    for group in groups:
+        torch_stream.wait_stream(group.stream)
+
+
 def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return torch.linalg.cross(a, b, dim=-1)
 
@@ -79,6 +97,8 @@ class RobotWorlds:
         self._indices(model, env)
         self._graphs: dict[str, object] = {}
         self._warm: set[str] = set()
+        #: On CUDA each robot's graph has its own stream, so the robots' small graphs run concurrently.
+        self.stream = wp.Stream(device) if self.torch_device.type == "cuda" else None
 
     # ------------------------------------------------------------------ set-up
     def _views(self) -> None:
@@ -133,33 +153,27 @@ class RobotWorlds:
             self.faces = torch.as_tensor([model.site(f"box/face/{i}").id for i in range(6)], device=dev)
 
     # ------------------------------------------------------------------ physics
-    def _launch(self, name: str, fn) -> None:
-        """Run ``fn`` (Warp launches only) as a graph captured on first use, on CPU and CUDA alike
-        (on CPU Warp the replay is ~3x faster than launching kernel by kernel, same results).
-
-        On CUDA the graph runs on Warp's stream, ordered after the torch work that wrote its
-        inputs (actions, reset states) and before the torch work that reads its outputs.
-        """
-        cuda = self.torch_device.type == "cuda"
-        if cuda:
-            warp_stream = wp.get_stream(self.device)
-            torch_stream = wp.stream_from_torch(torch.cuda.current_stream(self.torch_device))
-            warp_stream.wait_stream(torch_stream)
+    def launch(self, name: str) -> None:
+        """Run the physics program ``name`` (``"step"``: 4 substeps then kinematics; ``"sync"``:
+        kinematics of the current qpos/qvel) on this robot's worlds, as a graph from the second
+        call on (the first runs kernel by kernel: MuJoCo Warp compiles its kernels on first use,
+        which a capture cannot hold). On CUDA it runs on this robot's own stream; order it with
+        torch's work through :func:`run_physics`. On CPU Warp the replay is ~3x faster than
+        launching kernel by kernel, with identical results."""
+        fn = self._step_physics if name == "step" else self._sync_physics
+        stream = self.stream
         graph = self._graphs.get(name)
-        if graph is None and name not in self._warm:
-            # The first call runs kernel by kernel: MuJoCo Warp builds and compiles its kernels
-            # on first use, which a graph capture cannot contain.
-            with wp.ScopedDevice(self.device), wp.ScopedStream(warp_stream) if cuda else contextlib.nullcontext():
-                fn()
-            self._warm.add(name)
-        else:
+        with wp.ScopedDevice(self.device):
+            if graph is None and name not in self._warm:
+                with wp.ScopedStream(stream) if stream is not None else contextlib.nullcontext():
+                    fn()
+                self._warm.add(name)
+                return
             if graph is None:
-                with wp.ScopedDevice(self.device), wp.ScopedCapture(device=self.device, stream=warp_stream if cuda else None) as capture:
+                with wp.ScopedCapture(device=self.device, stream=stream) as capture:
                     fn()
                 graph = self._graphs[name] = capture.graph
-            wp.capture_launch(graph, stream=warp_stream if cuda else None)
-        if cuda:
-            torch_stream.wait_stream(warp_stream)
+            wp.capture_launch(graph, stream=stream)
 
     def _step_physics(self) -> None:
         for _ in range(SUBSTEPS):
@@ -172,24 +186,22 @@ class RobotWorlds:
         mjw.com_pos(self.model, self.data)
         mjw.com_vel(self.model, self.data)
 
-    def step(self, actions: torch.Tensor) -> torch.Tensor:
-        """Apply (W, 24) padded actions for one control step; returns the (W,) physics-fault flags."""
+    def apply(self, actions: torch.Tensor) -> None:
+        """Write (W, 24) padded actions to the motors (MuJoCo Warp clamps them to [-1, 1])."""
         self.ctrl[:, self.ctrl_actuators] = actions[:, self.ctrl_slots]
-        self._launch("step", self._step_physics)
+
+    def faults(self) -> torch.Tensor:
+        """(W,) worlds whose qpos or qvel is non-finite or beyond MuJoCo's 1e10 limit."""
         qpos, qvel = self.qpos, self.qvel
         bad = ~(torch.isfinite(qpos).all(1) & torch.isfinite(qvel).all(1))
         return bad | (qpos.abs() > MAX_STATE).any(1) | (qvel.abs() > MAX_STATE).any(1)
-
-    def sync(self) -> None:
-        """Recompute kinematics after qpos/qvel were written (a reset)."""
-        self._launch("sync", self._sync_physics)
 
     def reset(self, mask: torch.Tensor, noise: float, generator: torch.Generator,
               props_qpos: tuple[int, torch.Tensor] | None = None) -> None:
         """Start new episodes in the worlds where ``mask`` (W,) is true: the spawn pose plus
         U(-noise, noise) on every robot qpos and qvel entry (as ``Robot.reset``), zero velocity
         elsewhere, time 0. ``props_qpos`` = (qpos address, (W, k) values) places a task prop.
-        Call :meth:`sync` afterwards."""
+        Run ``"sync"`` (:func:`run_physics`) afterwards."""
         w, dev = self.worlds, self.torch_device
         keep = ~mask[:, None]
         qpos = self.qpos0.expand(w, -1).clone()
