@@ -15,7 +15,7 @@ from stable_baselines3.common.vec_env import VecEnv
 from unimal_envs import contract as C
 from unimal_envs.batched.tasks import FALL, PHYSICS_FAULT, REASONS, Readings, make_batched_task
 from unimal_envs.batched.terrain import HeightMaps, TerrainPool
-from unimal_envs.batched.worlds import RobotWorlds, run_physics
+from unimal_envs.batched.worlds import N_READINGS, READINGS, RobotWorlds, run_physics
 from unimal_envs.env import UnimalEnv
 from unimal_envs.morphology.loader import load_morphologies
 
@@ -41,6 +41,13 @@ class _TaskBlock:
         self.layout = torch.as_tensor(self.pool.obstacle_layout, dtype=torch.float32, device=dev) \
             if self.pool is not None and self.pool.obstacle_layout is not None else None
         self.task = make_batched_task(env.task, self.n, dev, self.heightmaps, generator)
+        # The buffers every robot's physics program reads (actions) and writes (observations).
+        self.actions = torch.zeros(self.n, C.ACTION_DIM, device=dev)
+        self.proprio = torch.zeros(self.n, C.MAX_TOKENS, C.PROPRIO_DIM, device=dev)
+        self.readings = torch.zeros(self.n, N_READINGS, device=dev)
+        for i, group in enumerate(self.groups):
+            rows = self.rows(i)
+            group.bind_buffers(self.actions[rows], self.proprio[rows], self.readings[rows])
         self.variant = torch.zeros(self.n, dtype=torch.long, device=dev)
         per_robot = lambda values: torch.as_tensor(np.repeat(np.stack(values), worlds, axis=0), device=dev)  # noqa: E731
         morphologies = [g.morphology for g in self.groups]
@@ -59,17 +66,17 @@ class _TaskBlock:
         return slice(i * self.worlds, (i + 1) * self.worlds)
 
     def read(self) -> Readings:
-        cat = lambda f: torch.cat([f(g) for g in self.groups])  # noqa: E731
-        r = Readings(cat(RobotWorlds.torso_position), cat(RobotWorlds.torso_velocity), cat(RobotWorlds.torso_xmat), self.variant)
+        """The readings the last physics program wrote (a copy: tasks keep some across steps)."""
+        readings = self.readings.clone()
+        column = lambda name: readings[:, READINGS[name]]  # noqa: E731
+        r = Readings(column("torso"), column("torso_velocity"), column("torso_xmat").view(self.n, 3, 3), self.variant)
         if self.task.has_box:
-            box = [g.box_state() for g in self.groups]
-            r.box, r.box_velocity, r.box_angular = (torch.cat(parts) for parts in zip(*box))
-            r.reach = cat(RobotWorlds.reach_distance)
+            r.box, r.box_velocity, r.box_angular, r.reach = column("box"), column("box_velocity"), column("box_angular"), column("reach")
         return r
 
     def observe(self, r: Readings) -> dict[str, torch.Tensor]:
         obs = {
-            "proprioceptive": torch.cat([g.proprioception() for g in self.groups]),
+            "proprioceptive": self.proprio.clone(),
             **self.static,
             "hfield": torch.zeros(self.n, C.HFIELD_DIM, device=self.device),
             "goal": torch.zeros(self.n, C.GOAL_DIM, device=self.device),
@@ -95,12 +102,11 @@ class _TaskBlock:
 
     def step(self, actions: torch.Tensor, ctrl_cost_weight: float):
         """One control step of every world: (readings, reward, reward terms, reason codes)."""
-        before = torch.cat([g.torso_position() for g in self.groups]).clone()
-        for i, group in enumerate(self.groups):
-            group.apply(actions[self.rows(i)])
+        before = self.readings[:, READINGS["torso"]].clone()
+        self.actions.copy_(actions)
         run_physics(self.groups, "step")
-        faults = torch.cat([g.faults() for g in self.groups])
         r = self.read()
+        faults = self.readings[:, READINGS["fault"]] > 0
         terms = self.task.reward_terms(r, before)
         if ctrl_cost_weight:
             real = actions.clamp(-1.0, 1.0) * self.real_slots

@@ -2,8 +2,12 @@
 
 :class:`RobotWorlds` compiles the very world :class:`~unimal_envs.env.UnimalEnv` compiles (robot at
 the task's spawn pose + arena + task props, :meth:`UnimalEnv.world_spec`), puts it on the device
-with ``nworld = W``, and steps, resets and reads all its worlds at once through torch views of the
-Warp arrays (zero-copy). Nothing here loops over worlds.
+with ``nworld = W``, and steps, resets and reads all its worlds at once. A control step is one
+program per robot, captured as a graph: the actions are gathered onto the motors, four physics
+substeps run, kinematics are refreshed (as ``Robot.sync``), and one Warp kernel writes every
+world's ``proprioceptive`` observation and the few numbers the tasks read (:data:`READINGS`) into
+rows of the batch's torch buffers (zero-copy views). Nothing here loops over worlds in Python, and
+per step Python does one graph launch per robot.
 """
 
 from __future__ import annotations
@@ -32,6 +36,91 @@ CONTACTS_PER_WORLD = 96
 CONSTRAINTS_PER_WORLD = 4 * CONTACTS_PER_WORLD + 64
 
 
+#: Columns of the per-world readings buffer the kernel fills (see :class:`~unimal_envs.batched.tasks.Readings`).
+READINGS = {"torso": slice(0, 3), "torso_velocity": slice(3, 6), "torso_xmat": slice(6, 15), "fault": 15,
+            "box": slice(16, 19), "box_velocity": slice(19, 22), "box_angular": slice(22, 25), "reach": 25}
+N_READINGS = 26
+_PROPRIO = C.MAX_TOKENS * C.PROPRIO_DIM
+
+
+@wp.kernel(enable_backward=False)
+def _apply_actions(actions: wp.array2d(dtype=float), actuators: wp.array(dtype=int), slots: wp.array(dtype=int),
+                   ctrl: wp.array2d(dtype=float)):
+    world, k = wp.tid()
+    ctrl[world, actuators[k]] = actions[world, slots[k]]
+
+
+@wp.kernel(enable_backward=False)
+def _read_worlds(
+    qpos: wp.array2d(dtype=float), qvel: wp.array2d(dtype=float), xpos: wp.array2d(dtype=wp.vec3),
+    xquat: wp.array2d(dtype=wp.quat), xmat: wp.array2d(dtype=wp.mat33), cvel: wp.array2d(dtype=wp.spatial_vector),
+    subtree_com: wp.array2d(dtype=wp.vec3), site_xpos: wp.array2d(dtype=wp.vec3),
+    torso: int, n_tokens: int, qpos_root: int, qvel_root: int,
+    hinge_qpos: wp.array(dtype=int), hinge_qvel: wp.array(dtype=int), hinge_scale: wp.array(dtype=float),
+    hinge_offset: wp.array(dtype=float), hinge_q_column: wp.array(dtype=int), hinge_v_column: wp.array(dtype=int),
+    static_features: wp.array(dtype=float),
+    box: int, box_qvel: int, points: wp.array(dtype=int), points_are_sites: int, faces: wp.array(dtype=int),
+    proprio: wp.array2d(dtype=float), readings: wp.array2d(dtype=float),
+):
+    """One thread per world: the proprioceptive observation (as ``Robot.proprioception``) and the readings."""
+    world = wp.tid()
+    for k in range(static_features.shape[0]):
+        proprio[world, k] = static_features[k]
+    com = subtree_com[world, torso]
+    torso_x = xpos[world, torso][0]
+    for token in range(n_tokens):
+        body = torso + token
+        position = xpos[world, body]
+        velocity = cvel[world, body]  # (angular, linear) at the root's subtree centre of mass
+        angular = wp.vec3(velocity[0], velocity[1], velocity[2])
+        linear = wp.vec3(velocity[3], velocity[4], velocity[5]) + wp.cross(angular, position - com)
+        quat = xquat[world, body]
+        row = token * 52
+        proprio[world, row + 0] = position[0] - torso_x  # x relative to the torso; y, z absolute
+        proprio[world, row + 1] = position[1]
+        proprio[world, row + 2] = position[2]
+        for i in range(3):
+            proprio[world, row + 3 + i] = linear[i]
+            proprio[world, row + 6 + i] = angular[i]
+        for i in range(4):
+            proprio[world, row + 9 + i] = quat[i]
+    for h in range(hinge_qpos.shape[0]):
+        proprio[world, hinge_q_column[h]] = qpos[world, hinge_qpos[h]] * hinge_scale[h] + hinge_offset[h]
+        proprio[world, hinge_v_column[h]] = qvel[world, hinge_qvel[h]]
+    rotation = xmat[world, torso]
+    for i in range(3):
+        readings[world, i] = qpos[world, qpos_root + i]
+        readings[world, 3 + i] = qvel[world, qvel_root + i]
+        for j in range(3):
+            readings[world, 6 + 3 * i + j] = rotation[i, j]
+    fault = float(0.0)
+    for i in range(qpos.shape[1]):
+        if not wp.isfinite(qpos[world, i]) or wp.abs(qpos[world, i]) > 1.0e10:
+            fault = 1.0
+    for i in range(qvel.shape[1]):
+        if not wp.isfinite(qvel[world, i]) or wp.abs(qvel[world, i]) > 1.0e10:
+            fault = 1.0
+    readings[world, 15] = fault
+    if box >= 0:
+        box_position = xpos[world, box]
+        box_velocity = cvel[world, box]
+        box_angular = wp.vec3(box_velocity[0], box_velocity[1], box_velocity[2])
+        box_linear = wp.vec3(box_velocity[3], box_velocity[4], box_velocity[5]) + wp.cross(
+            box_angular, box_position - subtree_com[world, box])
+        nearest = float(1.0e30)
+        for p in range(points.shape[0]):
+            point = xpos[world, points[p]]
+            if points_are_sites != 0:
+                point = site_xpos[world, points[p]]
+            for f in range(faces.shape[0]):
+                nearest = wp.min(nearest, wp.length(point - site_xpos[world, faces[f]]))
+        for i in range(3):
+            readings[world, 16 + i] = box_position[i]
+            readings[world, 19 + i] = box_linear[i]
+            readings[world, 22 + i] = qvel[world, box_qvel + 3 + i]
+        readings[world, 25] = nearest
+
+
 def _view(array: wp.array) -> torch.Tensor:
     return wp.to_torch(array)
 
@@ -52,10 +141,6 @@ def run_physics(groups: list[RobotWorlds], name: str) -> None:
         group.launch(name)
     for group in groups:
         torch_stream.wait_stream(group.stream)
-
-
-def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    return torch.linalg.cross(a, b, dim=-1)
 
 
 class RobotWorlds:
@@ -105,8 +190,6 @@ class RobotWorlds:
         d = self.data
         self.qpos, self.qvel, self.ctrl = _view(d.qpos), _view(d.qvel), _view(d.ctrl)
         self.time, self.qacc_warmstart = _view(d.time), _view(d.qacc_warmstart)
-        self.xpos, self.xquat, self.xmat = _view(d.xpos), _view(d.xquat), _view(d.xmat)
-        self.cvel, self.subtree_com, self.site_xpos = _view(d.cvel), _view(d.subtree_com), _view(d.site_xpos)
         self.torch_device = self.qpos.device
         if self.variant_dataid is not None:
             self.geom_dataid = _view(self.model.geom_dataid)
@@ -117,40 +200,47 @@ class RobotWorlds:
 
     def _indices(self, model: mujoco.MjModel, env: UnimalEnv) -> None:
         robot, dev = self.robot, self.torch_device
-        n = robot.num_tokens
         self.torso = robot.torso_id
-        self.bodies = torch.arange(robot.torso_id, robot.torso_id + n, device=dev)
-        self.qpos_root, self.qvel_root = robot._qpos_root, robot._qvel_root
         self.robot_qpos = slice(robot._qpos_root, robot._qpos_hinges.stop)
         self.robot_qvel = slice(robot._qvel_root, robot._qvel_hinges.stop)
         self.qpos0 = torch.as_tensor(model.qpos0, dtype=torch.float32, device=dev)
-        # Hinges in sensor order (token order, "x" before "y"), as Robot.proprioception reads them.
-        hinges = list(robot._slot_of_hinge)
-        ids = [model.joint(h).id for h in hinges]
-        self.hinge_qpos = torch.as_tensor(model.jnt_qposadr[ids], device=dev)
-        self.hinge_qvel = torch.as_tensor(model.jnt_dofadr[ids], device=dev)
-        self.hinge_scale = torch.as_tensor(robot._hinge_scale[: robot.dof], dtype=torch.float32, device=dev)
-        self.hinge_offset = torch.as_tensor(robot._hinge_offset[: robot.dof], dtype=torch.float32, device=dev)
-        dof = robot.dof
-        self.hinge_q_cols = torch.as_tensor(robot._hinge_targets[:dof], device=dev)
-        self.hinge_v_cols = torch.as_tensor(robot._hinge_targets[dof:], device=dev)
-        self.static = torch.as_tensor(robot._static, device=dev)
-        self.ctrl_actuators = torch.as_tensor(robot._robot_actuators, device=dev)
-        self.ctrl_slots = torch.as_tensor(robot._ctrl_slots, device=dev)
         self.fall_height = env.task.fall_height_ratio * self.morphology.standing_height
+
+        def ints(values) -> wp.array:
+            return wp.array(np.asarray(values, dtype=np.int32).reshape(-1), dtype=wp.int32, device=self.device)
+
+        def floats(values) -> wp.array:
+            return wp.array(np.asarray(values, dtype=np.float32).reshape(-1), dtype=wp.float32, device=self.device)
+
+        # Hinges in sensor order (token order, "x" before "y"), as Robot.proprioception reads them.
+        ids = [model.joint(h).id for h in robot._slot_of_hinge]
+        dof = robot.dof
         names = [model.site(i).name for i in range(model.nsite)]
-        robot_sites = [i for i, s in enumerate(names) if s.startswith(("limb/mid/", "limb/btm/", "torso"))]
-        self.robot_points = torch.as_tensor(robot_sites, device=dev)
-        self.points_are_sites = bool(robot_sites)
-        if not robot_sites:
-            self.robot_points = self.bodies
-        self.box = self.box_qpos = self.box_qvel = self.faces = None
-        if any(model.body(b).name == "box/1" for b in range(model.nbody)):
+        sites = [i for i, name in enumerate(names) if name.startswith(("limb/mid/", "limb/btm/", "torso"))]
+        self.box = self.box_qpos = None
+        box_qvel, faces = -1, []
+        if "box/1" in [model.body(b).name for b in range(model.nbody)]:
             self.box = model.body("box/1").id
             joint = model.joint("box/1").id
-            self.box_qpos = int(model.jnt_qposadr[joint])
-            self.box_qvel = int(model.jnt_dofadr[joint])
-            self.faces = torch.as_tensor([model.site(f"box/face/{i}").id for i in range(6)], device=dev)
+            self.box_qpos, box_qvel = int(model.jnt_qposadr[joint]), int(model.jnt_dofadr[joint])
+            faces = [model.site(f"box/face/{i}").id for i in range(6)]
+        bodies = range(robot.torso_id, robot.torso_id + robot.num_tokens)
+        self._actuators, self._slots = ints(robot._robot_actuators), ints(robot._ctrl_slots)
+        # The readout kernel's constant inputs, in its argument order after the data arrays.
+        self._read_inputs = [
+            robot.torso_id, robot.num_tokens, robot._qpos_root, robot._qvel_root,
+            ints(model.jnt_qposadr[ids]), ints(model.jnt_dofadr[ids]), floats(robot._hinge_scale[:dof]),
+            floats(robot._hinge_offset[:dof]), ints(robot._hinge_targets[:dof]), ints(robot._hinge_targets[dof:]),
+            floats(robot._static), -1 if self.box is None else self.box, box_qvel,
+            ints(sites or list(bodies)), int(bool(sites)), ints(faces),
+        ]
+
+    def bind_buffers(self, actions: torch.Tensor, proprio: torch.Tensor, readings: torch.Tensor) -> None:
+        """Rows of the batch's buffers this robot's programs read (``actions``, (W, 24)) and write
+        (``proprio``, (W, 12, 52); ``readings``, (W, :data:`N_READINGS`)); contiguous torch views."""
+        self._actions = wp.from_torch(actions)
+        self._proprio = wp.from_torch(proprio.view(self.worlds, _PROPRIO))
+        self._readings = wp.from_torch(readings)
 
     # ------------------------------------------------------------------ physics
     def launch(self, name: str) -> None:
@@ -160,7 +250,7 @@ class RobotWorlds:
         which a capture cannot hold). On CUDA it runs on this robot's own stream; order it with
         torch's work through :func:`run_physics`. On CPU Warp the replay is ~3x faster than
         launching kernel by kernel, with identical results."""
-        fn = self._step_physics if name == "step" else self._sync_physics
+        fn = self._step_physics if name == "step" else self._sync_physics  # "sync" after a reset
         stream = self.stream
         graph = self._graphs.get(name)
         with wp.ScopedDevice(self.device):
@@ -176,25 +266,21 @@ class RobotWorlds:
             wp.capture_launch(graph, stream=stream)
 
     def _step_physics(self) -> None:
+        d = self.data
+        wp.launch(_apply_actions, dim=(self.worlds, len(self._slots)), inputs=[self._actions, self._actuators, self._slots], outputs=[d.ctrl])
         for _ in range(SUBSTEPS):
-            mjw.step(self.model, self.data)
+            mjw.step(self.model, d)
         self._sync_physics()
 
     def _sync_physics(self) -> None:
-        # As Robot.sync: positions, frames and velocities of the current qpos/qvel.
-        mjw.kinematics(self.model, self.data)
-        mjw.com_pos(self.model, self.data)
-        mjw.com_vel(self.model, self.data)
-
-    def apply(self, actions: torch.Tensor) -> None:
-        """Write (W, 24) padded actions to the motors (MuJoCo Warp clamps them to [-1, 1])."""
-        self.ctrl[:, self.ctrl_actuators] = actions[:, self.ctrl_slots]
-
-    def faults(self) -> torch.Tensor:
-        """(W,) worlds whose qpos or qvel is non-finite or beyond MuJoCo's 1e10 limit."""
-        qpos, qvel = self.qpos, self.qvel
-        bad = ~(torch.isfinite(qpos).all(1) & torch.isfinite(qvel).all(1))
-        return bad | (qpos.abs() > MAX_STATE).any(1) | (qvel.abs() > MAX_STATE).any(1)
+        # As Robot.sync: positions, frames and velocities of the current qpos/qvel; then the readout.
+        m, d = self.model, self.data
+        mjw.kinematics(m, d)
+        mjw.com_pos(m, d)
+        mjw.com_vel(m, d)
+        wp.launch(_read_worlds, dim=self.worlds,
+                  inputs=[d.qpos, d.qvel, d.xpos, d.xquat, d.xmat, d.cvel, d.subtree_com, d.site_xpos, *self._read_inputs],
+                  outputs=[self._proprio, self._readings])
 
     def reset(self, mask: torch.Tensor, noise: float, generator: torch.Generator,
               props_qpos: tuple[int, torch.Tensor] | None = None) -> None:
@@ -233,56 +319,6 @@ class RobotWorlds:
             aabb = layout[..., 6:12].reshape(*layout.shape[:2], 2, 3)
             self.geom_aabb[:, g] = torch.where(mask[:, None, None, None], aabb, self.geom_aabb[:, g])
             self.geom_rbound[:, g] = torch.where(mask[:, None], layout[..., 12], self.geom_rbound[:, g])
-
-    # ------------------------------------------------------------------ reading
-    def torso_position(self) -> torch.Tensor:
-        """(W, 3) torso world position (the free joint's qpos)."""
-        return self.qpos[:, self.qpos_root : self.qpos_root + 3]
-
-    def torso_velocity(self) -> torch.Tensor:
-        """(W, 3) torso world linear velocity (the free joint's qvel)."""
-        return self.qvel[:, self.qvel_root : self.qvel_root + 3]
-
-    def torso_xmat(self) -> torch.Tensor:
-        """(W, 3, 3) torso orientation (torso frame -> world)."""
-        return self.xmat[:, self.torso]
-
-    def point_velocity(self, body: int | torch.Tensor, root: int, point: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """World-frame (linear velocity at ``point``, angular velocity) of ``body`` whose kinematic
-        root is ``root``, as ``mj_objectVelocity(mjOBJ_XBODY, flg_local=0)``: MuJoCo's ``cvel`` is
-        (angular, linear) at the root's subtree centre of mass."""
-        cvel, com = self.cvel[:, body], self.subtree_com[:, root]
-        if cvel.dim() == 3:
-            com = com[:, None]
-        angular, linear = cvel[..., :3], cvel[..., 3:]
-        return linear + _cross(angular, point - com), angular
-
-    def proprioception(self) -> torch.Tensor:
-        """(W, 12, 52) ``proprioceptive`` observation, as :meth:`Robot.proprioception`."""
-        n = self.robot.num_tokens
-        xpos = self.xpos[:, self.bodies]
-        linear, angular = self.point_velocity(self.bodies, self.torso, xpos)
-        relative = xpos.clone()
-        relative[..., 0] -= xpos[:, :1, 0]  # x relative to the torso; y, z absolute (MetaMorph)
-        obs = self.static.expand(self.worlds, -1, -1).clone()
-        obs[:, :n, :13] = torch.cat([relative, linear, angular, self.xquat[:, self.bodies]], dim=-1)
-        flat = obs.view(self.worlds, -1)
-        flat[:, self.hinge_q_cols] = self.qpos[:, self.hinge_qpos] * self.hinge_scale + self.hinge_offset
-        flat[:, self.hinge_v_cols] = self.qvel[:, self.hinge_qvel]
-        return obs
-
-    def reach_distance(self) -> torch.Tensor:
-        """(W,) smallest distance between the robot's sites (or body origins) and a box face centre."""
-        points = (self.site_xpos if self.points_are_sites else self.xpos)[:, self.robot_points]
-        faces = self.site_xpos[:, self.faces]
-        return torch.cdist(points, faces).amin(dim=(1, 2))
-
-    def box_state(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(W, 3) each: box position, box linear velocity (world frame, at its origin), and the box
-        free joint's angular velocity ``qvel[3:6]`` (as the single env's object observation)."""
-        position = self.xpos[:, self.box]
-        linear, _ = self.point_velocity(self.box, self.box, position)
-        return position, linear, self.qvel[:, self.box_qvel + 3 : self.box_qvel + 6]
 
     def memory_bytes(self) -> int:
         """Device bytes of this robot's model and data."""
