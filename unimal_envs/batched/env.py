@@ -311,9 +311,9 @@ def _free_memory(device: str) -> int:
     return int(wp.get_device(device).free_memory)
 
 
-def estimate_memory(env: UnimalEnv, worlds: int, device: str) -> tuple[int, int]:
-    """(bytes per world, fixed bytes) of one robot's worlds, measured from a 1- and a 2-world
-    allocation of the first robot's world on ``device``."""
+def estimate_memory(env: UnimalEnv, device: str, terrain_variants: int) -> tuple[int, int]:
+    """(bytes per world, fixed bytes per robot) of one robot's worlds on ``device``: the data of a
+    1- and a 2-world allocation of the first robot's world, plus its pool of height fields."""
     import mujoco_warp as mjw
 
     from unimal_envs.batched.worlds import CONSTRAINTS_PER_WORLD, CONTACTS_PER_WORLD
@@ -327,7 +327,7 @@ def estimate_memory(env: UnimalEnv, worlds: int, device: str) -> tuple[int, int]
         return sum(v.capacity for v in vars(data).values() if isinstance(v, wp.array))
 
     one, two = size(1), size(2)
-    return two - one, 2 * one - two
+    return two - one, 2 * one - two + 4 * model.nhfielddata * terrain_variants
 
 
 def make_batched_env(
@@ -369,7 +369,7 @@ def make_batched_env(
     robots = load_morphologies(morphologies)
     envs = [UnimalEnv(name, robots, ctrl_cost_weight=ctrl_cost_weight, reset_noise_scale=reset_noise_scale) for name in names]
     total = len(robots) * int(worlds_per_robot) * len(envs)
-    per_world, fixed = estimate_memory(envs[0], int(worlds_per_robot), warp_device)
+    per_world, fixed = estimate_memory(envs[0], warp_device, int(terrain_variants))
     needed, free = per_world * total + fixed * len(robots) * len(envs), _free_memory(warp_device)
     if needed > MEMORY_SHARE * free:
         raise ValueError(

@@ -319,12 +319,3 @@ class RobotWorlds:
             aabb = layout[..., 6:12].reshape(*layout.shape[:2], 2, 3)
             self.geom_aabb[:, g] = torch.where(mask[:, None, None, None], aabb, self.geom_aabb[:, g])
             self.geom_rbound[:, g] = torch.where(mask[:, None], layout[..., 12], self.geom_rbound[:, g])
-
-    def memory_bytes(self) -> int:
-        """Device bytes of this robot's model and data."""
-        total = 0
-        for obj in (self.model, self.data):
-            for value in vars(obj).values():
-                if isinstance(value, wp.array):
-                    total += value.capacity
-        return total
