@@ -20,7 +20,7 @@ pytest.importorskip("mujoco_warp", reason="the batched backend needs the mujoco-
 import unimal_envs  # noqa: E402,F401
 from unimal_envs import contract as C  # noqa: E402
 from unimal_envs.batched import make_batched_env  # noqa: E402
-from unimal_envs.morphology.loader import MorphologyError, morphology_files  # noqa: E402
+from unimal_envs.morphology.loader import MorphologyError, load_morphologies, morphology_files  # noqa: E402
 
 from batched_mirror import mirror_world  # noqa: E402
 
@@ -90,6 +90,11 @@ def test_every_task_steps_with_finite_values_and_resets_each_world_on_its_own(ta
         episode_steps[done] = 0
     assert ended >= n, "every world is truncated at 20 steps, so 50 steps end at least one episode each"
     assert [info["task"] for info in infos[:: 8]] == (["FT", "Patrol"] if task == "MultiTask" else [task] * (n // 8))
+    # Each world's static observations are its own robot's and task's.
+    np.testing.assert_array_equal(obs["task_index"][:, 0], [C.TASK_NAMES.index(t) for t in benv.task_names])
+    robots = {m.name: m for m in load_morphologies(ROBOTS)}
+    for i in range(n):
+        np.testing.assert_array_equal(obs["context"][i], robots[benv.morphology_names[i]].context)
 
 
 def test_a_reset_world_is_back_at_the_spawn_pose_and_the_others_go_on():

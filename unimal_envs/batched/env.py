@@ -21,6 +21,8 @@ from unimal_envs.morphology.loader import load_morphologies
 
 #: Observation keys, in the contract's order.
 KEYS = tuple(C.observation_space().spaces)
+#: Keys whose values are fixed per world (its robot and task).
+STATIC_KEYS = ("context", "obs_padding_mask", "act_padding_mask", "task_embedding", "task_index")
 #: Refuse a batch whose estimated memory exceeds this share of the device's free memory.
 MEMORY_SHARE = 0.8
 
@@ -158,6 +160,7 @@ class BatchedUnimalEnv(VecEnv):
         self.task_names = [b.task_name for b in blocks for _ in range(b.n)]
         self.steps = torch.zeros(n, dtype=torch.long, device=self.torch_device)
         self._actions: np.ndarray | None = None
+        self._static_numpy: dict[str, np.ndarray] | None = None
         self._seed = seed
         self.seed(seed)
 
@@ -222,14 +225,14 @@ class BatchedUnimalEnv(VecEnv):
     # ------------------------------------------------------------------ SB3 VecEnv
     def reset(self) -> dict[str, np.ndarray]:
         self.reset_infos = [{"morphology": m, "task": t} for m, t in zip(self.morphology_names, self.task_names)]
-        return _numpy(self.reset_tensors())
+        return self._numpy(self.reset_tensors())
 
     def step_async(self, actions: np.ndarray) -> None:
         self._actions = actions
 
     def step_wait(self):
         obs, reward, terminated, truncated, info = self.step_tensors(torch.as_tensor(np.asarray(self._actions)))
-        obs_np = _numpy(obs)
+        obs_np = self._numpy(obs)
         reward_np = reward.cpu().numpy()
         terminated_np, truncated_np = terminated.cpu().numpy(), truncated.cpu().numpy()
         dones = terminated_np | truncated_np
@@ -249,6 +252,13 @@ class BatchedUnimalEnv(VecEnv):
                 if reasons[j]:
                     infos[i]["termination"] = REASONS[reasons[j]]
         return obs_np, reward_np.astype(np.float32), dones, infos
+
+    def _numpy(self, obs: dict[str, torch.Tensor]) -> dict[str, np.ndarray]:
+        """Observations on the host; the keys that never change (morphology, task) are copied from
+        a host cache instead of from the device."""
+        if self._static_numpy is None:
+            self._static_numpy = {k: obs[k].cpu().numpy() for k in STATIC_KEYS}
+        return {k: self._static_numpy[k].copy() if k in STATIC_KEYS else obs[k].cpu().numpy() for k in KEYS}
 
     def close(self) -> None:
         self.blocks = []
@@ -286,10 +296,6 @@ class BatchedUnimalEnv(VecEnv):
 
     def get_images(self):
         raise NotImplementedError("the batched env does not render; render a world with the single env (gym.make)")
-
-
-def _numpy(obs: dict[str, torch.Tensor]) -> dict[str, np.ndarray]:
-    return {k: obs[k].cpu().numpy() for k in KEYS}
 
 
 def _warp_device(device: str) -> str:
