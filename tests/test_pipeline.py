@@ -153,7 +153,7 @@ def test_a_deployment_student_is_distilled_exported_and_reported_beside_the_stud
     source, profiles = finished_run
     out = tmp_path / "copy"
     shutil.copytree(source, out)
-    shutil.rmtree(out / "evaluate")
+    evaluated = (out / "evaluate" / "returns.csv").read_text()
     base = ["--profile", "tiny", "--profiles", str(profiles), "--out", str(out), "--no-progress"]
     assert cli(["distill", *base, "--students", "deploy-g1k1"]) == 0
     assert DivMorphPolicy is type(__import__("stable_baselines3").PPO.load(out / "students" / "deploy-g1k1" / "model.zip").policy)
@@ -166,6 +166,10 @@ def test_a_deployment_student_is_distilled_exported_and_reported_beside_the_stud
     assert cli(["distill", *base, "--students", "deploy-g1k1", "--arms", "scratch"]) == 2
     assert cli(["export", *base, "--student", "distilled"]) == 2  # a dense student has nothing to prune
     assert cli(["evaluate", *base]) == 0 and cli(["report", *base]) == 0
+    # The finished evaluation grew by the new student's rows and kept every row it had.
+    grown = (out / "evaluate" / "returns.csv").read_text().splitlines()
+    assert grown[: len(evaluated.splitlines())] == evaluated.splitlines()
+    assert {line.split(",")[0] for line in grown[len(evaluated.splitlines()):]} == {"student-deploy-g1k1"}
     summary = (out / "summary.md").read_text()
     assert "| deploy-g1k1 | " in summary and "deploy-g1k1" in summary.split("## Findings")[1]
     with open(out / "export" / "summary.csv") as f:

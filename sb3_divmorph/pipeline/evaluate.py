@@ -137,15 +137,23 @@ def evaluate(profile: Profile, out: Path, progress_bar: bool = True) -> Path:
     """
     out = Path(out)
     folder = out / "evaluate"
-    if is_done(folder):
-        print(f"[evaluate] skipped, already evaluated in {folder}")
-        return folder
     splits = {split: profile_robots(profile, split) for split in ("train", "novel")}
     plan = evaluation_plan(profile, out)
     if not plan:
         raise FileNotFoundError(f"nothing to evaluate in {out}: run the teachers/distill/transfer stages first")
-    rows = []
+    rows: list[dict] = []
     jobs = [(label, model, task, split) for label, model, task in plan for split in splits]
+    if is_done(folder):
+        # A finished evaluation grows with the models finished after it (e.g. a student distilled
+        # later); what it has already evaluated is kept as it is.
+        with open(folder / "returns.csv", newline="") as f:
+            rows = list(csv.DictReader(f))
+        evaluated = {(row["model"], row["task"], row["split"]) for row in rows}
+        jobs = [job for job in jobs if (job[0], job[2], job[3]) not in evaluated]
+        if not jobs:
+            print(f"[evaluate] skipped, already evaluated in {folder}")
+            return folder
+        print(f"[evaluate] {len(jobs)} model x task x split evaluation(s) of models finished since {folder} was written")
     episodes = profile.evaluate.episodes
     for label, model, task, split in tqdm(jobs, desc="[evaluate]", unit="model x task x split", disable=not progress_bar):
         if label == "teacher-untrained":
