@@ -73,7 +73,7 @@ def test_every_task_steps_with_finite_values_and_resets_each_world_on_its_own(ta
     assert n == 2 * 4 * (2 if task == "MultiTask" else 1)
     obs = benv.reset()
     assert set(obs) == set(C.observation_space().spaces)
-    assert all(obs[k].shape == (n, *space.shape) for k, space in C.observation_space().spaces.items())
+    assert all(obs[k].shape == (n, *space.shape) and obs[k].dtype == np.float32 for k, space in C.observation_space().spaces.items())
     rng = np.random.default_rng(0)
     episode_steps = np.zeros(n, dtype=int)
     ended = 0
