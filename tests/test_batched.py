@@ -174,6 +174,16 @@ def test_bad_input_is_refused_with_a_message_that_names_the_problem(write_robot)
         env.env_method("set_morphology_probabilities", None)
 
 
+def test_a_custom_instruction_is_what_the_worlds_observe():
+    from unimal_envs.instructions import embed_instruction
+
+    words = "Walk to the red tile and stay on it."
+    env = make_batched_env("PointNav", morphologies=ROBOTS[:1], worlds_per_robot=2, device="cpu", instruction=words, text_encoder="hash")
+    np.testing.assert_array_equal(env.reset()["task_embedding"], np.stack([embed_instruction(words, "hash")] * 2))
+    with pytest.raises(ValueError, match="MultiTask uses each task's own instruction"):
+        make_batched_env("MultiTask", morphologies=ROBOTS[:1], worlds_per_robot=1, device="cpu", instruction=words)
+
+
 def test_without_mujoco_warp_the_message_names_the_extra(monkeypatch):
     import unimal_envs.batched as batched
 

@@ -17,6 +17,7 @@ from unimal_envs.batched.tasks import FALL, PHYSICS_FAULT, REASONS, Readings, ma
 from unimal_envs.batched.terrain import HeightMaps, TerrainPool
 from unimal_envs.batched.worlds import N_READINGS, READINGS, RobotWorlds, run_physics
 from unimal_envs.env import UnimalEnv
+from unimal_envs.instructions import DEFAULT_ENCODER
 from unimal_envs.morphology.loader import load_morphologies
 
 #: Observation keys, in the contract's order.
@@ -347,6 +348,8 @@ def make_batched_env(
     terrain_variants: int = 8,
     ctrl_cost_weight: float = 0.0,
     reset_noise_scale: float = 0.005,
+    instruction: str | None = None,
+    text_encoder: str = DEFAULT_ENCODER,
 ) -> BatchedUnimalEnv:
     """A UNIMAL task on MuJoCo Warp: ``len(morphologies) x worlds_per_robot`` worlds (see
     :class:`BatchedUnimalEnv`).
@@ -362,6 +365,8 @@ def make_batched_env(
     :param terrain_variants: arenas drawn per terrain task; each reset picks one per world.
     :param ctrl_cost_weight: as for the single env.
     :param reset_noise_scale: as for the single env.
+    :param instruction: replaces the task's instruction (its embedding is the ``task_embedding``
+        observation), embedded with ``text_encoder``; not with MultiTask.
     :raises ValueError: unknown task, a device that does not exist, fewer than one world, or more
         worlds than the device's free memory holds (estimated before anything is allocated).
     :raises MorphologyError: a robot whose world MuJoCo Warp cannot simulate (named, with the feature).
@@ -372,8 +377,11 @@ def make_batched_env(
         raise ValueError(f"terrain_variants must be at least 1, got {terrain_variants}")
     warp_device = _warp_device(device)
     names = list(tasks or C.TRAIN_TASKS) if task == "MultiTask" else [task]
+    if task == "MultiTask" and instruction is not None:
+        raise ValueError("MultiTask uses each task's own instruction; 'instruction' is not accepted")
     robots = load_morphologies(morphologies)
-    envs = [UnimalEnv(name, robots, ctrl_cost_weight=ctrl_cost_weight, reset_noise_scale=reset_noise_scale) for name in names]
+    envs = [UnimalEnv(name, robots, instruction=instruction, text_encoder=text_encoder, ctrl_cost_weight=ctrl_cost_weight,
+                      reset_noise_scale=reset_noise_scale) for name in names]
     total = len(robots) * int(worlds_per_robot) * len(envs)
     per_world, fixed = estimate_memory(envs[0], warp_device, int(terrain_variants))
     needed, free = per_world * total + fixed * len(robots) * len(envs), _free_memory(warp_device)
