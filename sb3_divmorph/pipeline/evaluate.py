@@ -137,6 +137,9 @@ def evaluate(profile: Profile, out: Path, progress_bar: bool = True) -> Path:
     """
     out = Path(out)
     folder = out / "evaluate"
+    if is_done(folder) and not (folder / "returns.csv").is_file():
+        print(f"[evaluate] skipped, already evaluated in {folder}")
+        return folder
     splits = {split: profile_robots(profile, split) for split in ("train", "novel")}
     plan = evaluation_plan(profile, out)
     if not plan:
