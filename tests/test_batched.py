@@ -112,6 +112,36 @@ def test_a_reset_world_is_back_at_the_spawn_pose_and_the_others_go_on():
     assert torch.equal(after[[0, 2]], moved[[0, 2]])
 
 
+def test_each_world_draws_its_own_episode_from_the_single_envs_distributions():
+    box = make_batched_env("ManipulateBox", morphologies=ROBOTS[:1], worlds_per_robot=16, device="cpu", seed=0)
+    box.reset_tensors()
+    block, group = box.blocks[0], box.blocks[0].groups[0]
+    placed = group.qpos[:, group.box_qpos : group.box_qpos + 3]
+    goal = block.task.goal
+    assert ((placed[:, 0] >= 15) & (placed[:, 0] <= 24)).all() and (placed[:, 1].abs() <= 9.8).all()
+    assert torch.allclose(placed[:, 1] * 10, torch.round(placed[:, 1] * 10), atol=1e-4)  # DERL's 0.1 m grid
+    assert ((goal[:, 0] - placed[:, 0] >= 15) | (goal[:, 0] == 50.5)).all() and (goal[:, 1].abs() <= 9.5).all()
+    assert len({tuple(p.tolist()) for p in placed}) > 8, "worlds draw their own boxes"
+    robot = group.qpos[:, group.robot_qpos] - group.qpos0[group.robot_qpos]
+    assert (robot.abs() <= 0.005 + 1e-6).all() and (robot.abs() > 0).any()  # reset noise U(-0.005, 0.005)
+
+    nav = make_batched_env("PointNav", morphologies=ROBOTS[:1], worlds_per_robot=16, device="cpu", seed=0)
+    nav.reset_tensors()
+    goal = nav.blocks[0].task.goal
+    assert ((goal[:, 0] >= -43.5) & (goal[:, 0] < 43) & (goal[:, 1].abs() <= 39.5)).all() and goal[:, 0].unique().numel() == 16
+
+    for task in ("VT", "Obstacle"):
+        env = make_batched_env(task, morphologies=ROBOTS[:1], worlds_per_robot=16, device="cpu", seed=0, terrain_variants=4)
+        env.reset_tensors()
+        block, group = env.blocks[0], env.blocks[0].groups[0]
+        variant = block.variant
+        assert variant.unique().numel() > 1, "worlds stand on different terrain variants"
+        if task == "VT":  # each world's terrain geom reads its variant's height field
+            assert torch.equal(group.geom_dataid[:, group.terrain_geom].long(), torch.as_tensor(group.variant_dataid)[variant])
+        else:  # each world's blocks are its variant's layout
+            assert torch.equal(group.geom_pos[:, torch.as_tensor(group.obstacle_ids)], block.layout[variant][..., :3])
+
+
 def test_a_physics_fault_ends_only_its_own_world():
     twins = [make_batched_env("FT", morphologies=ROBOTS, worlds_per_robot=2, device="cpu", seed=3) for _ in range(2)]
     for env in twins:
