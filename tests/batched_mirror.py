@@ -28,7 +28,7 @@ def mirror_world(benv, world: int, env: UnimalEnv) -> dict[str, torch.Tensor]:
     if block.pool is not None:
         # The single env's terrain becomes variant 0 of the pool, and this world uses it.
         grid = env.arena.grid
-        block.heightmaps.padded[0] = torch.as_tensor(grid._padded.reshape(-1))
+        block.heightmaps.padded[0] = torch.as_tensor(grid.padded.reshape(-1))
         if group.variant_dataid is not None:  # the single world's one height field -> variant 0's asset
             size, source = grid.heights.size, int(model.hfield_adr[0])
             target = int(group.mj_model.hfield_adr[group.variant_dataid[0]])

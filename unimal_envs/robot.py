@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import functools
 import xml.etree.ElementTree as ET
+from dataclasses import dataclass
 
 import mujoco
 import numpy as np
@@ -73,6 +74,30 @@ def _world_xml(xml: str) -> str:
             for element in list(parent) if child is None else parent.findall(child):
                 parent.remove(element)
     return ET.tostring(root, encoding="unicode")
+
+
+@dataclass(frozen=True)
+class RobotIndices:
+    """Where a bound robot lives in its compiled world, and how its observation is assembled: what
+    another simulator of the same world (:mod:`unimal_envs.batched`) needs to reproduce
+    :meth:`Robot.apply_action` and :meth:`Robot.proprioception`."""
+
+    #: the robot's qpos / qvel entries (root free joint, then the hinges)
+    qpos: slice
+    qvel: slice
+    #: per hinge, in observation order: qpos and qvel addresses, angle normalisation ``q * scale + offset``
+    hinge_qpos: np.ndarray
+    hinge_qvel: np.ndarray
+    hinge_scale: np.ndarray
+    hinge_offset: np.ndarray
+    #: per hinge: flat index into the (12 x 52) observation of its angle, and of its velocity
+    hinge_angle_columns: np.ndarray
+    hinge_velocity_columns: np.ndarray
+    #: (12, 52) float32 observation template: static columns filled, dynamic ones 0
+    static: np.ndarray
+    #: ``ctrl[actuators[k]] = action[action_slots[k]]``
+    actuators: np.ndarray
+    action_slots: np.ndarray
 
 
 class Robot:
@@ -189,6 +214,18 @@ class Robot:
         self._option = model.opt
         self._flags_stepping = int(model.opt.disableflags) | _SENSORS
         self._flags_sensing = self._flags_stepping & ~_SENSORS
+
+    def indices(self) -> RobotIndices:
+        """Where this (bound) robot lives in its world; see :class:`RobotIndices`."""
+        model, dof = self.model, self.dof
+        ids = [model.joint(h).id for h in self._slot_of_hinge]
+        return RobotIndices(
+            qpos=slice(self._qpos_root, self._qpos_hinges.stop), qvel=slice(self._qvel_root, self._qvel_hinges.stop),
+            hinge_qpos=model.jnt_qposadr[ids].copy(), hinge_qvel=model.jnt_dofadr[ids].copy(),
+            hinge_scale=self._hinge_scale[:dof].copy(), hinge_offset=self._hinge_offset[:dof].copy(),
+            hinge_angle_columns=self._hinge_targets[:dof].copy(), hinge_velocity_columns=self._hinge_targets[dof:].copy(),
+            static=self._static.copy(), actuators=self._robot_actuators.copy(), action_slots=self._ctrl_slots.copy(),
+        )
 
     # ------------------------------------------------------------------ state
     @property

@@ -71,7 +71,22 @@ class HeightGrid:
         self.heights = self._padded[m : m + rows, m : m + cols]
         self.x0, self.y0, self.resolution, self.max_height = float(x0), float(y0), float(resolution), float(max_height)
         self._hfield_adr: int | None = None
-        self._map_offsets = _rotated_offsets(resolution, self._padded.shape[1])
+        self._map_offsets = rotated_offsets(resolution, self._padded.shape[1])
+
+    @property
+    def padded(self) -> np.ndarray:
+        """The heights inside their margin of :data:`OUTSIDE` (``heights`` is a view of its interior)."""
+        return self._padded
+
+    @property
+    def margin(self) -> int:
+        """Width of the margin around ``heights`` in :attr:`padded`, in samples."""
+        return self._margin
+
+    @property
+    def hfield_address(self) -> int | None:
+        """Address of this grid's heightfield in the bound model's ``hfield_data`` (``None`` unbound)."""
+        return self._hfield_adr
 
     @property
     def size_x(self) -> float:
@@ -159,8 +174,9 @@ class HeightGrid:
 
 
 @functools.lru_cache(maxsize=8)
-def _rotated_offsets(resolution: float, row_stride: int) -> np.ndarray:
-    """(360, 1410) flat-index offsets of the height-map samples for every whole-degree heading."""
+def rotated_offsets(resolution: float, row_stride: int) -> np.ndarray:
+    """(360, 1410) flat-index offsets of the height-map samples for every whole-degree heading, in
+    a padded grid whose rows are ``row_stride`` samples long (:attr:`HeightGrid.padded`)."""
     table = np.empty((360, C.HFIELD_DIM), dtype=np.intp)
     for degree in range(360):
         c, s = math.cos(math.radians(degree)), math.sin(math.radians(degree))

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from unimal_envs.arenas import Arena
-from unimal_envs.arenas.heightfield import HeightGrid, _rotated_offsets
+from unimal_envs.arenas.heightfield import HeightGrid, rotated_offsets
 from unimal_envs.arenas.terrain import ObstacleCourse
 
 
@@ -63,9 +63,9 @@ class TerrainPool:
         size = grid.heights.size
         for _ in range(variants):
             arena.reset(rng)
-            padded.append(grid._padded.reshape(-1).copy())
-            if grid._hfield_adr is not None:
-                hfield.append(model.hfield_data[grid._hfield_adr : grid._hfield_adr + size].copy())
+            padded.append(grid.padded.reshape(-1).copy())
+            if grid.hfield_address is not None:
+                hfield.append(model.hfield_data[grid.hfield_address : grid.hfield_address + size].copy())
             if ids:
                 layout.append(np.concatenate(
                     [model.geom_pos[ids], model.geom_size[ids], model.geom_aabb[ids], model.geom_rbound[ids, None]], axis=1))
@@ -103,10 +103,10 @@ class HeightMaps:
         self.padded = torch.as_tensor(pool.padded, device=device)
         self.flat = self.padded.reshape(-1)
         self.stride = self.padded.shape[1]
-        self.margin = grid._margin
+        self.margin = grid.margin
         self.rows, self.cols = grid.heights.shape
-        self.width = grid._padded.shape[1]
-        self.offsets = torch.as_tensor(_rotated_offsets(grid.resolution, self.width), device=device)
+        self.width = grid.padded.shape[1]
+        self.offsets = torch.as_tensor(rotated_offsets(grid.resolution, self.width), device=device)
 
     def _cells(self, xy: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         g = self.grid

@@ -201,8 +201,8 @@ class RobotWorlds:
     def _indices(self, model: mujoco.MjModel, env: UnimalEnv) -> None:
         robot, dev = self.robot, self.torch_device
         self.torso = robot.torso_id
-        self.robot_qpos = slice(robot._qpos_root, robot._qpos_hinges.stop)
-        self.robot_qvel = slice(robot._qvel_root, robot._qvel_hinges.stop)
+        where = robot.indices()
+        self.robot_qpos, self.robot_qvel = where.qpos, where.qvel
         self.qpos0 = torch.as_tensor(model.qpos0, dtype=torch.float32, device=dev)
         self.fall_height = env.task.fall_height_ratio * self.morphology.standing_height
 
@@ -212,9 +212,6 @@ class RobotWorlds:
         def floats(values) -> wp.array:
             return wp.array(np.asarray(values, dtype=np.float32).reshape(-1), dtype=wp.float32, device=self.device)
 
-        # Hinges in sensor order (token order, "x" before "y"), as Robot.proprioception reads them.
-        ids = [model.joint(h).id for h in robot._slot_of_hinge]
-        dof = robot.dof
         names = [model.site(i).name for i in range(model.nsite)]
         sites = [i for i, name in enumerate(names) if name.startswith(("limb/mid/", "limb/btm/", "torso"))]
         self.box = self.box_qpos = None
@@ -225,14 +222,13 @@ class RobotWorlds:
             self.box_qpos, box_qvel = int(model.jnt_qposadr[joint]), int(model.jnt_dofadr[joint])
             faces = [model.site(f"box/face/{i}").id for i in range(6)]
         bodies = range(robot.torso_id, robot.torso_id + robot.num_tokens)
-        self._actuators, self._slots = ints(robot._robot_actuators), ints(robot._ctrl_slots)
+        self._actuators, self._slots = ints(where.actuators), ints(where.action_slots)
         # The readout kernel's constant inputs, in its argument order after the data arrays.
         self._read_inputs = [
-            robot.torso_id, robot.num_tokens, robot._qpos_root, robot._qvel_root,
-            ints(model.jnt_qposadr[ids]), ints(model.jnt_dofadr[ids]), floats(robot._hinge_scale[:dof]),
-            floats(robot._hinge_offset[:dof]), ints(robot._hinge_targets[:dof]), ints(robot._hinge_targets[dof:]),
-            floats(robot._static), -1 if self.box is None else self.box, box_qvel,
-            ints(sites or list(bodies)), int(bool(sites)), ints(faces),
+            robot.torso_id, robot.num_tokens, where.qpos.start, where.qvel.start,
+            ints(where.hinge_qpos), ints(where.hinge_qvel), floats(where.hinge_scale), floats(where.hinge_offset),
+            ints(where.hinge_angle_columns), ints(where.hinge_velocity_columns), floats(where.static),
+            -1 if self.box is None else self.box, box_qvel, ints(sites or list(bodies)), int(bool(sites)), ints(faces),
         ]
 
     def bind_buffers(self, actions: torch.Tensor, proprio: torch.Tensor, readings: torch.Tensor) -> None:
