@@ -17,8 +17,9 @@ written once and built dense (MetaMorph) or factorized (DivMorph).
 
 from __future__ import annotations
 
+import contextlib
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -49,13 +50,15 @@ def cayley(skew_entries: th.Tensor, size: int) -> th.Tensor:
     ``A`` is assembled from its strict upper triangle, so it is skew-symmetric by construction and
     the result is orthogonal for any parameter value (no projection step needed).
 
-    :param skew_entries: (size * (size - 1) / 2,) free entries of ``A`` above the diagonal.
+    :param skew_entries: (size * (size - 1) / 2,) free entries of ``A`` above the diagonal, or
+        (n, size * (size - 1) / 2) for ``n`` maps computed in one batched solve.
     :param size: ``r``.
-    :return: (r, r) orthogonal matrix; the identity when the entries are zero.
+    :return: (r, r) orthogonal matrix, or (n, r, r); the identity when the entries are zero.
     """
-    upper = skew_entries.new_zeros(size, size)
-    upper[tuple(_upper_indices(size, skew_entries.device))] = skew_entries
-    skew = upper - upper.T
+    upper = skew_entries.new_zeros(*skew_entries.shape[:-1], size, size)
+    rows, cols = _upper_indices(size, skew_entries.device)
+    upper[..., rows, cols] = skew_entries
+    skew = upper - upper.transpose(-1, -2)
     eye = th.eye(size, dtype=skew.dtype, device=skew.device)
     return th.linalg.solve(eye + skew, eye - skew)
 
@@ -167,6 +170,8 @@ class FactorizedLinear(nn.Module):
         lowrank_cost = rank * (in_features + out_features)
         self.path = path if path != "auto" else ("merged" if merged_cost <= lowrank_cost else "lowrank")
         self._cache: tuple[tuple, _Factors] | None = None
+        #: the square factor of the current forward pass, when :func:`batched_square_factors` computed it
+        self._shared_square: th.Tensor | None = None
         if slots != (n_morph_tailors, n_task_tailors):
             self.register_buffer("gate_pool", th.block_diag(slot_pooling(slots[0], n_morph_tailors), slot_pooling(slots[1], n_task_tailors)))
         else:
@@ -196,6 +201,8 @@ class FactorizedLinear(nn.Module):
 
     def square_factor(self) -> th.Tensor:
         """The square factor (``U`` or ``V`` as :attr:`square_side` says), orthogonal if requested."""
+        if self._shared_square is not None:
+            return self._shared_square
         if self.orthogonal:
             return self.square_base @ cayley(self.square_skew, self.rank)
         return self.square
@@ -323,6 +330,37 @@ class FactorizedLinear(nn.Module):
             f"square={self.square_side}, path={self.path}"
             + (f", gate_slots={self.gate_slots}" if self.gate_pool is not None else "")
         )
+
+
+@contextlib.contextmanager
+def batched_square_factors(module: nn.Module) -> Iterator[None]:
+    """Compute the square factors of every orthogonal :class:`FactorizedLinear` in ``module`` with
+    one batched Cayley solve per rank, for the forward passes inside the ``with`` block.
+
+    A DivMorph actor holds a dozen or more such layers; a training step would otherwise solve (and
+    back-propagate through) each of them separately, a handful of small LAPACK calls apiece. The
+    batched solve gives the same factors (the same LU per matrix) and the same gradients. Outside
+    training and autograd (rollouts) nothing is done: each layer then caches its own factors.
+
+    :param module: any module; layers without orthogonal square factors are left alone.
+    """
+    layers = [m for m in module.modules() if isinstance(m, FactorizedLinear) and m.orthogonal]
+    if not layers or not (module.training or th.is_grad_enabled()) or any(m._shared_square is not None for m in layers):
+        yield  # nothing to share, a rollout (cached per layer), or an enclosing block already shares
+        return
+    groups: dict[tuple, list[FactorizedLinear]] = {}
+    for layer in layers:
+        groups.setdefault((layer.rank, layer.square_skew.dtype, layer.square_skew.device), []).append(layer)
+    try:
+        for (rank, _, _), group in groups.items():
+            rotations = cayley(th.stack([layer.square_skew for layer in group]), rank)
+            squares = th.stack([layer.square_base for layer in group]) @ rotations
+            for layer, square in zip(group, squares.unbind(0)):
+                layer._shared_square = square
+        yield
+    finally:
+        for layer in layers:
+            layer._shared_square = None
 
 
 def slot_pooling(n_slots: int, n_tailors: int) -> th.Tensor:

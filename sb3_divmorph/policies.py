@@ -42,7 +42,7 @@ from sb3_divmorph.extractors import (
     token_padding,
 )
 from sb3_divmorph.gates import DiversionRouter, GateActivations, masked_mean
-from sb3_divmorph.layers import Factorization, LinearBuilder
+from sb3_divmorph.layers import Factorization, LinearBuilder, batched_square_factors
 
 #: Network sizes shared by both policies.
 PRESETS: dict[str, dict[str, Any]] = {
@@ -328,30 +328,36 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
         per_token = self.value_net(latent_vf, None if gates is None else gates.detach())
         return masked_mean(per_token, token_padding(obs))
 
+    # Each pass solves the Cayley maps of all its orthogonal factors at once (batched_square_factors).
     def forward(self, obs: PyTorchObs, deterministic: bool = False) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
         obs = self._preprocess(obs)
-        latent_pi, latent_vf, gates = self._latents(obs)
-        distribution = self._distribution(latent_pi, obs, gates)
+        with batched_square_factors(self):
+            latent_pi, latent_vf, gates = self._latents(obs)
+            distribution = self._distribution(latent_pi, obs, gates)
+            values = self._value(latent_vf, obs, gates)
         actions = distribution.get_actions(deterministic=deterministic)
         log_prob = distribution.log_prob(actions)
-        values = self._value(latent_vf, obs, gates)
         return actions.reshape((-1, *self.action_space.shape)), values, log_prob
 
     def evaluate_actions(self, obs: PyTorchObs, actions: th.Tensor) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
         obs = self._preprocess(obs)
-        latent_pi, latent_vf, gates = self._latents(obs)
-        distribution = self._distribution(latent_pi, obs, gates)
-        return self._value(latent_vf, obs, gates), distribution.log_prob(actions), distribution.entropy()
+        with batched_square_factors(self):
+            latent_pi, latent_vf, gates = self._latents(obs)
+            distribution = self._distribution(latent_pi, obs, gates)
+            values = self._value(latent_vf, obs, gates)
+        return values, distribution.log_prob(actions), distribution.entropy()
 
     def get_distribution(self, obs: PyTorchObs) -> Distribution:
         obs = self._preprocess(obs)
-        latent_pi, _, gates = self._latents(obs, critic=False)
-        return self._distribution(latent_pi, obs, gates)
+        with batched_square_factors(self):
+            latent_pi, _, gates = self._latents(obs, critic=False)
+            return self._distribution(latent_pi, obs, gates)
 
     def predict_values(self, obs: PyTorchObs) -> th.Tensor:
         obs = self._preprocess(obs)
-        _, latent_vf, gates = self._latents(obs, actor=False)
-        return self._value(latent_vf, obs, gates)
+        with batched_square_factors(self):
+            _, latent_vf, gates = self._latents(obs, actor=False)
+            return self._value(latent_vf, obs, gates)
 
     def extract_features(  # type: ignore[override]
         self, obs: PyTorchObs, features_extractor: nn.Module | None = None

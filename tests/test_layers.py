@@ -15,6 +15,7 @@ from sb3_divmorph.layers import (
     Factorization,
     LayerDiversionError,
     LinearBuilder,
+    batched_square_factors,
     cayley,
     project_many,
 )
@@ -145,6 +146,42 @@ def test_cayley_map_is_orthogonal_and_identity_at_zero():
     q = cayley(th.randn(6 * 5 // 2) * 3, 6).double()
     assert th.allclose(q.T @ q, th.eye(6, dtype=q.dtype), atol=1e-5)
 
+
+
+def test_batched_square_factors_give_every_layer_its_own_factor_and_gradient(monkeypatch):
+    th.manual_seed(0)
+    layers = th.nn.ModuleList([FactorizedLinear(8, 8, 2, 2), FactorizedLinear(20, 8, 2, 2), FactorizedLinear(8, 8, 1, 1),
+                               FactorizedLinear(6, 6, 1, 1, orthogonal=False)])
+    for layer in layers:
+        if layer.orthogonal:
+            layer.square_skew.data.normal_(0, 0.3)  # distinct rotations: a mix-up between layers shows
+    xs = [th.randn(5, layer.in_features) for layer in layers]
+
+    def loss() -> th.Tensor:
+        return sum(layer(x, _gates(5, layer.n_gates)).pow(2).sum() for layer, x in zip(layers, xs))
+
+    expected = [layer.square_factor().detach() for layer in layers]
+    reference = th.autograd.grad(loss(), list(layers.parameters()))
+    solves = []
+    monkeypatch.setattr(th.linalg, "solve", lambda *a, **k: solves.append(a[0].shape) or _solve(*a, **k))
+    with batched_square_factors(layers):
+        shared = [layer.square_factor().detach() for layer in layers]
+        batched = th.autograd.grad(loss(), list(layers.parameters()))
+    # one solve per rank (8 for three layers), none per layer, and the square factors and gradients of the
+    # per-layer computation
+    assert sorted(solves) == [(3, 8, 8)]
+    for got, want in zip(shared, expected):
+        assert th.allclose(got, want, atol=1e-6)
+    for got, want in zip(batched, reference):
+        assert th.allclose(got, want, atol=1e-5)
+    assert all(layer._shared_square is None for layer in layers)  # released after the block
+    with th.no_grad():  # rollouts: eval mode without autograd keeps the per-layer cache
+        layers.eval()
+        with batched_square_factors(layers):
+            assert all(layer._shared_square is None for layer in layers)
+
+
+_solve = th.linalg.solve
 
 @pytest.mark.parametrize("in_features,out_features", SHAPES)
 def test_square_factor_stays_orthogonal_under_training(in_features, out_features):
