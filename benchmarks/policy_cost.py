@@ -7,6 +7,12 @@ eval mode without autograd, one observation per env) is timed the same way.
 
     python benchmarks/policy_cost.py                      # small + paper, 1 and 2 threads, minibatch 256 and 512
     python benchmarks/policy_cost.py --sizes small --threads 1 --batch 256 --repeats 5 --output /tmp/x.md
+    python benchmarks/policy_cost.py --sizes small --processes 3   # each cell in 3 fresh processes
+
+Run on an idle machine. On a small VM the time of memory-bound operations (ReLU, copies of the
+(tokens x ff_dim) activations) varies by several percent from one process to the next, with its
+memory layout; ``--processes N`` repeats the whole measurement in N fresh processes and reports
+the median over processes of each cell's time and ratio (and every process's ratio).
 
 Target (deployment issue): a DivMorph update costs at most 1.2x MetaMorph's in every cell of the
 grid (threads x minibatch) at the small size.
@@ -16,10 +22,13 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import json
 import os
 import platform
 import statistics
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -114,9 +123,19 @@ def _ms(values: list[float]) -> float:
     return 1000 * statistics.median(values)
 
 
+def _over_processes(runs: list[dict[str, list[float]]], name: str, base: str) -> tuple[float, float, list[float]]:
+    """Median over processes of one policy's median time (ms) and of its per-process ratio to ``base``."""
+    times = [_ms(run[name]) for run in runs]
+    ratios = [_ms(run[name]) / _ms(run[base]) for run in runs]
+    return statistics.median(times), statistics.median(ratios), ratios
+
+
 def render(results: dict, args: argparse.Namespace, device: th.device) -> str:
+    """Markdown table of ``results[(size, threads, batch)] = (update runs, rollout runs, counts, config)``,
+    where each ``runs`` holds one ``{policy: [seconds]}`` per process."""
     names = list(POLICIES)
     base = names[0]
+    processes = len(next(iter(results.values()))[0])
     lines = [
         "# Policy cost: DivMorph vs MetaMorph at equal size",
         "",
@@ -132,7 +151,10 @@ def render(results: dict, args: argparse.Namespace, device: th.device) -> str:
         f"of {args.morphologies} robots x {args.tasks} tasks (train mode; actor and critic). Rollout step = "
         f"`forward` under `no_grad` in eval mode on {args.n_envs} observations. All policies are timed in "
         f"the same process, interleaved in alternating order ({args.repeats} update repeats, "
-        f"{5 * args.repeats} rollout repeats, {args.warmup} warm-up); medians. "
+        f"{5 * args.repeats} rollout repeats, {args.warmup} warm-up); medians"
+        + (f", then the median over {processes} fresh processes of each cell's time and ratio "
+           f"(every process's DivMorph update ratio in the last column). " if processes > 1 else ". ")
+        + 
         "`DivMorph` is the default policy (diverted actor, MetaMorph critic); `DivMorph+critic` also "
         f"factorizes and gates the critic (`factorize_critic=True`). Target: DivMorph update <= {TARGET}x "
         "MetaMorph's in every cell at the small size.",
@@ -140,19 +162,19 @@ def render(results: dict, args: argparse.Namespace, device: th.device) -> str:
         "## Time (ms, median; ratio to MetaMorph)",
         "",
         "| size | threads | minibatch B | " + " | ".join(f"{n} update" for n in names) + " | "
-        + " | ".join(f"{n} rollout" for n in names) + " | target |",
-        "|---|---|---|" + "---:|" * (2 * len(names)) + "---|",
+        + " | ".join(f"{n} rollout" for n in names) + " | target |" + (" DivMorph update ratio per process |" if processes > 1 else ""),
+        "|---|---|---|" + "---:|" * (2 * len(names)) + "---|" + ("---|" if processes > 1 else ""),
     ]
     for (size, threads, batch), (update, rollout, _, _) in results.items():
         cells = []
-        for timing in (update, rollout):
-            ref = _ms(timing[base])
+        for runs in (update, rollout):
             for n in names:
-                value = _ms(timing[n])
-                cells.append(f"{value:.1f}" if n == base else f"{value:.1f} (**{value / ref:.2f}x**)")
-        ratio = _ms(update["DivMorph"]) / _ms(update[base])
+                value, ratio, _ = _over_processes(runs, n, base)
+                cells.append(f"{value:.1f}" if n == base else f"{value:.1f} (**{ratio:.2f}x**)")
+        _, ratio, per_process = _over_processes(update, "DivMorph", base)
         verdict = ("met" if ratio <= TARGET else "not met") if size == "small" else "-"
-        lines.append(f"| {size} | {threads} | {batch} | " + " | ".join(cells) + f" | {verdict} |")
+        spread = (" " + ", ".join(f"{r:.2f}" for r in per_process) + " |") if processes > 1 else ""
+        lines.append(f"| {size} | {threads} | {batch} | " + " | ".join(cells) + f" | {verdict} |" + spread)
     lines += ["", "## Parameters (stored elements per part)", ""]
     shown: set[str] = set()
     for (size, _, _), (_, _, counts, config) in results.items():
@@ -204,24 +226,51 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--device", default="cpu", help="cpu, cuda or auto")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--output", default="results/policy_cost.md")
+    parser.add_argument("--processes", type=int, default=1, help="repeat the measurement in N fresh processes (median over them)")
+    parser.add_argument("--json", help=argparse.SUPPRESS)  # a child process writes its raw timings here
     args = parser.parse_args(argv)
 
     args.load = os.getloadavg()[0]
     if args.device == "auto":
         args.device = "cuda" if th.cuda.is_available() else "cpu"
     device = th.device(args.device)
-    results = {}
-    for size in args.sizes:
-        for threads in args.threads:
-            th.set_num_threads(threads)
-            for batch in args.batch:
-                results[size, threads, batch] = benchmark_size(args, size, device, batch)
-                update = results[size, threads, batch][0]
-                print(f"{size}, {threads} thread(s), B={batch}: update " + ", ".join(f"{n} {_ms(t):.1f} ms" for n, t in update.items()), flush=True)
+    if args.processes > 1:
+        results = _measure_in_processes(args)
+    else:
+        results = {}
+        for size in args.sizes:
+            for threads in args.threads:
+                th.set_num_threads(threads)
+                for batch in args.batch:
+                    update, rollout, counts, config = benchmark_size(args, size, device, batch)
+                    results[size, threads, batch] = ([update], [rollout], counts, config)
+                    print(f"{size}, {threads} thread(s), B={batch}: update " + ", ".join(f"{n} {_ms(t):.1f} ms" for n, t in update.items()), flush=True)
+    if args.json:
+        cells = [{"cell": list(key), "update": u[0], "rollout": r[0], "counts": c, "config": cfg} for key, (u, r, c, cfg) in results.items()]
+        Path(args.json).write_text(json.dumps(cells))
+        return
     text = render(results, args, device)
     Path(args.output).parent.mkdir(parents=True, exist_ok=True)
     Path(args.output).write_text(text)
     print(text)
+
+
+def _measure_in_processes(args: argparse.Namespace) -> dict:
+    """Run the whole measurement in ``args.processes`` fresh processes, one after the other; gather them."""
+    child = [sys.executable, __file__, "--sizes", *args.sizes, "--batch", *map(str, args.batch), "--threads", *map(str, args.threads),
+             "--n-envs", str(args.n_envs), "--morphologies", str(args.morphologies), "--tasks", str(args.tasks),
+             "--repeats", str(args.repeats), "--warmup", str(args.warmup), "--device", args.device, "--seed", str(args.seed)]
+    results: dict = {}
+    with tempfile.TemporaryDirectory() as folder:
+        for process in range(args.processes):
+            out = Path(folder) / f"process-{process}.json"
+            print(f"process {process + 1}/{args.processes}", flush=True)
+            subprocess.run([*child, "--json", str(out)], check=True)
+            for cell in json.loads(out.read_text()):
+                update, rollout, _, _ = results.setdefault(tuple(cell["cell"]), ([], [], cell["counts"], cell["config"]))
+                update.append(cell["update"])
+                rollout.append(cell["rollout"])
+    return results
 
 
 if __name__ == "__main__":

@@ -71,6 +71,11 @@ class _Factors(NamedTuple):
     #: dense weight of the always-on units: the learngenes, or every unit when nothing is gated;
     #: ``None`` for a gated layer on the low-rank path, which never reads it
     merged: th.Tensor | None  # (out, in)
+    #: the tailors' columns of ``U`` and ``V`` and their singular values (merged path only): split
+    #: once here, so a pass slices no parameter (each slice is an op forward and two backward)
+    tailor_U: th.Tensor | None = None  # (out, N_m + N_t)
+    tailor_V: th.Tensor | None = None  # (in, N_m + N_t)
+    tailor_s: th.Tensor | None = None  # (N_m + N_t,)
 
 
 class FactorizedLinear(nn.Module):
@@ -234,9 +239,12 @@ class FactorizedLinear(nn.Module):
         U, V = (square, self.tall) if self.square_side == "U" else (self.tall, square)
         if self.n_tailors and self.path == "lowrank":
             return _Factors(U, V, None)  # building it would cost a matmul (and its backward) per step
-        n_on = self.rank if self.n_tailors == 0 else self.n_learngenes
-        merged = (U[:, :n_on] * self.singular_values[:n_on]) @ V[:, :n_on].T
-        return _Factors(U, V, merged)
+        if self.n_tailors == 0:
+            return _Factors(U, V, (U * self.singular_values) @ V.T)
+        sizes = [self.n_learngenes, self.n_tailors]
+        (learngene_U, tailor_U), (learngene_V, tailor_V) = U.split(sizes, dim=1), V.split(sizes, dim=1)
+        learngene_s, tailor_s = self.singular_values.split(sizes)
+        return _Factors(U, V, (learngene_U * learngene_s) @ learngene_V.T, tailor_U, tailor_V, tailor_s)
 
     def factors(self) -> _Factors:
         """``U``, ``V`` and the merged always-on weight.
@@ -263,15 +271,15 @@ class FactorizedLinear(nn.Module):
         s = self.singular_values
         if tailor_gates is None or self.n_tailors == 0:
             return s
-        learngenes = s[: self.n_learngenes].expand(tailor_gates.shape[0], -1)
-        return th.cat([learngenes, s[self.n_learngenes :] * self.local_gates(tailor_gates)], dim=-1)
+        # learngenes' gate is 1: pad the tailor gates in front (one op, no slicing of s)
+        return s * F.pad(self.local_gates(tailor_gates), (self.n_learngenes, 0), value=1.0)
 
     def dense_weight(self, tailor_gates: th.Tensor | None = None) -> th.Tensor:
         """The weight matrix for one gate vector (analysis and export; not used in forward).
 
         :param tailor_gates: (N_m + N_t,) gates of one sample, or ``None`` for all units on.
         """
-        U, V, _ = self.factors()
+        U, V = self.factors()[:2]
         scales = self.unit_scales(None if tailor_gates is None else tailor_gates.reshape(1, -1)).reshape(-1)
         return (U * scales) @ V.T
 
@@ -286,7 +294,7 @@ class FactorizedLinear(nn.Module):
         :return: ``U_sel`` (out, k), ``s_sel`` (k,), ``V_sel`` (in, k), detached.
         """
         with th.no_grad():
-            U, V, _ = self.factors()
+            U, V = self.factors()[:2]
             scales = self.unit_scales(None if tailor_gates is None else tailor_gates.reshape(1, -1)).reshape(-1)
             keep = th.ones(self.rank, dtype=th.bool, device=scales.device)
             if tailor_gates is not None and self.n_tailors:
@@ -300,26 +308,23 @@ class FactorizedLinear(nn.Module):
             to switch every unit on (the layer is then the dense init it was built from).
         :return: (B, ..., out_features).
         """
-        U, V, merged = self.factors()
+        f = self.factors()
         if tailor_gates is None or self.n_tailors == 0:
             if self.n_tailors == 0:
-                return F.linear(x, merged, self.bias)
-            return F.linear(x, (U * self.singular_values) @ V.T, self.bias)
-        tailor_gates = self.local_gates(tailor_gates)
+                return F.linear(x, f.merged, self.bias)
+            return F.linear(x, (f.U * self.singular_values) @ f.V.T, self.bias)
         # Work on (rows, features) so every product is one BLAS call and bias / partial sums are
         # fused into addmm; per-sample scales broadcast over each sample's rows.
         batch = tailor_gates.shape[0]
         rows = x.reshape(-1, self.in_features)
         if self.path == "merged":
-            g = self.n_learngenes
-            scales = (self.singular_values[g:] * tailor_gates)[:, None, :]
-            hidden = ((rows @ V[:, g:]).view(batch, -1, self.n_tailors) * scales).view(-1, self.n_tailors)
-            out = th.addmm(F.linear(rows, merged, self.bias), hidden, U[:, g:].T)
+            scales = (f.tailor_s * self.local_gates(tailor_gates))[:, None, :]
+            hidden = ((rows @ f.tailor_V).view(batch, -1, self.n_tailors) * scales).view(-1, self.n_tailors)
+            out = th.addmm(F.linear(rows, f.merged, self.bias), hidden, f.tailor_U.T)
         else:
-            learngenes = self.singular_values[: self.n_learngenes].expand(batch, -1)
-            scales = th.cat([learngenes, self.singular_values[self.n_learngenes :] * tailor_gates], dim=-1)[:, None, :]
-            hidden = ((rows @ V).view(batch, -1, self.rank) * scales).view(-1, self.rank)
-            out = F.linear(hidden, U, self.bias)
+            scales = self.unit_scales(tailor_gates)[:, None, :]
+            hidden = ((rows @ f.V).view(batch, -1, self.rank) * scales).view(-1, self.rank)
+            out = F.linear(hidden, f.U, self.bias)
         return out.view(*x.shape[:-1], self.out_features)
 
     def extra_repr(self) -> str:
@@ -518,12 +523,11 @@ def project_many(layers: list[nn.Module], x: th.Tensor, tailor_gates: th.Tensor 
     learngene_out = F.linear(
         rows, th.cat([f.merged for f in factors]), th.cat([layer.bias for layer in layers])
     ).split([layer.out_features for layer in layers], dim=-1)
-    down = th.cat([f.V[:, layer.n_learngenes :] for f, layer in zip(factors, layers)], dim=1)
-    scales = th.cat([layer.singular_values[layer.n_learngenes :] * layer.local_gates(tailor_gates) for layer in layers], dim=-1)
+    down = th.cat([f.tailor_V for f in factors], dim=1)
+    scales = th.cat([f.tailor_s * layer.local_gates(tailor_gates) for f, layer in zip(factors, layers)], dim=-1)
     hidden = ((rows @ down).view(batch, -1, scales.shape[-1]) * scales[:, None, :]).view(-1, scales.shape[-1])
-    outputs, start = [], 0
-    for f, layer in zip(factors, layers):
-        out = th.addmm(learngene_out[len(outputs)], hidden[:, start : start + layer.n_tailors], f.U[:, layer.n_learngenes :].T)
-        outputs.append(out.view(*x.shape[:-1], layer.out_features))
-        start += layer.n_tailors
-    return outputs
+    tailor_hidden = hidden.split([layer.n_tailors for layer in layers], dim=1)
+    return [
+        th.addmm(out, part, f.tailor_U.T).view(*x.shape[:-1], layer.out_features)
+        for out, part, f, layer in zip(learngene_out, tailor_hidden, factors, layers)
+    ]

@@ -19,9 +19,9 @@ from torch.nn import functional as F
 
 from sb3_divmorph.layers import LinearBuilder, project_many
 
-#: FFN activations; ReLU runs in place on the fresh FFN hidden tensor (one (tokens x ff_dim) buffer
-#: less to allocate and write per layer; autograd needs only its output)
-ACTIVATIONS = {"relu": F.relu_, "gelu": F.gelu}
+#: FFN activations. Not in place: the FFN output is a view (``F.linear`` on tokens), and autograd
+#: turns an in-place op on a view into extra copies of the whole (tokens x ff_dim) tensor.
+ACTIVATIONS = {"relu": F.relu, "gelu": F.gelu}
 
 
 def xavier_init(layer: nn.Linear) -> None:
