@@ -611,3 +611,22 @@ def test_a_run_is_evaluated_and_reported_from_its_own_records(finished_run, tmp_
     assert "# DivMorph pipeline — profile `tiny`" in (out / "summary.md").read_text()
     with open(out / "evaluate" / "returns.csv") as f:
         assert {r["model"] for r in csv.DictReader(f)} >= {"teacher", "student"}
+
+
+def test_findings_put_the_hyperdistill_student_beside_the_others_when_it_was_evaluated():
+    from sb3_divmorph.pipeline.report import findings
+
+    profile = load_profile("demo")
+    groups = {(model, task, split): [value]
+              for task in profile.teachers.tasks for split in ("train", "novel")
+              for model, value in (("teacher-untrained", 1.0), ("teacher", 100.0), ("student", 95.0), ("student-distilled", 80.0))}
+    without = "\n".join(findings(profile, groups, []))
+    assert "HyperDistill" not in without
+    groups.update({("hyperdistill", task, split): [value] for task in profile.teachers.tasks
+                   for split, value in (("train", 70.0), ("novel", 12.5))})
+    rows = findings(profile, groups, [])
+    header = next(line for line in rows if line.startswith("| task"))
+    assert "| HyperDistill student |" in header and header.endswith("teacher / student / HyperDistill |")
+    first = next(line for line in rows if line.startswith(f"| {profile.teachers.tasks[0]} "))
+    assert first.count("|") == header.count("|")
+    assert "| 70.0 |" in first and first.endswith("| 100.0 / 95.0 / 12.5 |")

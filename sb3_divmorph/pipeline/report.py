@@ -177,18 +177,23 @@ def findings(profile: Profile, groups: dict[tuple[str, str, str], list[float]], 
     """The run's answers, from the evaluation (mean over robots of deterministic returns) and the exports:
     teachers against the same policy before training, the student against its teachers, zero-shot on
     the novel robots, and the deployed actors' sizes against the return they keep."""
+    hyperdistill = any(model == "hyperdistill" for model, _, _ in groups)
     lines = ["## Findings", "",
              "Means over robots of deterministic returns (`evaluate/returns.csv`); *untrained*: the teacher's run "
              "before its first update (same seed, same initial weights).", "",
              f"| task | untrained | teacher | DivMorph student (% of teacher, >= {STUDENT_SHARE:.0%}?) | dense MetaMorph⚗ student "
-             "| zero-shot novel robots: teacher / student |", "|---|---|---|---|---|---|"]
+             + ("| HyperDistill student " if hyperdistill else "")
+             + "| zero-shot novel robots: teacher / student" + (" / HyperDistill |" if hyperdistill else " |"),
+             "|---|---|---|---|---|---|" + ("---|" if hyperdistill else "")]
     for task in profile.teachers.tasks:
         untrained, teacher = _mean(groups, ("teacher-untrained", task, "train")), _mean(groups, ("teacher", task, "train"))
         student, dense = _mean(groups, ("student", task, "train")), _mean(groups, ("student-distilled", task, "train"))
         share = _percent(student, teacher)
         verdict = "n/a" if share == "n/a" else ("yes" if student >= STUDENT_SHARE * teacher else "no")
+        zero_shot = [_mean(groups, (model, task, "novel")) for model in ("teacher", "student", *(("hyperdistill",) if hyperdistill else ()))]
         lines.append(f"| {task} | {untrained:.1f} | {teacher:.1f} | {student:.1f} ({share}, {verdict}) | {dense:.1f} "
-                     f"| {_mean(groups, ('teacher', task, 'novel')):.1f} / {_mean(groups, ('student', task, 'novel')):.1f} |")
+                     + (f"| {_mean(groups, ('hyperdistill', task, 'train')):.1f} " if hyperdistill else "")
+                     + "| " + " / ".join(f"{value:.1f}" for value in zero_shot) + " |")
     reductions: dict[tuple[str, str], list[float]] = defaultdict(list)
     for r in exports:
         reductions[(r.get("student", "divmorph"), r["task"])].append(r["reduction_vs_metamorph"])
