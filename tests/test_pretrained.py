@@ -39,7 +39,8 @@ def test_the_ft_teacher_walks_on_a_fresh_clone(official_train):
     assert rows[0]["length"] == 1000 and rows[0]["return"] > 1000  # the whole episode without a fall, far forward
 
 
-@pytest.mark.parametrize("folder, policy", [("student", "DivMorphPolicy"), ("students/distilled", "MetaMorphPolicy")])
+@pytest.mark.parametrize("folder, policy", [("student", "DivMorphPolicy"), ("students/distilled", "MetaMorphPolicy"),
+                                            ("students/deploy-g1k1", "DivMorphPolicy"), ("hyperdistill/student", "HyperDistillPolicy")])
 def test_the_students_load_with_their_normalisers(folder, policy):
     model = PPO.load(RUN / folder / "model.zip", device="cpu")
     assert type(model.policy).__name__ == policy
