@@ -344,7 +344,8 @@ def batched_square_factors(module: nn.Module) -> Iterator[None]:
 
     A DivMorph actor holds a dozen or more such layers; a training step would otherwise solve (and
     back-propagate through) each of them separately, a handful of small LAPACK calls apiece. The
-    batched solve gives the same factors (the same LU per matrix) and the same gradients. Outside
+    batched solve gives the same factors and gradients up to float rounding (a unit whose skew row
+    and column are zero keeps its column exactly, so transfer's freezing stays exact). Outside
     training and autograd (rollouts) nothing is done: each layer then caches its own factors.
 
     :param module: any module; layers without orthogonal square factors are left alone.
