@@ -350,9 +350,12 @@ def batched_square_factors(module: nn.Module) -> Iterator[None]:
 
     :param module: any module; layers without orthogonal square factors are left alone.
     """
+    if not (module.training or th.is_grad_enabled()):
+        yield  # a rollout step: each layer's cached factors serve, and no module walk on this hot path
+        return
     layers = [m for m in module.modules() if isinstance(m, FactorizedLinear) and m.orthogonal]
-    if not layers or not (module.training or th.is_grad_enabled()) or any(m._shared_square is not None for m in layers):
-        yield  # nothing to share, a rollout (cached per layer), or an enclosing block already shares
+    if not layers or any(m._shared_square is not None for m in layers):
+        yield  # nothing to share, or an enclosing block already shares
         return
     groups: dict[tuple, list[FactorizedLinear]] = {}
     for layer in layers:
