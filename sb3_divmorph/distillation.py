@@ -21,6 +21,7 @@ divided by ``2 sigma^2``; with a learnt student std it also matches the teacher'
 from __future__ import annotations
 
 import pickle
+import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,6 +41,9 @@ from sb3_divmorph.gates import load_balancing_loss
 
 #: Observation key holding the index of the episode's task in ``unimal_envs.contract.TASK_NAMES``.
 TASK_INDEX = "task_index"
+#: Files of a :class:`DAggerCallback`'s state in a checkpoint folder.
+DATASET_FILE = "dagger_dataset.npz"
+STATE_FILE = "dagger_state.pt"
 
 ObsDict = dict[str, np.ndarray]
 
@@ -259,6 +263,33 @@ class DistillationDataset:
         self._next = int((self._next + n) % self.capacity)
         self.size = min(self.capacity, self.size + n)
 
+    def save(self, path: str | Path) -> None:
+        """Write the stored states, their labels and the ring position to ``path`` (``.npz``)."""
+        arrays = {f"obs/{key}": value[: self.size] for key, value in self.obs.items()}
+        if self.size:
+            arrays.update(mean=self.mean[: self.size], std=self.std[: self.size], task=self.task[: self.size])
+        meta = np.array([self.capacity, self.size, self._next], dtype=np.int64)
+        with open(path, "wb") as f:  # a file object: np.savez would append .npz to a bare name
+            np.savez(f, meta=meta, **arrays)
+
+    @classmethod
+    def load(cls, path: str | Path, capacity: int) -> DistillationDataset:
+        """The dataset :meth:`save` wrote to ``path``.
+
+        :param capacity: the capacity the caller expects; a file of another capacity is an error
+            (its ring position would not mean the same rows).
+        """
+        with np.load(path) as saved:
+            saved_capacity, size, next_row = (int(v) for v in saved["meta"])
+            if saved_capacity != capacity:
+                raise ValueError(f"{path} holds a dataset of capacity {saved_capacity}, expected {capacity}")
+            dataset = cls(capacity)
+            if size:
+                obs = {name.split("/", 1)[1]: saved[name] for name in saved.files if name.startswith("obs/")}
+                dataset.add(obs, saved["mean"], saved["std"], saved["task"])
+        dataset._next = next_row
+        return dataset
+
     def batches(self, batch_size: int, rng: np.random.Generator):
         """Shuffled minibatches over the stored states: ``(obs, mean, std, task)``."""
         order = rng.permutation(self.size)
@@ -284,6 +315,10 @@ class DAggerCallback(BaseCallback):
     collapse, a few tailors serving every robot or task), ``gates/<kind>_used_fraction``,
     ``gates/<kind>_usage`` (histogram of mean gate weight per tailor), and with ``load_balance``
     ``distill/load_balance_loss``. :attr:`tailor_usage` keeps the history of the used counts.
+
+    Checkpoints: :meth:`save_state` / :meth:`load_state` keep the aggregated dataset, the optimiser
+    and the shuffling generator (the pipeline's resumable runs call them), so that a resumed
+    distillation continues the one it resumes.
 
     :param teachers: ``{task index: teacher}`` (index in ``unimal_envs.contract.TASK_NAMES``).
     :param task_names: names for logging, indexed like ``task_index``.
@@ -338,6 +373,41 @@ class DAggerCallback(BaseCallback):
         self._rollout_obs: list[ObsDict] = []
         self._normalizer: VecNormalize | None = None
         self._mixer: TeacherMixingVecEnv | None = None
+        self._optimizer_state: dict[str, Any] | None = None  # restored by load_state, applied at training start
+
+    # -- checkpoints ---------------------------------------------------------------------------
+    def save_state(self, folder: Path) -> None:
+        """Save what a resumed distillation needs besides the model into ``folder``: the aggregated
+        dataset (``dagger_dataset.npz``), the optimiser, the shuffling generator and the tailor
+        usage history (``dagger_state.pt``)."""
+        self.dataset.save(Path(folder) / DATASET_FILE)
+        state = {
+            "optimizer": self.optimizer.state_dict() if self.optimizer is not None else None,
+            "rng": self.rng.bit_generator.state,
+            "tailor_usage": self.tailor_usage,
+        }
+        th.save(state, Path(folder) / STATE_FILE)
+
+    def load_state(self, folder: Path) -> None:
+        """Restore what :meth:`save_state` wrote (the optimiser once training starts).
+
+        A checkpoint without these files (written before they were saved) resumes with an empty
+        dataset and a fresh optimiser, with a warning.
+        """
+        folder = Path(folder)
+        missing = [name for name in (DATASET_FILE, STATE_FILE) if not (folder / name).is_file()]
+        if missing:
+            warnings.warn(
+                f"checkpoint {folder} has no distillation state ({', '.join(missing)}): "
+                "DAgger resumes with an empty aggregated dataset and a fresh optimiser",
+                stacklevel=2,
+            )
+            return
+        self.dataset = DistillationDataset.load(folder / DATASET_FILE, self.dataset.capacity)
+        state = th.load(folder / STATE_FILE, weights_only=False)
+        self._optimizer_state = state["optimizer"]
+        self.rng.bit_generator.state = state["rng"]
+        self.tailor_usage = state["tailor_usage"]
 
     # -- SB3 hooks -----------------------------------------------------------------------------
     def _init_callback(self) -> None:
@@ -350,6 +420,9 @@ class DAggerCallback(BaseCallback):
         self._normalizer = find_vec_wrapper(self.training_env, VecNormalize)
         self._mixer = find_vec_wrapper(self.training_env, TeacherMixingVecEnv)
         self.optimizer = th.optim.Adam(self.model.policy.parameters(), lr=self.learning_rate)
+        if self._optimizer_state is not None:
+            self.optimizer.load_state_dict(self._optimizer_state)
+            self._optimizer_state = None
 
     def _current_raw_obs(self, fresh: ObsDict | None = None) -> ObsDict:
         if self._normalizer is not None:

@@ -17,6 +17,7 @@ import unimal_envs  # noqa: F401
 from sb3_divmorph.compact import CompactActor, actor_inputs, export_torchscript
 from sb3_divmorph.distillation import (
     DAggerCallback,
+    DistillationDataset,
     ImitationPPO,
     SpaceMismatchError,
     Teacher,
@@ -25,6 +26,7 @@ from sb3_divmorph.distillation import (
 )
 from sb3_divmorph.finetune import UnitLearningRates, UnitSelection, prepare_transfer
 from sb3_divmorph.layers import FactorizedLinear
+from sb3_divmorph.pipeline.runs import AtomicCheckpointCallback, TrainingRun, latest_checkpoint, read_progress
 from unimal_envs.contract import TASK_NAMES
 from unimal_envs.morphology.loader import morphology_files
 from unimal_envs.tasks import TASKS
@@ -108,6 +110,57 @@ def test_dagger_reduces_the_kl_to_each_states_own_teacher(teachers):
     for name in critic:
         i = names.index(name)
         assert th.equal(before_params[i], dict(student.policy.named_parameters())[name].detach())
+
+
+def test_a_saved_dagger_dataset_reloads_with_its_ring_position(tmp_path):
+    rng = np.random.default_rng(0)
+    dataset = DistillationDataset(10)
+
+    def add(n):
+        obs = {"a": rng.normal(size=(n, 3)).astype(np.float32), "task_index": rng.integers(0, 5, (n, 1)).astype(np.float32)}
+        return obs, rng.normal(size=(n, 2)).astype(np.float32), rng.random((n, 2)).astype(np.float32), rng.integers(0, 5, n)
+
+    for n in (4, 4, 5):  # 13 states into 10 slots: the ring has wrapped
+        dataset.add(*add(n))
+    dataset.save(tmp_path / "data.npz")
+    reloaded = DistillationDataset.load(tmp_path / "data.npz", 10)
+    batch = add(3)
+    dataset.add(*batch)
+    reloaded.add(*batch)  # the next states overwrite the same (oldest) rows in both
+    assert (reloaded.size, reloaded._next) == (dataset.size, dataset._next) == (10, 6)
+    for key in dataset.obs:
+        np.testing.assert_array_equal(reloaded.obs[key], dataset.obs[key])
+    for name in ("mean", "std", "task"):
+        np.testing.assert_array_equal(getattr(reloaded, name), getattr(dataset, name))
+    with pytest.raises(ValueError, match="capacity 10, expected 20"):
+        DistillationDataset.load(tmp_path / "data.npz", 20)
+
+
+def test_a_resumed_distillation_keeps_its_dataset_and_optimiser(teachers, tmp_path):
+    """Checkpoints carry DAgger's aggregated dataset, optimiser and shuffling state into the resumed run."""
+
+    def dagger():
+        return DAggerCallback(teachers, TASK_NAMES, learning_rate=3e-3, epochs=1, batch_size=64, buffer_size=2000, seed=0)
+
+    def make_model():
+        return ImitationPPO("DivMorphPolicy", multitask_venv(), n_steps=64, batch_size=64, seed=0, policy_kwargs=TINY_DIVMORPH)
+
+    # the first attempt: 2 rollouts of 2 envs x 64 steps, checkpointed at step 192 (during the
+    # second rollout, so after one distillation round over 128 states), then "killed"
+    first = dagger()
+    checkpoints = tmp_path / "student" / "checkpoints"
+    make_model().learn(256, callback=[first, AtomicCheckpointCallback(checkpoints, 192, [first])])
+    saved = latest_checkpoint(checkpoints)
+    assert saved.name.endswith("192")
+    assert {p.name for p in saved.iterdir()} == {"dagger_dataset.npz", "dagger_state.pt", "model.zip", "vecnormalize.pkl"}
+
+    resumed = dagger()
+    TrainingRun(tmp_path / "student", 384, 1000, make_model, multitask_venv, algo=ImitationPPO,
+                callbacks=[resumed], progress_bar=False).run()
+    # two more rollouts, each adding 128 states to the 128 aggregated before the checkpoint
+    assert list(read_progress(tmp_path / "student")["distill/dataset_size"]) == [256, 384]
+    # and Adam went on counting: 2 minibatches before the checkpoint, then 4 and 6
+    assert int(resumed.optimizer.state_dict()["state"][0]["step"]) == 2 + 4 + 6
 
 
 @pytest.mark.parametrize("load_balance", [0.0, 0.1])

@@ -4,7 +4,8 @@ A stage's output folder is *done* once its ``done.json`` exists; that file is wr
 atomically, so a stage killed at any point is either done or not. Long training saves checkpoints
 (model + ``VecNormalize`` statistics) every ``checkpoint_every`` steps into a fresh folder and then
 atomically points ``checkpoints/latest.json`` at it, so a run killed mid-way resumes from the last
-complete checkpoint and loses at most one interval.
+complete checkpoint and loses at most one interval. Callbacks with state of their own
+(:class:`StatefulCallback`, e.g. DAgger's aggregated dataset) save it into the same checkpoint.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from collections import defaultdict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import gymnasium as gym
 import numpy as np
@@ -191,14 +192,26 @@ def resolve_device(device: str) -> str:
 
 
 # -- resumable training ----------------------------------------------------------------------
-class AtomicCheckpointCallback(BaseCallback):
-    """Every ``every`` steps, save model + VecNormalize into ``folder/step-<n>/`` and point
-    ``folder/latest.json`` at it (atomically); older checkpoints are then removed."""
+@runtime_checkable
+class StatefulCallback(Protocol):
+    """A callback whose own state belongs in checkpoints (DAgger's aggregated dataset and
+    optimiser): without it a resumed run would not continue the run it resumes."""
 
-    def __init__(self, folder: Path, every: int):
+    def save_state(self, folder: Path) -> None: ...
+
+    def load_state(self, folder: Path) -> None: ...
+
+
+class AtomicCheckpointCallback(BaseCallback):
+    """Every ``every`` steps, save model + VecNormalize (+ the state of ``stateful`` callbacks) into
+    ``folder/step-<n>/`` and point ``folder/latest.json`` at it (atomically); older checkpoints are
+    then removed."""
+
+    def __init__(self, folder: Path, every: int, stateful: Sequence[StatefulCallback] = ()):
         super().__init__()
         self.folder = folder
         self.every = every
+        self.stateful = stateful
         self._last = 0
 
     def _on_training_start(self) -> None:
@@ -207,11 +220,11 @@ class AtomicCheckpointCallback(BaseCallback):
     def _on_step(self) -> bool:
         if self.num_timesteps - self._last >= self.every:
             self._last = self.num_timesteps
-            save_checkpoint(self.model, self.folder)
+            save_checkpoint(self.model, self.folder, self.stateful)
         return True
 
 
-def save_checkpoint(model: BaseAlgorithm, folder: Path) -> Path:
+def save_checkpoint(model: BaseAlgorithm, folder: Path, stateful: Sequence[StatefulCallback] = ()) -> Path:
     target = folder / f"step-{model.num_timesteps:012d}"
     staging = folder / f".staging-{model.num_timesteps:012d}-{os.getpid()}"
     shutil.rmtree(staging, ignore_errors=True)
@@ -220,6 +233,8 @@ def save_checkpoint(model: BaseAlgorithm, folder: Path) -> Path:
     normalizer = model.get_vec_normalize_env()
     if normalizer is not None:
         normalizer.save(str(staging / NORMALIZER))
+    for callback in stateful:
+        callback.save_state(staging)
     shutil.rmtree(target, ignore_errors=True)
     os.replace(staging, target)
     atomic_write_json(folder / "latest.json", {"folder": target.name, "num_timesteps": model.num_timesteps})
@@ -282,8 +297,11 @@ class TrainingRun:
         for stale in self.folder.glob(".*.tmp*"):
             stale.unlink(missing_ok=True)
         resume = latest_checkpoint(checkpoints)
+        stateful = [c for c in self.callbacks if isinstance(c, StatefulCallback)]
         if resume is not None:
             model = self._load(resume)
+            for callback in stateful:
+                callback.load_state(resume)
             print(f"[resume] {self.folder}: resuming from step {model.num_timesteps} of {self.total_timesteps} (checkpoint {resume.name})")
         else:
             model = self.make_model()
@@ -293,7 +311,7 @@ class TrainingRun:
         model.set_logger(configure(str(self.folder / "logs" / f"run-{attempt}"), ["csv", "tensorboard"]))
         remaining = self.total_timesteps - model.num_timesteps
         if remaining > 0:
-            callback = CallbackList([*self.callbacks, AtomicCheckpointCallback(checkpoints, self.checkpoint_every)])
+            callback = CallbackList([*self.callbacks, AtomicCheckpointCallback(checkpoints, self.checkpoint_every, stateful)])
             model.learn(remaining, callback=callback, reset_num_timesteps=False, progress_bar=self.progress_bar)
         self.save_final(model)
         return model
