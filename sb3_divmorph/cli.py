@@ -12,6 +12,7 @@
     divmorph figure transfer-train --profile demo    # one figure (PNG + CSV) in report/figures/
     divmorph record   runs/demo/teachers/FT              # MP4 of a pipeline or rl-zoo model, headless
     divmorph profiles [--profile demo]                   # the profiles and where they are read from
+    divmorph branch --from runs/demo --out runs/demo-long  # a new run reusing demo's teachers and students
 
 Every stage reads the profile (``zoo_configs/divmorph.yml``, shipped with the package, so any
 working directory will do) and works in ``--out`` (default ``runs/<profile>``); finished stages
@@ -107,6 +108,14 @@ def _parser() -> argparse.ArgumentParser:
 
     help_text = "record a trained model (pipeline stage or rl-zoo run) to MP4, headless"
     record_arguments(sub.add_parser("record", help=help_text, description=help_text))
+    from sb3_divmorph.pipeline.branch import REUSABLE_STAGES
+
+    help_text = "start a run folder that reuses another run's finished teachers, students and GRL learngene"
+    p = sub.add_parser("branch", help=help_text, description=help_text)
+    p.add_argument("--from", dest="source", required=True, help="the run folder whose finished stages are reused")
+    p.add_argument("--out", "--run", required=True, help="the new run folder (must not exist or be empty)")
+    p.add_argument("--stages", type=arms_list, default=list(REUSABLE_STAGES),
+                   help=f"comma-separated stages to reuse (default: {','.join(REUSABLE_STAGES)})")
     help_text = "list the profiles (or print one, validated) and the file they are read from"
     p = sub.add_parser("profiles", help=help_text, description=help_text)
     p.add_argument("--profile", help="print this profile's settings")
@@ -131,6 +140,24 @@ def _profiles(args: argparse.Namespace) -> int:
         return 2
     print(f"# {resolve_path(args.profiles).resolve()}")
     print(yaml.safe_dump({args.profile: settings}, sort_keys=False) if args.profile is not None else "\n".join(names))
+    return 0
+
+
+def _branch(args: argparse.Namespace, argv: list[str] | None) -> int:
+    """``divmorph branch``: a new run folder linking another run's finished stages."""
+    from sb3_divmorph.pipeline.branch import branch
+    from sb3_divmorph.pipeline.config import ConfigError
+
+    command_line = "divmorph " + shlex.join(argv if argv is not None else sys.argv[1:])
+    try:
+        links = branch(Path(args.source), Path(args.out), args.stages, command_line)
+    except (ConfigError, FileNotFoundError) as error:
+        print(f"divmorph branch: {error}", file=sys.stderr)
+        return 2
+    for link in links:
+        print(f"{link} -> {os.readlink(link)}")
+    print(f"[divmorph] branch: {len(links)} finished runs of {args.source} reused in {args.out}; run the later stages there "
+          f"with --run {args.out} (and --set KEY=VALUE for their new settings)")
     return 0
 
 
@@ -187,6 +214,8 @@ def main(argv: list[str] | None = None) -> int:
         return record(args)
     if args.command == "profiles":
         return _profiles(args)
+    if args.command == "branch":
+        return _branch(args, argv)
     import torch as th
 
     from sb3_divmorph import pipeline as P

@@ -630,3 +630,34 @@ def test_findings_put_the_hyperdistill_student_beside_the_others_when_it_was_eva
     first = next(line for line in rows if line.startswith(f"| {profile.teachers.tasks[0]} "))
     assert first.count("|") == header.count("|")
     assert "| 70.0 |" in first and first.endswith("| 100.0 / 95.0 / 12.5 |")
+
+
+def test_a_branch_reuses_a_runs_stages_and_trains_only_what_follows(finished_run, tmp_path, capsys):
+    """``divmorph branch``: a longer transfer in a new folder, on the source's teachers and students, untouched."""
+    source, _ = finished_run
+    stamps = {p: p.stat().st_mtime_ns for p in source.rglob("*") if p.is_file()}
+    out = tmp_path / "longer"
+    assert cli(["branch", "--from", str(source), "--out", str(out)]) == 0
+    for linked in ("teachers/FT", "teachers/Patrol", "student", "students/distilled", "hyperdistill", "grl"):
+        assert (out / linked).is_symlink() and (out / linked).resolve() == (source / linked).resolve(), linked
+        assert not os.path.isabs(os.readlink(out / linked))  # relative: the pair of folders can move together
+    assert not (out / "transfer").exists()
+
+    # a change of what the linked stages were trained with is refused in the branch...
+    assert cli(["teachers", "--run", str(out), "--set", "teachers.n_timesteps=256", "--no-progress"]) == 2
+    assert "teachers: teachers.n_timesteps: 128 -> 256" in capsys.readouterr().err
+    # ...a new transfer budget trains there, from the source's student, skipping the reused stages
+    assert cli(["transfer", "--run", str(out), "--set", "transfer.n_timesteps=192", "--arms", "divmorph,closest",
+                "--no-progress"]) == 0
+    for arm in ("divmorph", "closest"):
+        assert read_done(out / "transfer" / "Escape" / arm / "seed-0")["num_timesteps"] >= 192
+        assert not (out / "transfer" / "Escape" / arm / "seed-0").is_symlink()
+    history = json.loads((out / "run.json").read_text())["history"]
+    assert history[-2]["branched_from"] == str(source) and history[-1]["changed"] == ["transfer.n_timesteps: 128 -> 192"]
+    assert {p: p.stat().st_mtime_ns for p in source.rglob("*") if p.is_file()} == stamps  # nothing written in the source
+
+    # bad input: no run folder to branch from, a folder that already holds files
+    assert cli(["branch", "--from", str(tmp_path / "nothing"), "--out", str(tmp_path / "new")]) == 2
+    assert "is not a run folder" in capsys.readouterr().err and not (tmp_path / "new").exists()
+    assert cli(["branch", "--from", str(source), "--out", str(out)]) == 2
+    assert "not an empty folder" in capsys.readouterr().err
