@@ -304,6 +304,19 @@ def test_grl_inherits_exactly_its_learngene_layers(finished_run):
         assert same(arm, best, unit) == (unit in learngene["units"]), unit
 
 
+def test_finetune_overrides_reach_the_arms_that_start_from_trained_weights_only(finished_run):
+    from sb3_divmorph.pipeline.transfer import transfer_run
+
+    out, profiles = finished_run
+    profile = load_profile("tiny", profiles, overrides={"transfer.finetune_overrides": {"learning_rate": 1.25e-5}})
+    rates = {arm: transfer_run(profile, out, "Escape", arm, 0, progress_bar=False).make_model().lr_schedule(1.0)
+             for arm in ("scratch", "modumorph", "divmorph", "closest", "distilled", "grl")}
+    assert rates["divmorph"] == rates["closest"] == rates["distilled"] == rates["grl"] == pytest.approx(1.25e-5)
+    assert rates["scratch"] == rates["modumorph"] != pytest.approx(1.25e-5)
+    with pytest.raises(ConfigError, match=r"transfer.finetune_overrides: unknown key\(s\) \['lerning_rate'\]"):
+        load_profile("tiny", profiles, overrides={"transfer.finetune_overrides": {"lerning_rate": 1e-4}})
+
+
 def test_a_finished_pipeline_is_skipped_not_recomputed(finished_run):
     out, profiles = finished_run
     stamps = {p: p.stat().st_mtime_ns for p in out.glob("**/model.zip")}

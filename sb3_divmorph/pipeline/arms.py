@@ -1,8 +1,9 @@
 """The transfer arms: the ways a researcher could start on a novel task, raced on one budget.
 
 Every arm trains with PPO on the novel task, on the profile's training robots, with the novel
-task's rl-zoo settings (``transfer.overrides``), for ``transfer.n_timesteps`` steps, and is
-evaluated the same way (:mod:`sb3_divmorph.pipeline.curves`). They differ in where they start:
+task's rl-zoo settings (``transfer.overrides``; arms that start from trained weights take
+``transfer.finetune_overrides`` on top), for ``transfer.n_timesteps`` steps, and is evaluated the
+same way (:mod:`sb3_divmorph.pipeline.curves`). They differ in where they start:
 
 ========================  ==========================================================================
 arm                       start

@@ -139,6 +139,10 @@ class TransferConfig:
     #: text encoder; the gates read it); default: the task's built-in instruction
     instructions: dict[str, str] = field(default_factory=dict)
     overrides: dict[str, Any] = field(default_factory=dict)
+    #: PPO settings applied on top of ``overrides`` for the arms that start from trained weights
+    #: (every arm but ``scratch`` and ``modumorph``), e.g. ``{learning_rate: lin_3e-4}``: a rate
+    #: chosen for training from scratch takes large first steps away from a trained policy
+    finetune_overrides: dict[str, Any] = field(default_factory=dict)
     checkpoint_every: int = 50_000
     #: the arms to race (see :data:`sb3_divmorph.pipeline.arms.ARMS`); default: ``divmorph`` and,
     #: with ``compare_scratch``, ``scratch``
@@ -287,6 +291,7 @@ class Profile:
                                   f"and {section}.worlds_per_robot >= 1, got {cfg.env_backend!r}, {cfg.worlds_per_robot}")
         for section in ("teachers", "transfer", "grl"):
             check_ppo_keys(getattr(profile, section).overrides, f"profile {name!r}, {section}.overrides")
+        check_ppo_keys(profile.transfer.finetune_overrides, f"profile {name!r}, transfer.finetune_overrides")
         check_transfer(profile.transfer, f"profile {name!r}, transfer")
         if profile.grl.population < 1 or profile.grl.generations < 1 or profile.grl.learngene_layers < 1 or profile.grl.tournament < 1:
             raise ConfigError(f"profile {name!r}: grl.population, generations, learngene_layers and tournament must be >= 1")

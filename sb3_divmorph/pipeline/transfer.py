@@ -244,7 +244,12 @@ def transfer_run(profile: Profile, out: Path, task: str, arm: str, seed: int = 0
     cfg = profile.transfer
     out = Path(out)
     env_name = task_env_name(task)
-    entry = load_zoo_entry(profile.teachers.hyperparams, env_name, cfg.overrides)
+    folder = transfer_folder(out, task, arm, seed)
+    spec = ARMS[arm]
+    source = arm_source(profile, out, task, arm)
+    # arms that start from trained weights (a source, or GRL's inherited layers) are fine-tuned
+    overrides = cfg.overrides if source is None else {**cfg.overrides, **cfg.finetune_overrides}
+    entry = load_zoo_entry(profile.teachers.hyperparams, env_name, overrides)
     robots = profile_robots(profile, "train")
     device = resolve_device(profile.device)
     run_seed = transfer_seed(profile, task, seed)
@@ -252,9 +257,6 @@ def transfer_run(profile: Profile, out: Path, task: str, arm: str, seed: int = 0
     env_kwargs = {"morphologies": robots}
     if task in cfg.instructions:
         env_kwargs["instruction"] = cfg.instructions[task]
-    folder = transfer_folder(out, task, arm, seed)
-    spec = ARMS[arm]
-    source = arm_source(profile, out, task, arm)
 
     def make_env():
         return make_vec_env(env_name, entry.n_envs, run_seed, profile.max_episode_steps, cfg.env_backend,
