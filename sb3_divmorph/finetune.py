@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch as th
+from stable_baselines3.common.callbacks import BaseCallback
 from torch import nn
 
 from sb3_divmorph.layers import FactorizedLinear, _upper_indices
@@ -161,6 +162,57 @@ def freeze(modules: Iterable[nn.Module]) -> int:
             p.requires_grad_(False)
             count += p.numel()
     return count
+
+
+def critic_modules(policy: nn.Module) -> list[nn.Module]:
+    """The modules only an actor-critic policy's value depends on (a shared extractor is not one)."""
+    modules = [policy.mlp_extractor.value_net, policy.value_net]
+    return modules if policy.share_features_extractor else [policy.vf_features_extractor, *modules]
+
+
+class CriticWarmup(BaseCallback):
+    """Train only the critic for the first ``steps`` env steps of a run that starts from a trained actor.
+
+    A fine-tuned actor arrives without a critic for the new task (a distilled student's critic was
+    never trained; a teacher's valued another reward), and PPO's first updates then follow the
+    advantages of an arbitrary value function, away from what the actor knows. During the warm-up
+    the actor's parameters do not require gradients, so they get none and Adam skips them (no
+    state is built up that would jolt them when the warm-up ends); the policy loss is computed and
+    logged as usual. The updates of the rollouts that end within the first ``steps`` env steps are
+    critic-only; a run resumed later starts with the warm-up over.
+
+    :param steps: env steps of critic-only training (0: none).
+    """
+
+    def __init__(self, steps: int):
+        super().__init__()
+        if steps < 0:
+            raise ValueError(f"critic warm-up must be >= 0 env steps, got {steps}")
+        self.steps = steps
+        self._frozen: list[nn.Parameter] = []
+
+    def _on_training_start(self) -> None:
+        if self.model.num_timesteps < self.steps:
+            policy = self.model.policy
+            critic = {id(p) for module in critic_modules(policy) for p in module.parameters()}
+            self._frozen = [p for p in policy.parameters() if p.requires_grad and id(p) not in critic]
+            for p in self._frozen:
+                p.requires_grad_(False)
+
+    def _on_rollout_end(self) -> None:
+        # called after collection, before the update: updates on the first ``steps`` env steps are critic-only
+        if self._frozen and self.model.num_timesteps > self.steps:
+            for p in self._frozen:
+                p.requires_grad_(True)
+            self._frozen = []
+
+    def _on_step(self) -> bool:
+        return True
+
+    @property
+    def active(self) -> bool:
+        """Whether the actor is frozen now."""
+        return bool(self._frozen)
 
 
 def actor_modules(policy: nn.Module) -> list[nn.Module]:

@@ -238,6 +238,41 @@ def test_transfer_keeps_gates_fixed_and_unselected_tailors_frozen():
     assert th.equal(after.task, gates.task) and th.equal(after.morphology, gates.morphology)
 
 
+@pytest.mark.parametrize("policy", ["DivMorphPolicy", "MetaMorphPolicy"])
+def test_critic_warmup_trains_only_the_critic_then_both(policy):
+    from sb3_divmorph.finetune import CriticWarmup, critic_modules
+
+    th.manual_seed(0)
+    venv = VecNormalize(DummyVecEnv([lambda: gym.make("Unimal-Escape-v0", morphologies=ROBOTS, max_episode_steps=50)]),
+                        norm_obs_keys=["proprioceptive"])
+    model = PPO(policy, venv, n_steps=64, batch_size=64, n_epochs=2, learning_rate=1e-3, seed=0,
+                policy_kwargs=TINY_DIVMORPH if policy == "DivMorphPolicy" else TINY)
+    if policy == "DivMorphPolicy":  # with the per-unit learning rates of a DivMorph transfer installed
+        gates = model.policy.get_gates(venv.reset())
+        prepare_transfer(model.policy, UnitSelection.from_gates(gates.morphology.numpy(), gates.task.numpy()))
+    critic = {id(p) for m in critic_modules(model.policy) for p in m.parameters()}
+
+    def snapshot():
+        return {name: p.detach().clone() for name, p in model.policy.named_parameters()}
+
+    def moved(before, in_critic):
+        return [n for n, p in model.policy.named_parameters()
+                if (id(p) in critic) == in_critic and not th.equal(p.detach(), before[n])]
+
+    warmup = CriticWarmup(128)
+    before = snapshot()
+    model.learn(128, callback=warmup)  # two updates, both inside the warm-up
+    assert moved(before, in_critic=True) and not moved(before, in_critic=False)
+    assert warmup.active
+    before = snapshot()
+    model.learn(64, callback=warmup, reset_num_timesteps=False)  # the update at 192 > 128 trains both
+    assert moved(before, in_critic=True) and moved(before, in_critic=False)
+    assert not warmup.active and all(p.requires_grad for p in model.policy.pi_features_extractor.parameters()
+                                     if policy == "MetaMorphPolicy")
+    with pytest.raises(ValueError, match="critic warm-up"):
+        CriticWarmup(-1)
+
+
 @pytest.mark.parametrize("task, activation", [("FT", th.nn.ReLU), ("VT", th.nn.Tanh), ("ManipulateBox", th.nn.ReLU)])
 def test_compact_actor_equals_the_student_and_runs_from_torch_alone(task, activation, tmp_path):
     th.manual_seed(1)

@@ -304,7 +304,7 @@ def test_grl_inherits_exactly_its_learngene_layers(finished_run):
         assert same(arm, best, unit) == (unit in learngene["units"]), unit
 
 
-def test_finetune_overrides_reach_the_arms_that_start_from_trained_weights_only(finished_run):
+def test_finetune_settings_reach_the_arms_that_start_from_trained_weights_only(finished_run):
     from sb3_divmorph.pipeline.transfer import transfer_run
 
     out, profiles = finished_run
@@ -313,6 +313,14 @@ def test_finetune_overrides_reach_the_arms_that_start_from_trained_weights_only(
              for arm in ("scratch", "modumorph", "divmorph", "closest", "distilled", "grl")}
     assert rates["divmorph"] == rates["closest"] == rates["distilled"] == rates["grl"] == pytest.approx(1.25e-5)
     assert rates["scratch"] == rates["modumorph"] != pytest.approx(1.25e-5)
+    from sb3_divmorph.finetune import CriticWarmup
+
+    profile = load_profile("tiny", profiles, overrides={"transfer.critic_warmup": 64})
+    warmups = {arm: [c.steps for c in transfer_run(profile, out, "Escape", arm, 0, progress_bar=False).callbacks
+                     if isinstance(c, CriticWarmup)] for arm in ("scratch", "divmorph", "closest")}
+    assert warmups == {"scratch": [], "divmorph": [64], "closest": [64]}
+    with pytest.raises(ConfigError, match="critic_warmup"):
+        load_profile("tiny", profiles, overrides={"transfer.critic_warmup": -1})
     with pytest.raises(ConfigError, match=r"transfer.finetune_overrides: unknown key\(s\) \['lerning_rate'\]"):
         load_profile("tiny", profiles, overrides={"transfer.finetune_overrides": {"lerning_rate": 1e-4}})
 

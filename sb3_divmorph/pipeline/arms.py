@@ -2,7 +2,8 @@
 
 Every arm trains with PPO on the novel task, on the profile's training robots, with the novel
 task's rl-zoo settings (``transfer.overrides``; arms that start from trained weights take
-``transfer.finetune_overrides`` on top), for ``transfer.n_timesteps`` steps, and is evaluated the
+``transfer.finetune_overrides`` on top, and a critic-only warm-up of ``transfer.critic_warmup``
+env steps), for ``transfer.n_timesteps`` steps, and is evaluated the
 same way (:mod:`sb3_divmorph.pipeline.curves`). They differ in where they start:
 
 ========================  ==========================================================================

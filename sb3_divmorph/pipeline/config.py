@@ -143,6 +143,10 @@ class TransferConfig:
     #: (every arm but ``scratch`` and ``modumorph``), e.g. ``{learning_rate: lin_3e-4}``: a rate
     #: chosen for training from scratch takes large first steps away from a trained policy
     finetune_overrides: dict[str, Any] = field(default_factory=dict)
+    #: env steps at the start of those arms' runs during which only the critic trains (the actor
+    #: is frozen): they come without a critic for the novel task (see
+    #: :class:`~sb3_divmorph.finetune.CriticWarmup`); 0 = none
+    critic_warmup: int = 0
     checkpoint_every: int = 50_000
     #: the arms to race (see :data:`sb3_divmorph.pipeline.arms.ARMS`); default: ``divmorph`` and,
     #: with ``compare_scratch``, ``scratch``
@@ -333,6 +337,8 @@ def check_transfer(cfg: TransferConfig, where: str) -> None:
         raise ConfigError(f"{where}.closest_by must be 'embedding' or 'return', got {cfg.closest_by!r}")
     if cfg.eval_every < 0 or cfg.eval_episodes < 1:
         raise ConfigError(f"{where}: eval_every must be >= 0 and eval_episodes >= 1")
+    if cfg.critic_warmup < 0:
+        raise ConfigError(f"{where}.critic_warmup must be >= 0 env steps, got {cfg.critic_warmup}")
 
 
 def load_profiles(path: str | Path = DEFAULT_PROFILES) -> dict[str, dict[str, Any]]:

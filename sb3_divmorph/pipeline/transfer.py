@@ -28,7 +28,7 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecNormalize
 
-from sb3_divmorph.finetune import UnitLearningRates, UnitSelection, prepare_transfer
+from sb3_divmorph.finetune import CriticWarmup, UnitLearningRates, UnitSelection, prepare_transfer
 from sb3_divmorph.pipeline.arms import ARMS
 from sb3_divmorph.pipeline.config import ConfigError, Profile, check_arms, check_seeds, load_zoo_entry
 from sb3_divmorph.pipeline.curves import EVAL_FILE, EvalCurveCallback
@@ -264,6 +264,8 @@ def transfer_run(profile: Profile, out: Path, task: str, arm: str, seed: int = 0
 
     prepare = None
     callbacks: list[BaseCallback] = []
+    if source is not None and cfg.critic_warmup > 0:
+        callbacks.append(CriticWarmup(cfg.critic_warmup))
     if cfg.eval_every > 0:
         splits = {"train": robots, "novel": profile_robots(profile, "novel")}
         callbacks.append(EvalCurveCallback(folder / EVAL_FILE, env_name, splits, cfg.eval_every, cfg.eval_episodes,
