@@ -40,7 +40,10 @@ def test_the_ft_teacher_walks_on_a_fresh_clone(official_train):
 
 
 @pytest.mark.parametrize("folder, policy", [("student", "DivMorphPolicy"), ("students/distilled", "MetaMorphPolicy"),
-                                            ("students/deploy-g1k1", "DivMorphPolicy"), ("hyperdistill/student", "HyperDistillPolicy")])
+                                            ("students/deploy-g1k1", "DivMorphPolicy"), ("hyperdistill/student", "HyperDistillPolicy"),
+                                            ("students/no-kdiv-transformer", "DivMorphPolicy"),
+                                            ("students/no-kdiv-decoder", "DivMorphPolicy"),
+                                            ("students/no-orthogonality", "DivMorphPolicy")])
 def test_the_students_load_with_their_normalisers(folder, policy):
     model = PPO.load(RUN / folder / "model.zip", device="cpu")
     assert type(model.policy).__name__ == policy
