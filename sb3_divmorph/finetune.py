@@ -179,7 +179,7 @@ class CriticWarmup(BaseCallback):
     the actor's parameters do not require gradients, so they get none and Adam skips them (no
     state is built up that would jolt them when the warm-up ends); the policy loss is computed and
     logged as usual. The updates of the rollouts that end within the first ``steps`` env steps are
-    critic-only; a run resumed later starts with the warm-up over.
+    critic-only; a run resumed within the warm-up continues it, one resumed after it trains both.
 
     :param steps: env steps of critic-only training (0: none).
     """
