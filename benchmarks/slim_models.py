@@ -1,0 +1,206 @@
+"""Slim the shipped SB3 models without changing what they do, and check that they do the same.
+
+    python benchmarks/slim_models.py                     # check only: what slimming would save, and that it is exact
+    python benchmarks/slim_models.py --write             # the same check, then re-save every shipped model in place
+    python benchmarks/slim_models.py --against <commit>  # compare the models as they are with those of an older commit
+
+A ``model.zip`` as PPO saves it holds, besides the weights, Adam's moment estimates (twice the
+parameters) and the last rollout observation (``_last_obs`` / ``_last_original_obs``); its
+``vecnormalize.pkl`` holds the last observation too (``old_obs``). None of them is needed to act,
+evaluate, distil, export or transfer: transfer and GRL copy the weights into a new PPO with a new
+optimiser, and a finished run is never trained further (a new budget retrains the stage). Slimming
+re-saves each model with:
+
+* the optimiser's state emptied, its parameter groups kept (``PPO.load`` with its default
+  ``exact_match`` loads it; training it again restarts Adam's moments from zero);
+* without ``_last_obs`` and ``_last_original_obs`` (``learn`` resets the env when they are missing);
+* deflate-compressed (``zipfile`` reads it as before);
+* and the normaliser without ``old_obs`` (set again by the env's first ``reset``).
+
+The check, before anything is written: every tensor of the policy is bit-identical, every other
+saved attribute is equal, the normaliser's statistics are bit-identical, and the deterministic
+actions and the unclipped action means on the same observations (8 seeded steps of each of the five training tasks on the shipped
+``train`` robots, normalised by the model's own statistics) are bit-identical.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import pickle
+import re
+import subprocess
+import sys
+import tempfile
+import zipfile
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+from stable_baselines3 import PPO
+from stable_baselines3.common.vec_env import VecNormalize
+
+import sb3_divmorph  # noqa: F401  (the policies PPO.load unpickles)
+import unimal_envs  # noqa: F401  (registers the envs)
+from unimal_envs import env_id
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def shipped() -> list[str]:
+    """The folders of the models a fresh clone ships (``git ls-files 'results/*model.zip'``)."""
+    listed = subprocess.run(["git", "ls-files", "results/*model.zip"], cwd=ROOT, check=True, capture_output=True, text=True).stdout
+    return sorted(str(Path(line).parent) for line in listed.splitlines())
+
+
+TASKS = ("FT", "VT", "Incline", "Obstacle", "Patrol")
+#: attributes of a saved PPO that slimming leaves out
+DROPPED = ("_last_obs", "_last_original_obs")
+STEPS = 8
+
+
+def observations() -> dict[str, dict[str, np.ndarray]]:
+    """``STEPS`` raw observations of each training task (seeded random actions, shipped robots)."""
+    batches = {}
+    for task in TASKS:
+        env = gym.make(env_id(task))
+        env.action_space.seed(0)
+        obs, _ = env.reset(seed=0)
+        rows = [obs]
+        while len(rows) < STEPS:
+            obs, _, terminated, truncated, _ = env.step(env.action_space.sample())
+            if terminated or truncated:
+                obs, _ = env.reset()
+            rows.append(obs)
+        env.close()
+        batches[task] = {k: np.stack([r[k] for r in rows]) for k in rows[0]}
+    return batches
+
+
+def slim_model(data: bytes) -> bytes:
+    """``model.zip`` bytes re-saved with an empty optimiser state, without ``DROPPED``, deflated."""
+    model = PPO.load(io.BytesIO(data), device="cpu")
+    model.policy.optimizer.state.clear()
+    saved = io.BytesIO()
+    model.save(saved, exclude=list(DROPPED))
+    out = io.BytesIO()
+    with zipfile.ZipFile(saved) as source, zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED, compresslevel=9) as target:
+        for name in source.namelist():
+            target.writestr(name, source.read(name))
+    return out.getvalue()
+
+
+def slim_normalizer(data: bytes) -> bytes:
+    normalizer = pickle.loads(data)
+    normalizer.old_obs = None
+    # what VecNormalize.__getstate__ leaves out (an unpickled normaliser has no env yet)
+    normalizer.venv, normalizer.class_attributes, normalizer.returns = None, {}, None
+    return pickle.dumps(normalizer)
+
+
+def _saved_attributes(data: bytes) -> dict:
+    """The ``data`` entry of a saved model, without the memory addresses of its readable class summaries."""
+    with zipfile.ZipFile(io.BytesIO(data)) as archive:
+        return json.loads(re.sub(r" at 0x[0-9a-f]+", "", archive.read("data").decode()))
+
+
+def _statistics(normalizer: VecNormalize) -> dict[str, np.ndarray]:
+    rms = normalizer.obs_rms if isinstance(normalizer.obs_rms, dict) else {"": normalizer.obs_rms}
+    out = {f"obs/{k}/{name}": np.asarray(getattr(r, name)) for k, r in rms.items() for name in ("mean", "var", "count")}
+    out.update({f"ret/{name}": np.asarray(getattr(normalizer.ret_rms, name)) for name in ("mean", "var", "count")})
+    return out
+
+
+def actions(model_data: bytes, normalizer: VecNormalize, batches: dict) -> tuple[PPO, np.ndarray]:
+    """The model, and its deterministic actions beside its unclipped action means on ``batches``."""
+    model = PPO.load(io.BytesIO(model_data), device="cpu")
+    normalizer.training = False
+    rows = []
+    for batch in batches.values():
+        normalized = normalizer.normalize_obs(batch)
+        with th.no_grad():
+            means = model.policy.get_distribution(model.policy.obs_to_tensor(normalized)[0]).distribution.mean.numpy()
+        rows.append(np.concatenate([model.predict(normalized, deterministic=True)[0], means], axis=1))
+    return model, np.concatenate(rows)
+
+
+def compare(old_model: bytes, old_norm: bytes, new_model: bytes, new_norm: bytes, batches: dict) -> list[str]:
+    """The differences between two versions of a model (empty: they are the same model)."""
+    problems = []
+    old_n, new_n = pickle.loads(old_norm), pickle.loads(new_norm)
+    old_stats, new_stats = _statistics(old_n), _statistics(new_n)
+    if old_stats.keys() != new_stats.keys() or not all(np.array_equal(old_stats[k], new_stats[k]) for k in old_stats):
+        problems.append("normaliser statistics differ")
+    for name in ("clip_obs", "clip_reward", "epsilon", "gamma", "norm_obs", "norm_reward", "norm_obs_keys"):
+        if getattr(old_n, name) != getattr(new_n, name):
+            problems.append(f"normaliser {name} differs")
+    old, old_actions = actions(old_model, old_n, batches)
+    new, new_actions = actions(new_model, pickle.loads(new_norm), batches)
+    if type(old.policy) is not type(new.policy):
+        problems.append(f"policy class {type(old.policy).__name__} -> {type(new.policy).__name__}")
+    a, b = old.policy.state_dict(), new.policy.state_dict()
+    if a.keys() != b.keys() or not all(a[k].dtype == b[k].dtype and th.equal(a[k], b[k]) for k in a):
+        problems.append("policy weights differ")
+    groups = lambda m: [{k: v for k, v in g.items() if k != "params"} for g in m.policy.optimizer.state_dict()["param_groups"]]  # noqa: E731
+    if groups(old) != groups(new):
+        problems.append("optimiser parameter groups differ")
+    old_attrs, new_attrs = _saved_attributes(old_model), _saved_attributes(new_model)
+    for key in old_attrs.keys() | new_attrs.keys():
+        if key not in DROPPED and old_attrs.get(key) != new_attrs.get(key):
+            problems.append(f"saved attribute {key} differs")
+    if old_actions.dtype != new_actions.dtype or not np.array_equal(old_actions, new_actions):
+        problems.append(f"deterministic actions or action means differ (max |diff| {np.abs(old_actions - new_actions).max():.3g})")
+    return problems
+
+
+def at_commit(commit: str, path: str) -> bytes:
+    return subprocess.run(["git", "show", f"{commit}:{path}"], cwd=ROOT, check=True, capture_output=True).stdout
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("folders", nargs="*", help="model folders (default: every shipped one)")
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument("--write", action="store_true", help="re-save the models in place once all of them pass the check")
+    group.add_argument("--against", metavar="COMMIT", help="compare the models as they are with those at COMMIT")
+    args = parser.parse_args(argv)
+    th.set_num_threads(1)
+    folders = args.folders or shipped()
+    batches = observations()
+    print(f"{sum(len(b['proprioceptive']) for b in batches.values())} observations ({STEPS} per task of {', '.join(TASKS)})\n")
+    print("| model | model.zip | vecnormalize.pkl | weights | deterministic actions |")
+    print("|---|---|---|---|---|")
+    failed, pending = [], []
+    for folder in folders:
+        model_path, norm_path = ROOT / folder / "model.zip", ROOT / folder / "vecnormalize.pkl"
+        if args.against:
+            old_model, old_norm = at_commit(args.against, f"{folder}/model.zip"), at_commit(args.against, f"{folder}/vecnormalize.pkl")
+            new_model, new_norm = model_path.read_bytes(), norm_path.read_bytes()
+        else:
+            old_model, old_norm = model_path.read_bytes(), norm_path.read_bytes()
+            new_model, new_norm = slim_model(old_model), slim_normalizer(old_norm)
+        problems = compare(old_model, old_norm, new_model, new_norm, batches)
+        n = sum(len(b["proprioceptive"]) for b in batches.values())
+        print(f"| `{folder}` | {len(old_model):,} -> {len(new_model):,} B | {len(old_norm):,} -> {len(new_norm):,} B | "
+              f"{'bit-identical' if not problems else 'DIFFERENT'} | "
+              f"{'bit-identical on ' + str(n) if not problems else '; '.join(problems)} |")
+        (failed if problems else pending).append((folder, new_model, new_norm))
+    if failed:
+        print(f"\n{len(failed)} model(s) differ: {[f for f, _, _ in failed]}; nothing written", file=sys.stderr)
+        return 1
+    if args.write:
+        for folder, new_model, new_norm in pending:
+            for name, data in (("model.zip", new_model), ("vecnormalize.pkl", new_norm)):
+                target = ROOT / folder / name
+                with tempfile.NamedTemporaryFile(dir=target.parent, delete=False) as tmp:
+                    tmp.write(data)
+                Path(tmp.name).chmod(target.stat().st_mode & 0o777)
+                Path(tmp.name).replace(target)
+        print(f"\nre-saved {len(pending)} models in place")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
