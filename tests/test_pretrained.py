@@ -51,5 +51,9 @@ def test_the_students_load_with_their_normalisers(folder, policy):
 
 
 def test_the_compact_actors_ship_in_both_formats():
+    """The DivMorph student's four FT actors ship; the other 36 exports ship their reports (results/cpu/README.md
+    says how to make their files again)."""
     exports = sorted((RUN / "export").glob("*-FT"))
     assert len(exports) == 4 and all((e / "actor.onnx").is_file() and (e / "actor.pt").is_file() for e in exports)
+    reports = sorted((RUN / "export").glob("**/report.json"))
+    assert len(reports) == 40 and all((r.parent / "done.json").is_file() for r in reports)

@@ -23,3 +23,6 @@ for ext in mp4 gif; do
 done
 divmorph record $RUN/student --task FT --morphologies unimals100-train --robot "$STUDENT_TRAIN_ROBOT" --width 256 --height 192 --steps 500 \
   --out $V/student-FT-train-$STUDENT_TRAIN_ROBOT.gif --no-progress
+# the one video in the repository (the others are not shipped, to keep the tracked files small): 3 s of the FT teacher, small
+divmorph record $RUN/teachers/FT --morphologies unimals100-train --robot "$TEACHER_ROBOT" --width 192 --height 144 --steps 150 \
+  --out $V/teacher-FT-$TEACHER_ROBOT-3s.gif --no-progress
