@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 import warp as wp
 
@@ -34,9 +33,7 @@ def mirror_world(benv, world: int, env: UnimalEnv) -> dict[str, torch.Tensor]:
             target = int(group.mj_model.hfield_adr[group.variant_dataid[0]])
             wp.to_torch(group.model.hfield_data)[target : target + size] = torch.as_tensor(model.hfield_data[source : source + size])
         if group.obstacle_ids.size:
-            ids = group.obstacle_ids
-            layout = np.concatenate([model.geom_pos[ids], model.geom_size[ids], model.geom_aabb[ids], model.geom_rbound[ids, None]], axis=1)
-            block.layout[0] = torch.as_tensor(layout, dtype=torch.float32)
+            block.layout[0] = torch.as_tensor(env.arena.layout, dtype=torch.float32)
         block.variant[local] = 0
         group_mask = torch.zeros(group.worlds, dtype=torch.bool)
         group_mask[w] = True

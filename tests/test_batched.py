@@ -139,7 +139,8 @@ def test_each_world_draws_its_own_episode_from_the_single_envs_distributions():
         if task == "VT":  # each world's terrain geom reads its variant's height field
             assert torch.equal(group.geom_dataid[:, group.terrain_geom].long(), torch.as_tensor(group.variant_dataid)[variant])
         else:  # each world's blocks are its variant's layout
-            assert torch.equal(group.geom_pos[:, torch.as_tensor(group.obstacle_ids)], block.layout[variant][..., :3])
+            assert torch.equal(group.mocap_pos[:, torch.as_tensor(group.obstacle_mocap)], block.layout[variant][..., :3])
+            assert torch.equal(group.geom_size[:, torch.as_tensor(group.obstacle_ids)], block.layout[variant][..., 3:])
 
 
 def test_a_physics_fault_ends_only_its_own_world():

@@ -207,11 +207,11 @@ def test_obstacles_appear_in_the_height_map(train_files):
     env = make("Obstacle", train_files[:1])
     u = env.unwrapped
     arena = u.task.arena
-    placed = [g for g in arena._geoms if u.model.geom_pos[g, 2] > 0]
+    placed = arena.layout[arena.layout[:, 2] > 0]
     assert len(placed) >= 40
-    for g in placed[:10]:
-        x, y, _ = u.model.geom_pos[g]
+    for x, y, _, sx, sy, _ in placed[:10]:
         assert arena.grid.height(x, y) == pytest.approx(2.0)  # the reference's observed block height
+        assert arena.grid.height(x + sx, y - sy) == pytest.approx(2.0)  # a corner of its footprint
     assert arena.grid.height(0.0, 0.0) == 0.0
     assert arena.grid.height(arena.bounds[0] - 0.5, 0.0) == pytest.approx(3.0)  # walls: +3 as in the reference
 

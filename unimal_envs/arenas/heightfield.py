@@ -118,6 +118,18 @@ class HeightGrid:
         """Row indices of the samples nearest to world y coordinates."""
         return np.floor((np.asarray(y) - self.y0) / self.resolution + 0.5).astype(int)
 
+    def fill_rectangle(self, x_min: float, x_max: float, y_min: float, y_max: float, value: float) -> None:
+        """Set every sample whose point lies in the closed rectangle [x_min, x_max] x [y_min, y_max]
+        (edges included, to 1e-6 m) to ``value``; samples outside the grid are ignored."""
+        eps = 1e-6 / self.resolution
+        rows, cols = self.heights.shape
+        c0 = max(math.ceil((x_min - self.x0) / self.resolution - eps), 0)
+        c1 = min(math.floor((x_max - self.x0) / self.resolution + eps), cols - 1)
+        r0 = max(math.ceil((y_min - self.y0) / self.resolution - eps), 0)
+        r1 = min(math.floor((y_max - self.y0) / self.resolution + eps), rows - 1)
+        if c0 <= c1 and r0 <= r1:
+            self.heights[r0 : r1 + 1, c0 : c1 + 1] = value
+
     # ------------------------------------------------------------------ physics
     def add_to_spec(self, spec: mujoco.MjSpec, name: str, material: str | None = None) -> None:
         """Add a MuJoCo heightfield whose vertices are the grid's samples (base 0.5 m below z = 0)."""

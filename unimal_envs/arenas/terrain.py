@@ -104,11 +104,22 @@ class ObstacleCourse(Arena):
 
     ``count`` boxes with half-sizes drawn from {0.5, 0.6, ..., 1.0} m (length and width
     independently) are placed uniformly at x in [3 + s, 91 - s] (a 6 m buffer at both ends), anywhere
-    across the width, without overlapping (up to 10 tries each; a box that finds no room is left
-    out of the course). They are redrawn every episode by moving and resizing the compiled geoms.
+    across the width, without overlapping (up to 10 tries each; a box that finds no room is parked
+    at :data:`PARKED`, under the floor, out of the course). They are redrawn every episode.
     The height map shows them and the walls with the reference's values, not their physical
     heights: blocks +2 m (MetaMorph raises its height array to the blocks' half-height), walls +3 m
-    (its wall padding of 4 over a floor at 1), and off the course -11 m (:data:`OUTSIDE`).
+    (its wall padding of 4 over a floor at 1), and off the course -11 m (:data:`OUTSIDE`). Every
+    height-map sample whose point lies inside a block's footprint (its faces included) reads +2.
+
+    **How blocks move without recompiling, and stay solid.** Each block is the box geom of its own
+    *mocap* body. A geom of the world body cannot be moved at run time: MuJoCo bounds the world
+    body's geoms once, at compile time (its bounding-volume hierarchy), and MuJoCo Warp computes
+    world-body geom poses once, in ``make_data``, so a moved world geom is drawn where it was put
+    but collides where it was compiled (the defect of earlier versions: robots walked through the
+    blocks). A mocap body's pose is state (``data.mocap_pos``), read by both engines every step.
+    Sizes change through ``model.geom_size`` (with ``geom_aabb`` and ``geom_rbound``); every block
+    is compiled at the largest size, so the compile-time bounding volumes of MuJoCo's midphase
+    contain every size a block takes. Blocks and floor are both fixed, so MuJoCo never pairs them.
 
     Deliberate change: the original boxes float 0.1 m above the ground (spec 4.4); here they stand
     on it, so nothing can crawl underneath.
@@ -129,6 +140,12 @@ class ObstacleCourse(Arena):
         self.bounds = (x_min, x_max, -half_width, half_width)
         # The observation grid includes 1 m around the course, where the walls stand.
         self.grid = HeightGrid((int(2 * (half_width + 1) * 10), int((length + 2) * 10)), x0=x_min - 1, y0=-half_width - 1)
+        #: (count, 6) the current episode's blocks: centre (x, y, z) and half-sizes, parked ones included.
+        self.layout = np.tile(np.array([*PARKED, *self.largest_half_size()]), (count, 1))
+
+    def largest_half_size(self) -> tuple[float, float, float]:
+        """The half-size every block is compiled at (the largest it can take)."""
+        return (float(self.half_sizes.max()), float(self.half_sizes.max()), WALL_HEIGHT / 2)
 
     def build(self, spec: mujoco.MjSpec) -> None:
         spec.worldbody.add_geom(
@@ -138,14 +155,14 @@ class ObstacleCourse(Arena):
         add_walls(spec, *self.bounds)
         spec.add_material(name="divmorph_obstacle", rgba=[0.35, 0.45, 0.6, 1.0])
         for i in range(self.count):
-            spec.worldbody.add_geom(
-                name=f"obstacle/{i}", type=mujoco.mjtGeom.mjGEOM_BOX, size=[1.0, 1.0, WALL_HEIGHT / 2],
-                pos=[0.0, 0.0, -10.0], material="divmorph_obstacle",
-            )
+            body = spec.worldbody.add_body(name=f"obstacle/{i}", mocap=True, pos=list(PARKED))
+            body.add_geom(name=f"obstacle/{i}", type=mujoco.mjtGeom.mjGEOM_BOX, size=list(self.largest_half_size()),
+                          material="divmorph_obstacle")
 
     def bind(self, model: mujoco.MjModel, data: mujoco.MjData) -> None:
         super().bind(model, data)
-        self._geoms = [model.geom(f"obstacle/{i}").id for i in range(self.count)]
+        self._geoms = np.array([model.geom(f"obstacle/{i}").id for i in range(self.count)])
+        self._mocap = np.array([model.body_mocapid[model.body(f"obstacle/{i}").id] for i in range(self.count)])
 
     def reset(self, rng: np.random.Generator) -> None:
         heights = self.grid.heights
@@ -153,37 +170,43 @@ class ObstacleCourse(Arena):
         heights[:10, :] = heights[-10:, :] = heights[:, :10] = heights[:, -10:] = OBSERVED_WALL
         x_min, x_max, y_min, y_max = self.bounds
         free = np.ones((int((y_max - y_min) * 10), int((x_max - x_min) * 10)), dtype=bool)
-        model = self.model
-        for geom in self._geoms:
+        layout = self.layout
+        layout[:, :3] = PARKED
+        layout[:, 3:] = self.largest_half_size()
+        for block in layout:
             sx, sy = rng.choice(self.half_sizes, size=2)
-            cx, cy = math.ceil(10 * sx), math.ceil(10 * sy)
-            placed = False
+            # Whole cells: half-sizes are multiples of 0.1 m (round, as 10 x 0.6 is 6.000000000000001).
+            cx, cy = round(10 * sx), round(10 * sy)
             for _ in range(10):
                 col = int(rng.integers(cx + 10 * self.buffer, free.shape[1] - cx - 10 * self.buffer))
                 row = int(rng.integers(cy, free.shape[0] - cy))
-                block = (slice(row - cy, row + cy), slice(col - cx, col + cx))
-                if free[block].all():
-                    free[block] = False
-                    placed = True
+                footprint = (slice(row - cy, row + cy), slice(col - cx, col + cx))
+                if free[footprint].all():
+                    free[footprint] = False
+                    block[:] = (x_min + col / 10, y_min + row / 10, WALL_HEIGHT / 2, sx, sy, WALL_HEIGHT / 2)
+                    self.grid.fill_rectangle(block[0] - sx, block[0] + sx, block[1] - sy, block[1] + sy, OBSERVED_BLOCK)
                     break
-            if not placed:  # parked under the floor: out of the course, invisible to the robot
-                model.geom_pos[geom] = (0.0, 0.0, -10.0)
-                continue
-            x, y = x_min + col / 10, y_min + row / 10
-            model.geom_pos[geom] = (x, y, WALL_HEIGHT / 2)
-            set_box_size(model, geom, (sx, sy, WALL_HEIGHT / 2))
-            # +10 cells: the grid starts 1 m before the course.
-            heights[row - cy + 10 : row + cy + 10, col - cx + 10 : col + cx + 10] = OBSERVED_BLOCK
+        apply_block_layout(self.model, self.data, self._geoms, self._mocap, layout)
 
     def height_map(self, x: float, y: float, yaw: float) -> np.ndarray:
         return self.grid.height_map(x, y, yaw)
 
 
-def set_box_size(model: mujoco.MjModel, geom: int, half_size: tuple[float, float, float]) -> None:
-    """Resize a box geom of a compiled model, keeping its collision bounds consistent."""
-    model.geom_size[geom] = half_size
-    model.geom_aabb[geom] = (0.0, 0.0, 0.0, *half_size)
-    model.geom_rbound[geom] = float(np.linalg.norm(half_size))
+#: Where an obstacle block that found no room waits: under the floor, out of every robot's way.
+PARKED = (0.0, 0.0, -10.0)
+
+
+def apply_block_layout(model: mujoco.MjModel, data: mujoco.MjData, geoms: np.ndarray, mocap: np.ndarray,
+                       layout: np.ndarray) -> None:
+    """Put box blocks in place: mocap body ``mocap[i]`` at ``layout[i, :3]``, its box geom
+    ``geoms[i]`` resized to half-sizes ``layout[i, 3:]`` (with consistent collision bounds).
+    Call ``mj_forward`` (or step) afterwards so the new poses reach the kinematics."""
+    data.mocap_pos[mocap] = layout[:, :3]
+    half = layout[:, 3:]
+    model.geom_size[geoms] = half
+    model.geom_aabb[geoms, :3] = 0.0
+    model.geom_aabb[geoms, 3:] = half
+    model.geom_rbound[geoms] = np.linalg.norm(half, axis=1)
 
 
 class Bowl(Arena):

@@ -15,7 +15,7 @@ from stable_baselines3.common.vec_env import VecEnv
 from unimal_envs import contract as C
 from unimal_envs.batched.tasks import FALL, PHYSICS_FAULT, REASONS, Readings, make_batched_task
 from unimal_envs.batched.terrain import HeightMaps, TerrainPool
-from unimal_envs.batched.worlds import N_READINGS, READINGS, RobotWorlds, run_physics
+from unimal_envs.batched.worlds import N_READINGS, OVERFLOW_MASK, OVERFLOWS, READINGS, RobotWorlds, run_physics
 from unimal_envs.env import UnimalEnv
 from unimal_envs.instructions import DEFAULT_ENCODER
 from unimal_envs.morphology.loader import load_morphologies
@@ -103,6 +103,14 @@ class _TaskBlock:
         run_physics(self.groups, "sync")
         self.task.reset(mask, self.read())
 
+    def take_overflow(self) -> torch.Tensor:
+        """(N,) the capacity-overflow bits (:data:`OVERFLOWS`) each world raised since the last
+        call, which clears them."""
+        flags = torch.cat([g.overflow for g in self.groups]) & OVERFLOW_MASK
+        for group in self.groups:
+            group.overflow.zero_()
+        return flags
+
     def step(self, actions: torch.Tensor, ctrl_cost_weight: float):
         """One control step of every world: (readings, reward, reward terms, reason codes)."""
         before = self.readings[:, READINGS["torso"]].clone()
@@ -142,6 +150,14 @@ class BatchedUnimalEnv(VecEnv):
     A world whose state becomes non-finite (or beyond MuJoCo's 1e10 limit) ends its episode with
     ``info["physics_fault"] = True`` and reward 0, as in the single env; other worlds go on.
 
+    **No silent departures.** MuJoCo Warp allocates contacts and constraint rows up front
+    (:data:`~unimal_envs.batched.worlds.CONTACTS_PER_WORLD`, ``CONSTRAINTS_PER_WORLD``) and keeps
+    a bounded number of contacts per height-field pair; past those limits it drops contacts. Every
+    step's overflow bits are reported per world (``info["overflow"]``: a (N,) bitmask tensor in
+    :meth:`step_tensors`; in the VecEnv infos, ``info["overflow"]``: the names, only for worlds that
+    overflowed) and counted in :attr:`overflow_counts` (world-steps per kind,
+    :meth:`overflow_report`).
+
     Build it with :func:`unimal_envs.batched.make_batched_env`.
     """
 
@@ -160,6 +176,9 @@ class BatchedUnimalEnv(VecEnv):
         self.morphology_names = [name for b in blocks for name in b.names]
         self.task_names = [b.task_name for b in blocks for _ in range(b.n)]
         self.steps = torch.zeros(n, dtype=torch.long, device=self.torch_device)
+        #: world-steps that hit each capacity overflow (:data:`~unimal_envs.batched.worlds.OVERFLOWS` order)
+        self.overflow_counts = torch.zeros(len(OVERFLOWS), dtype=torch.long, device=self.torch_device)
+        self._overflow_bits = torch.tensor(list(OVERFLOWS.values()), device=self.torch_device)
         self._actions: np.ndarray | None = None
         self._static_numpy: dict[str, np.ndarray] | None = None
         self._seed = seed
@@ -194,12 +213,15 @@ class BatchedUnimalEnv(VecEnv):
             readings.append(r)
             for term, value in block_terms.items():
                 terms.setdefault("reward_" + term, torch.zeros(self.num_envs, device=self.torch_device))[rows] = value
+        overflow = torch.cat([block.take_overflow() for block in self.blocks]).long()
+        self.overflow_counts += ((overflow[:, None] & self._overflow_bits) != 0).sum(0)
         self.steps += 1
         terminated = reason > 0
         truncated = (self.steps >= self.max_episode_steps) & ~terminated
         final = self._observe(readings)
         done = terminated | truncated
-        info = {"final_observation": final, "termination": reason, "physics_fault": reason == PHYSICS_FAULT, **terms}
+        info = {"final_observation": final, "termination": reason, "physics_fault": reason == PHYSICS_FAULT,
+                "overflow": overflow, **terms}
         info["metrics"] = {k: v for block, r in zip(self.blocks, readings) for k, v in block.task.metrics(r).items()} \
             if len(self.blocks) == 1 else {}
         if bool(done.any()):
@@ -210,6 +232,10 @@ class BatchedUnimalEnv(VecEnv):
         else:
             obs = final
         return obs, reward, terminated, truncated, info
+
+    def overflow_report(self) -> dict[str, int]:
+        """World-steps so far that hit each capacity overflow (only the kinds that occurred)."""
+        return {name: int(n) for name, n in zip(OVERFLOWS, self.overflow_counts.tolist()) if n}
 
     def _rows(self):
         start = 0
@@ -238,6 +264,9 @@ class BatchedUnimalEnv(VecEnv):
         terminated_np, truncated_np = terminated.cpu().numpy(), truncated.cpu().numpy()
         dones = terminated_np | truncated_np
         infos: list[dict[str, Any]] = [{"morphology": m, "task": t} for m, t in zip(self.morphology_names, self.task_names)]
+        overflow = info["overflow"].cpu().numpy()
+        for i in np.flatnonzero(overflow):
+            infos[i]["overflow"] = [name for name, bit in OVERFLOWS.items() if overflow[i] & bit]
         ended = np.flatnonzero(dones)
         if ended.size:
             index = torch.as_tensor(ended, device=self.torch_device)

@@ -1,14 +1,22 @@
 """Per-world terrain for the batched backend: a pool of arena variants, one chosen per world.
 
 Worlds of one MuJoCo Warp model share their height-field data, but each world may point its
-terrain geom at a different height-field asset (a batched ``geom_dataid``) and may move and resize
-its own geoms (batched ``geom_pos`` / ``geom_size``). So a task with random terrain draws a pool of
-``variants`` arenas once, with the single env's own arena code (:meth:`Arena.reset`), and every
-world picks one of them at every reset:
+terrain geom at a different height-field asset (a batched ``geom_dataid``), place its own mocap
+bodies (``data.mocap_pos`` is per world) and resize its own geoms (batched ``geom_size``,
+``geom_aabb``, ``geom_rbound``). So a task with random terrain draws a pool of ``variants`` arenas
+once, with the single env's own arena code (:meth:`Arena.reset`), and every world picks one of
+them at every reset:
 
 * height-field arenas (VT's corridor, Escape's bowl): each variant is a height-field asset of the
   compiled world;
-* the obstacle course: each variant is a layout of the 50 blocks (positions and sizes).
+* the obstacle course: each variant is a layout of the 50 blocks (centres and half-sizes), put in
+  place exactly as the single env does (:func:`~unimal_envs.arenas.terrain.apply_block_layout`:
+  mocap bodies, so the blocks collide where they are drawn; see
+  :class:`~unimal_envs.arenas.ObstacleCourse`).
+
+How many variants a run sees is :func:`~unimal_envs.batched.make_batched_env`'s
+``terrain_variants`` (a profile's ``batched.terrain_variants``): a pool of ``V`` variants gives
+every episode one of ``V`` terrains (and ``V`` height fields of memory per robot on the device).
 
 The egocentric height map is gathered on the device from the variants' padded height grids with
 the single env's rotated-offset table, so observation and physics read the same numbers.
@@ -34,14 +42,13 @@ class TerrainPool:
     :param grid: the arena's height grid (its geometry; the heights are in ``padded``).
     :param padded: (variants, padded rows x padded cols) float32 height grids with their margins.
     :param hfield: (variants, rows x cols) normalised height-field data, or ``None`` (no height field).
-    :param obstacle_geoms: names of the geoms each variant places, or ``()``.
-    :param obstacle_layout: per variant and geom: pos (3), size (3), aabb (6), rbound (1).
+    :param obstacle_layout: (variants, blocks, 6) block centres and half-sizes
+        (:attr:`ObstacleCourse.layout`), or ``None``.
     """
 
     grid: HeightGrid
     padded: np.ndarray
     hfield: np.ndarray | None
-    obstacle_geoms: tuple[str, ...]
     obstacle_layout: np.ndarray | None
 
     @property
@@ -58,19 +65,15 @@ class TerrainPool:
             return None
         arena.bind(model, data)
         padded, hfield, layout = [], [], []
-        geoms = tuple(f"obstacle/{i}" for i in range(arena.count)) if isinstance(arena, ObstacleCourse) else ()
-        ids = [model.geom(name).id for name in geoms]
         size = grid.heights.size
         for _ in range(variants):
             arena.reset(rng)
             padded.append(grid.padded.reshape(-1).copy())
             if grid.hfield_address is not None:
                 hfield.append(model.hfield_data[grid.hfield_address : grid.hfield_address + size].copy())
-            if ids:
-                layout.append(np.concatenate(
-                    [model.geom_pos[ids], model.geom_size[ids], model.geom_aabb[ids], model.geom_rbound[ids, None]], axis=1))
-        return cls(grid, np.stack(padded), np.stack(hfield) if hfield else None, geoms,
-                   np.stack(layout) if layout else None)
+            if isinstance(arena, ObstacleCourse):
+                layout.append(arena.layout.copy())
+        return cls(grid, np.stack(padded), np.stack(hfield) if hfield else None, np.stack(layout) if layout else None)
 
     def add_assets(self, spec: mujoco.MjSpec) -> None:
         """Add a height-field asset for every variant but the first (which is the arena's own)."""

@@ -36,6 +36,15 @@ CONTACTS_PER_WORLD = 96
 CONSTRAINTS_PER_WORLD = 4 * CONTACTS_PER_WORLD + 64
 
 
+#: MuJoCo Warp's capacity overflows (``data.overflow`` bits) that silently drop contacts or
+#: constraint rows: a world that hits one is simulated with less than its physics. Solver
+#: iteration limits (also flagged there) are not capacity problems and are not counted.
+OVERFLOWS = {kind.name: int(kind) for kind in (
+    mjw.OverflowType.NEFC, mjw.OverflowType.NJMAX_NNZ, mjw.OverflowType.BROADPHASE, mjw.OverflowType.NARROWPHASE,
+    mjw.OverflowType.CCD, mjw.OverflowType.HFIELD, mjw.OverflowType.NVMAX, mjw.OverflowType.EPA_HORIZON)}
+OVERFLOW_MASK = sum(OVERFLOWS.values())
+
+
 #: Columns of the per-world readings buffer the kernel fills (see :class:`~unimal_envs.batched.tasks.Readings`).
 READINGS = {"torso": slice(0, 3), "torso_velocity": slice(3, 6), "torso_xmat": slice(6, 15), "fault": 15,
             "box": slice(16, 19), "box_velocity": slice(19, 22), "box_angular": slice(22, 25), "reach": 25}
@@ -168,9 +177,12 @@ class RobotWorlds:
         if pool is not None and pool.hfield is not None:
             self.terrain_geom, self.variant_dataid = pool.hfield_ids(model)
             batch["geom_dataid"] = worlds
-        self.obstacle_ids = np.array([model.geom(n).id for n in pool.obstacle_geoms] if pool else [], dtype=np.int64)
+        blocks = pool.obstacle_layout.shape[1] if pool is not None and pool.obstacle_layout is not None else 0
+        #: The obstacle blocks' geoms and mocap bodies (see ObstacleCourse), empty without blocks.
+        self.obstacle_ids = np.array([model.geom(f"obstacle/{i}").id for i in range(blocks)], dtype=np.int64)
+        self.obstacle_mocap = np.array([model.body_mocapid[model.body(f"obstacle/{i}").id] for i in range(blocks)], dtype=np.int64)
         if self.obstacle_ids.size:
-            batch.update({field: worlds for field in ("geom_pos", "geom_size", "geom_aabb", "geom_rbound")})
+            batch.update({field: worlds for field in ("geom_size", "geom_aabb", "geom_rbound")})
         self.device = device
         with wp.ScopedDevice(device):
             try:
@@ -190,12 +202,14 @@ class RobotWorlds:
         d = self.data
         self.qpos, self.qvel, self.ctrl = _view(d.qpos), _view(d.qvel), _view(d.ctrl)
         self.time, self.qacc_warmstart = _view(d.time), _view(d.qacc_warmstart)
+        #: (W,) MuJoCo Warp's overflow bits per world (sticky until cleared; see OVERFLOWS)
+        self.overflow = _view(d.overflow)
         self.torch_device = self.qpos.device
         if self.variant_dataid is not None:
             self.geom_dataid = _view(self.model.geom_dataid)
         if self.obstacle_ids.size:
             m = self.model
-            self.geom_pos, self.geom_size = _view(m.geom_pos), _view(m.geom_size)
+            self.mocap_pos, self.geom_size = _view(d.mocap_pos), _view(m.geom_size)
             self.geom_aabb, self.geom_rbound = _view(m.geom_aabb), _view(m.geom_rbound)
 
     def _indices(self, model: mujoco.MjModel, env: UnimalEnv) -> None:
@@ -307,11 +321,14 @@ class RobotWorlds:
             col = self.geom_dataid[:, self.terrain_geom]
             col.copy_(torch.where(mask, ids[variant], col))
         if self.obstacle_ids.size:
-            layout = pool_layout[variant]  # (W, geoms, 13)
+            # As apply_block_layout does in the single env: mocap poses, sizes, collision bounds.
+            layout = pool_layout[variant]  # (W, blocks, 6): centre, half-size
             g = torch.as_tensor(self.obstacle_ids, device=self.torch_device)
+            b = torch.as_tensor(self.obstacle_mocap, device=self.torch_device)
             m = mask[:, None, None]
-            for field, cols in ((self.geom_pos, slice(0, 3)), (self.geom_size, slice(3, 6))):
-                field[:, g] = torch.where(m, layout[..., cols], field[:, g])
-            aabb = layout[..., 6:12].reshape(*layout.shape[:2], 2, 3)
+            half = layout[..., 3:]
+            self.mocap_pos[:, b] = torch.where(m, layout[..., :3], self.mocap_pos[:, b])
+            self.geom_size[:, g] = torch.where(m, half, self.geom_size[:, g])
+            aabb = torch.stack([torch.zeros_like(half), half], dim=2)  # (W, blocks, 2, 3): centre offset, half-size
             self.geom_aabb[:, g] = torch.where(mask[:, None, None, None], aabb, self.geom_aabb[:, g])
-            self.geom_rbound[:, g] = torch.where(mask[:, None], layout[..., 12], self.geom_rbound[:, g])
+            self.geom_rbound[:, g] = torch.where(mask[:, None], half.norm(dim=-1), self.geom_rbound[:, g])
