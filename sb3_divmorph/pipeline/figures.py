@@ -45,6 +45,10 @@ from sb3_divmorph.pipeline.distill import STUDENTS  # noqa: E402
 from sb3_divmorph.pipeline.export import export_reports  # noqa: E402
 from sb3_divmorph.pipeline.transfer import transfer_tasks  # noqa: E402
 
+#: Resolution of every report PNG (figures and report/*.png): legible at the sizes they are drawn, and
+#: small enough, with a 256-colour palette (:func:`save_png`), that the recorded runs' reports fit the
+#: repository's size limit (tests/test_tree_size.py).
+DPI = 80
 #: Each figure's caption: what its lines, bands, bars and error bars are.
 CAPTIONS = {
     "transfer-train": "deterministic return on the training robots during transfer; line = mean over seeds (each seed: mean "
@@ -71,11 +75,27 @@ def _write_csv(path: Path, rows: list[dict[str, Any]], columns: list[str]) -> No
     atomic_write_text(path, buffer.getvalue())
 
 
+def save_png(fig, path: Path) -> None:
+    """Write ``fig`` as a PNG atomically, at :data:`DPI`, in a 256-colour palette (a plot's lines,
+    text and colour maps fit in it; a third of the RGBA file's size), and close it."""
+
+    def write(target: Path) -> None:
+        from PIL import Image
+
+        buffer = io.BytesIO()
+        fig.savefig(buffer, dpi=DPI, format="png")
+        buffer.seek(0)
+        with Image.open(buffer) as image:
+            image.convert("RGB").quantize(256, dither=Image.Dither.NONE).save(target, format="PNG", optimize=True)
+
+    atomic_save(path, write)
+    plt.close(fig)
+
+
 def _save(fig, path: Path, rect: tuple[float, float, float, float] = (0, 0, 1, 1)) -> None:
     """Lay out (leaving ``rect``'s margins, e.g. for a figure legend) and write a PNG atomically."""
     fig.tight_layout(rect=rect)
-    atomic_save(path, lambda p: fig.savefig(p, dpi=110, format="png"))
-    plt.close(fig)
+    save_png(fig, path)
 
 
 def seed_curves(out: Path, task: str, arm: str, split: str) -> dict[int, tuple[np.ndarray, np.ndarray]]:

@@ -27,8 +27,8 @@ from sb3_divmorph.pipeline.config import Profile  # noqa: E402
 from sb3_divmorph.pipeline.distill import STUDENTS  # noqa: E402
 from sb3_divmorph.pipeline.export import export_reports  # noqa: E402
 from sb3_divmorph.pipeline.provenance import RECORD, SUPERSEDED  # noqa: E402
-from sb3_divmorph.pipeline.figures import CAPTIONS, make_figures, metrics_table, write_metrics  # noqa: E402
-from sb3_divmorph.pipeline.runs import atomic_save, atomic_write_text, read_progress  # noqa: E402
+from sb3_divmorph.pipeline.figures import CAPTIONS, make_figures, metrics_table, save_png, write_metrics  # noqa: E402
+from sb3_divmorph.pipeline.runs import atomic_write_text, read_progress  # noqa: E402
 from sb3_divmorph.pipeline.transfer import transfer_folder, transfer_seeds, transfer_tasks  # noqa: E402
 
 
@@ -81,8 +81,7 @@ def plot_curves(profile: Profile, out: Path, target: Path) -> None:
     fig.suptitle(f"profile {profile.name}: learning curves on {_robots_phrase(profile)}, seed {profile.seed} "
                  "(stochastic training episodes, one run each)", fontsize=10)
     fig.tight_layout()
-    atomic_save(target, lambda p: fig.savefig(p, dpi=110, format="png"))
-    plt.close(fig)
+    save_png(fig, target)
 
 
 def _correlation(gates: np.ndarray) -> np.ndarray:
@@ -111,8 +110,7 @@ def plot_gates(gates: dict[str, np.ndarray], target: Path) -> None:
         bar = fig.colorbar(image, ax=ax, fraction=0.046)
         bar.set_label("correlation of the gate vectors (Pearson)")
     fig.tight_layout()
-    atomic_save(target, lambda p: fig.savefig(p, dpi=110, format="png"))
-    plt.close(fig)
+    save_png(fig, target)
 
 
 def read_returns(path: Path) -> list[dict[str, str]]:
@@ -156,8 +154,7 @@ def plot_returns(groups: dict[tuple[str, str, str], list[float]], target: Path, 
         ax.axis("off")
     fig.suptitle(title or "returns per model: mean over robots, error bars = sd over robots", fontsize=10)
     fig.tight_layout()
-    atomic_save(target, lambda p: fig.savefig(p, dpi=110, format="png"))
-    plt.close(fig)
+    save_png(fig, target)
 
 
 def _mean(groups: dict[tuple[str, str, str], list[float]], key: tuple[str, str, str]) -> float:
