@@ -32,6 +32,13 @@ _SUBSTEP = CONTROL_DT / _SUBSTEPS
 _ZEROS_HFIELD = np.zeros(C.HFIELD_DIM, dtype=np.float32)
 _ZEROS_GOAL = np.zeros(C.GOAL_DIM, dtype=np.float32)
 _ZEROS_OBJECT = np.zeros(C.OBJECT_DIM, dtype=np.float32)
+#: Clipping planes of rendered frames, in metres. MuJoCo scales its defaults (0.01 and 50) by the
+#: model's extent, which the arenas make 140-280 m: a near plane 1.4-2.8 m from a camera standing
+#: 4 m from the robot cut the ground out of the bottom of the frame (a band of sky).
+CAMERA_NEAR, CAMERA_FAR = 0.05, 400.0
+#: Half-width (m) of the region around the camera's target that casts shadows; MuJoCo's default
+#: (the model extent) spreads the shadow map over hundreds of metres and speckles the ground.
+SHADOW_CLIP = 50.0
 
 
 def _check_display() -> None:
@@ -170,6 +177,8 @@ class UnimalEnv(gym.Env):
         #: Tracking camera: distance to the torso (``None`` = from the robot's size), azimuth, elevation.
         self.camera_distance: float | None = None
         self.camera_angles = (135.0, -20.0)
+        #: World-frame offset (m) of the camera's look-at point from the torso (it still follows the robot).
+        self.camera_offset = (0.0, 0.0, 0.0)
 
     # ------------------------------------------------------------------ world
     def world_spec(self, index: int) -> tuple[mujoco.MjSpec, Robot]:
@@ -187,6 +196,9 @@ class UnimalEnv(gym.Env):
     def _build_world(self, index: int) -> _World:
         spec, robot = self.world_spec(index)
         model = compile_world(spec, robot.morphology.name)
+        model.vis.map.znear = CAMERA_NEAR / model.stat.extent
+        model.vis.map.zfar = CAMERA_FAR / model.stat.extent
+        model.vis.map.shadowclip = SHADOW_CLIP / model.stat.extent
         data = mujoco.MjData(model)
         robot.bind(model, data)
         return _World(model, data, robot)
@@ -394,9 +406,17 @@ class UnimalEnv(gym.Env):
         return world.renderer.render()
 
     def _camera(self, world: _World) -> mujoco.MjvCamera:
+        """A camera tracking the torso from :attr:`camera_distance` m (default: 2.5 m + 3 standing
+        heights) at :attr:`camera_angles` (azimuth, elevation in degrees; azimuth 0 looks along +x,
+        the forward direction of the locomotion tasks), aimed at the torso plus
+        :attr:`camera_offset`. Clipping planes: :data:`CAMERA_NEAR`, :data:`CAMERA_FAR`."""
         camera = mujoco.MjvCamera()
-        camera.type = mujoco.mjtCamera.mjCAMERA_TRACKING
-        camera.trackbodyid = world.robot.torso_id
+        if any(self.camera_offset):  # a free camera re-aimed at the torso + offset every frame
+            camera.type = mujoco.mjtCamera.mjCAMERA_FREE
+            camera.lookat[:] = world.data.xpos[world.robot.torso_id] + np.asarray(self.camera_offset)
+        else:
+            camera.type = mujoco.mjtCamera.mjCAMERA_TRACKING
+            camera.trackbodyid = world.robot.torso_id
         camera.distance = self.camera_distance or 2.5 + 3.0 * world.robot.morphology.standing_height
         camera.azimuth, camera.elevation = self.camera_angles
         return camera

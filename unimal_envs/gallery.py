@@ -10,40 +10,87 @@ import math
 from pathlib import Path
 
 import gymnasium as gym
+import mujoco
 import numpy as np
 
 import unimal_envs
 from unimal_envs.tasks import TASKS
 
-# Where to stand and look from, per task, so that the arena's features are in view.
-_VIEWS = {
-    "FT": (6.0, (160.0, -20.0), 0),
-    "VT": (9.0, (200.0, -22.0), 40),
-    "Incline": (8.0, (110.0, -12.0), 0),
-    "Obstacle": (10.0, (200.0, -28.0), 0),
-    "Patrol": (10.0, (100.0, -25.0), 0),
-    "Exploration": (14.0, (135.0, -35.0), 0),
-    "Escape": (16.0, (200.0, -18.0), 0),
-    "PointNav": (12.0, (160.0, -30.0), 0),
-    "PushBoxIncline": (5.0, (150.0, -20.0), 0),
-    "ManipulateBox": (9.0, (200.0, -30.0), 0),
-}
+def _place(env, x: float, y: float, heading: float) -> None:
+    """Put the robot at (x, y) on the ground (its spawn height above it), facing ``heading`` (deg)."""
+    base = env.unwrapped
+    data = base.data
+    q = base.robot.indices().qpos.start
+    half = math.radians(heading) / 2
+    data.qpos[q : q + 3] = (x, y, base.arena.ground_height(x, y) + base.morphology.torso_height)
+    if base.task.name not in ("Incline", "PushBoxIncline"):  # those spawn tilted with the slope
+        data.qpos[q + 3 : q + 7] = (math.cos(half), 0.0, 0.0, math.sin(half))
+    data.qvel[:] = 0.0
 
 
-def render_tasks(morphology: str, width: int = 400, height: int = 300, seed: int = 0) -> list[tuple[str, np.ndarray]]:
-    """One frame per task, with a camera placed to show the task's arena and props."""
-    files = [p for p in unimal_envs.morphology.morphology_files("train") if p.stem == morphology]
+def _heading(origin, target) -> float:
+    return math.degrees(math.atan2(target[1] - origin[1], target[0] - origin[0]))
+
+
+def stage(env, task: str) -> None:
+    """Place the robot and the tracking camera so that the frame shows what the task is about:
+    the terrain or blocks ahead, the slope, the goal marker, the box and its goal, the walls."""
+    base = env.unwrapped
+    distance, azimuth, elevation = 6.0, 20.0, -20.0
+    if task == "VT":  # just before the first terrain segment, looking along the course
+        heights = base.arena.grid.heights[base.arena.grid.heights.shape[0] // 2]
+        first = base.arena.grid.x0 + 0.1 * int(np.argmax(heights > 0.05))
+        _place(env, first - 2.0, 0.0, 0.0)
+        distance, elevation = 9.0, -18.0
+    elif task == "Obstacle":  # in front of the first blocks, looking down the course
+        _place(env, 6.0, 0.0, 0.0)
+        distance, elevation = 11.0, -25.0
+    elif task in ("Incline", "PushBoxIncline"):  # from the side, so the slope shows
+        azimuth, elevation, distance = 75.0, -12.0, 8.0
+        if task == "PushBoxIncline":
+            box = base.data.xpos[base.task._box]
+            _place(env, box[0] - 1.5, box[1], 0.0)
+    elif task in ("Patrol", "PointNav"):  # a few metres before the goal marker, facing it
+        goal = base.task.goal
+        start = (0.0, 0.0) if task == "PointNav" else (-5.0, 0.0)
+        toward = _heading(start, goal)
+        x, y = goal[0] - 4.0 * math.cos(math.radians(toward)), goal[1] - 4.0 * math.sin(math.radians(toward))
+        _place(env, x, y, toward)
+        azimuth, distance, elevation = toward, 9.0, -30.0
+    elif task == "ManipulateBox":  # behind the box, seen from the side with the goal marker beyond it
+        box = base.data.xpos[base.task._box]
+        goal = base.task.goal
+        toward = _heading(box, goal)
+        _place(env, box[0] - 1.5 * math.cos(math.radians(toward)), box[1] - 1.5 * math.sin(math.radians(toward)), toward)
+        span = math.hypot(goal[0] - box[0], goal[1] - box[1])
+        base.camera_offset = (0.5 * (goal[0] - box[0]), 0.5 * (goal[1] - box[1]), 0.0)  # aim between box and goal
+        azimuth, distance, elevation = toward + 90.0, 0.75 * span, -40.0
+    elif task == "Exploration":  # near a corner of the walled square
+        _place(env, 44.0, 44.0, 45.0)
+        azimuth, distance, elevation = 45.0, 18.0, -35.0
+    elif task == "Escape":  # on the bowl's floor, looking out at its rim
+        _place(env, 8.0, 0.0, 0.0)
+        distance, elevation = 8.0, -6.0
+    base.camera_distance, base.camera_angles = distance, (azimuth, elevation)
+    mujoco.mj_forward(base.model, base.data)
+    base.robot.sync()
+
+
+def render_tasks(morphology: str, width: int = 400, height: int = 300, seed: int = 0,
+                 morphologies: str = "train") -> list[tuple[str, np.ndarray]]:
+    """One frame per task, staged by :func:`stage` to show the task's arena and props.
+
+    :param morphology: the robot's name in ``morphologies``.
+    :param morphologies: the robot set (a set name or folder, as for :class:`~unimal_envs.env.UnimalEnv`).
+    """
+    files = [p for p in unimal_envs.morphology.morphology_files(morphologies) if p.stem == morphology]
+    if not files:
+        raise ValueError(f"no robot {morphology!r} in the set {morphologies!r}")
     frames = []
     for task in TASKS:
         env = gym.make(unimal_envs.env_id(task), morphologies=files, render_mode="rgb_array", width=width, height=height)
         env.reset(seed=seed)
-        distance, angles, walk = _VIEWS[task]
-        base = env.unwrapped
-        base.camera_distance, base.camera_angles = distance, angles
-        if walk:  # VT: move the robot onto the terrain segments so they are in view
-            base.data.qpos[0] += walk
-            base.data.qpos[2] += base.task.arena.ground_height(float(base.data.qpos[0]), 0.0)
-            env.step(np.zeros(env.action_space.shape, np.float32))
+        stage(env, task)
         frames.append((task, env.render()))
         env.close()
     return frames
@@ -53,6 +100,7 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description="Render one frame of every UNIMAL task into a grid picture.")
     parser.add_argument("--out", type=Path, default=Path("results/tasks.png"))
     parser.add_argument("--morphology", default="train-000")
+    parser.add_argument("--morphologies", default="train", help="the robot set (a set name or a folder)")
     args = parser.parse_args(argv)
 
     import matplotlib
@@ -60,7 +108,7 @@ def main(argv: list[str] | None = None) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    frames = render_tasks(args.morphology)
+    frames = render_tasks(args.morphology, morphologies=args.morphologies)
     columns = 5
     fig, axes = plt.subplots(math.ceil(len(frames) / columns), columns, figsize=(3.2 * columns, 2.7 * math.ceil(len(frames) / columns)))
     for ax, (task, frame) in zip(axes.flat, frames):
