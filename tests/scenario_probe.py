@@ -19,20 +19,24 @@ from unimal_envs.morphology.loader import morphology_files
 
 BACKENDS = ("single", "batched")
 #: The shipped generated robots the scenarios use (always available, unlike the official ones).
-ROBOTS = morphology_files("train")[1:2]
+ROBOTS = morphology_files("train")[1:3]
 
 
 class Probe:
-    """World 0 of ``task`` on ``backend`` (``"single"`` or ``"batched"``), one robot.
+    """A world of ``task`` on ``backend`` (``"single"`` or ``"batched"``) with robot ``ROBOTS[robot]``.
 
     :param task: task name.
     :param backend: ``"single"`` or ``"batched"``.
     :param seed: reset seed (terrain, goals, props).
-    :param worlds: batched worlds of the robot (world 0 is probed; the others run alongside).
+    :param worlds: batched worlds per robot (the robot's first world is probed; the others run alongside).
+    :param robot: which of :data:`ROBOTS` (the batched env simulates both; robot 1's model shares
+        robot 0's terrain pool).
     """
 
-    def __init__(self, task: str, backend: str, seed: int = 0, worlds: int = 2, terrain_variants: int = 2):
+    def __init__(self, task: str, backend: str, seed: int = 0, worlds: int = 2, terrain_variants: int = 2, robot: int = 0):
         self.task_name, self.backend, self._seed = task, backend, seed
+        #: the probed world's row in the batch (its robot's first world)
+        self.row = robot * worlds
         self.batched = backend == "batched"
         if self.batched:
             from unimal_envs.batched import make_batched_env
@@ -40,12 +44,12 @@ class Probe:
             self.benv = make_batched_env(task, morphologies=ROBOTS, worlds_per_robot=worlds, device="cpu", seed=seed,
                                          terrain_variants=terrain_variants, max_episode_steps=100_000)
             self.block = self.benv.blocks[0]
-            self.group = self.block.groups[0]
-            self.obs = {k: v[0].numpy() for k, v in self.benv.reset_tensors().items()}
+            self.group = self.block.groups[robot]
+            self.obs = {k: v[self.row].numpy() for k, v in self.benv.reset_tensors().items()}
             self.robot = self.group.robot
             self.standing_height = self.group.morphology.standing_height
         else:
-            self.env = UnimalEnv(task, morphologies=ROBOTS)
+            self.env = UnimalEnv(task, morphologies=ROBOTS[robot : robot + 1])
             self.obs, _ = self.env.reset(seed=seed)
             self.robot = self.env.robot
             self.standing_height = self.env.morphology.standing_height
@@ -101,13 +105,14 @@ class Probe:
             from unimal_envs.batched.tasks import REASONS
 
             actions = torch.zeros(self.benv.num_envs, C.ACTION_DIM)
-            actions[0] = torch.as_tensor(action)
+            i = self.row
+            actions[i] = torch.as_tensor(action)
             _, reward, terminated, _, info = self.benv.step_tensors(actions)
-            self.obs = {k: v[0].numpy() for k, v in info["final_observation"].items()}
-            self.info = {k: float(v[0]) for k, v in info["metrics"].items()}
-            self.info["overflow"] = int(info["overflow"][0])
-            terms = {k.removeprefix("reward_"): float(v[0]) for k, v in info.items() if k.startswith("reward_")}
-            return float(reward[0]), terms, bool(terminated[0]), REASONS[int(info["termination"][0])]
+            self.obs = {k: v[i].numpy() for k, v in info["final_observation"].items()}
+            self.info = {k: float(v[i]) for k, v in info["metrics"].items()}
+            self.info["overflow"] = int(info["overflow"][i])
+            terms = {k.removeprefix("reward_"): float(v[i]) for k, v in info.items() if k.startswith("reward_")}
+            return float(reward[i]), terms, bool(terminated[i]), REASONS[int(info["termination"][i])]
         self.obs, reward, terminated, _, info = self.env.step(action)
         self.info = info
         terms = {k.removeprefix("reward_"): v for k, v in info.items() if k.startswith("reward_")}
@@ -141,7 +146,7 @@ class Probe:
     def goal(self) -> np.ndarray:
         """The current goal (goal and box tasks), world frame."""
         if self.batched:
-            return self.block.task.goal[0].numpy().astype(float)
+            return self.block.task.goal[self.row].numpy().astype(float)
         return np.asarray(self.env.task.goal, dtype=float)
 
     @property
@@ -161,7 +166,7 @@ class Probe:
             return float(arena.ground_height(x, y))
         if self.batched:
             maps = self.block.heightmaps
-            return float(maps.ground_height(self.block.variant[:1], torch.tensor([[x, y]], dtype=torch.float32))[0])
+            return float(maps.ground_height(self.block.variant[self.row : self.row + 1], torch.tensor([[x, y]], dtype=torch.float32))[0])
         return float(arena.grid.height(x, y))
 
     def redraw(self) -> None:
@@ -171,19 +176,19 @@ class Probe:
         if not self.batched:
             self.obs, _ = self.env.reset(seed=self._seed)
             return
-        old = int(self.block.variant[0])
+        old = int(self.block.variant[self.row])
         mask = torch.zeros(self.block.n, dtype=torch.bool)
-        mask[0] = True
+        mask[self.row] = True
         for _ in range(50):
             self.block.reset(mask, self.benv.reset_noise_scale)
-            if int(self.block.variant[0]) != old:
+            if int(self.block.variant[self.row]) != old:
                 return
         raise AssertionError("the terrain pool never gave world 0 another variant")
 
     def blocks(self) -> np.ndarray:
         """(count, 6) world 0's obstacle blocks: centre and half-sizes (parked ones at z < 0)."""
         if self.batched:
-            return self.block.layout[self.block.variant[0]].numpy().astype(float)
+            return self.block.layout[self.block.variant[self.row]].numpy().astype(float)
         return self.env.arena.layout.copy()
 
     def lowest_robot_point(self) -> float:

@@ -194,6 +194,8 @@ def test_bad_input_is_refused_with_a_message_that_names_the_problem(write_robot)
         make_batched_env("FT", morphologies=ROBOTS, worlds_per_robot=10**8, device="cpu")
     with pytest.raises(ValueError, match="worlds_per_robot must be at least 1"):
         make_batched_env("FT", morphologies=ROBOTS, worlds_per_robot=0, device="cpu")
+    with pytest.raises(ValueError, match="terrain_variants must be at least 1"):
+        make_batched_env("VT", morphologies=ROBOTS, worlds_per_robot=1, device="cpu", terrain_variants=0)
     pgs = write_robot(unimal_xml().replace('<option timestep="0.005"/>', '<option timestep="0.005" solver="PGS"/>'), "pgs_robot")
     with pytest.raises(MorphologyError, match="pgs_robot: MuJoCo Warp cannot simulate this robot's world: mjSOL_PGS"):
         make_batched_env("FT", morphologies=[pgs], worlds_per_robot=2, device="cpu")
@@ -234,11 +236,11 @@ def test_the_pipeline_trains_its_stages_on_the_batched_backend_when_the_profile_
     original = batched.make_batched_env
 
     def counting(task, **kwargs):
-        built.append((task, kwargs["worlds_per_robot"], kwargs["device"]))
+        built.append((task, kwargs["worlds_per_robot"], kwargs["device"], kwargs["terrain_variants"]))
         return original(task, **kwargs)
 
     monkeypatch.setattr(batched, "make_batched_env", counting)
-    on_warp = {"env_backend": "batched", "worlds_per_robot": 2}
+    on_warp = {"env_backend": "batched", "worlds_per_robot": 2, "terrain_variants": 3}
     profiles = write_profiles(
         tmp_path, teachers__n_timesteps=64, teachers__overrides={"n_steps": 16, "batch_size": 32, "n_epochs": 1}, **{
             f"{stage}__{key}": value for stage in ("teachers", "distill", "transfer") for key, value in on_warp.items()},
@@ -248,8 +250,8 @@ def test_the_pipeline_trains_its_stages_on_the_batched_backend_when_the_profile_
     out = tmp_path / "run"
     for stage in ("teachers", "distill", "transfer"):
         assert cli([stage, "--profile", "tiny", "--profiles", str(profiles), "--out", str(out), "--no-progress"]) == 0
-    assert [task for task, _, _ in built] == ["FT", "Patrol", "MultiTask", "PointNav"]
-    assert all(worlds == 2 and device == "cpu" for _, worlds, device in built)
+    assert [task for task, _, _, _ in built] == ["FT", "Patrol", "MultiTask", "PointNav"]
+    assert all(worlds == 2 and device == "cpu" and variants == 3 for _, worlds, device, variants in built)
     assert (out / "transfer" / "PointNav" / "divmorph" / "seed-0" / "model.zip").is_file()
     recorded = json.loads((out / "run.json").read_text())["configuration"]
     assert recorded["teachers"]["env_backend"] == recorded["distill"]["env_backend"] == "batched"

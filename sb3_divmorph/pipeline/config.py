@@ -95,6 +95,9 @@ class TeachersConfig:
     #: ``worlds_per_robot`` worlds of every robot on the profile's device (``n_envs`` is then unused)
     env_backend: str = "single"
     worlds_per_robot: int = 16
+    #: ``batched`` only: distinct terrains drawn per terrain task (VT, Obstacle, Escape); every
+    #: episode picks one (the single env draws new terrain every episode)
+    terrain_variants: int = 64
 
 
 @dataclass
@@ -125,6 +128,9 @@ class DistillConfig:
     #: ``worlds_per_robot`` worlds of every robot on the profile's device (``n_envs`` is then unused)
     env_backend: str = "single"
     worlds_per_robot: int = 16
+    #: ``batched`` only: distinct terrains drawn per terrain task (VT, Obstacle, Escape); every
+    #: episode picks one (the single env draws new terrain every episode)
+    terrain_variants: int = 64
 
 
 @dataclass
@@ -160,6 +166,9 @@ class TransferConfig:
     #: ``worlds_per_robot`` worlds of every robot on the profile's device (``n_envs`` is then unused)
     env_backend: str = "single"
     worlds_per_robot: int = 16
+    #: ``batched`` only: distinct terrains drawn per terrain task (VT, Obstacle, Escape); every
+    #: episode picks one (the single env draws new terrain every episode)
+    terrain_variants: int = 64
     #: deterministic evaluation on the training and the novel robots every this many env steps
     #: (and at step 0 and at the end); 0 = no evaluation curves (no transfer metrics)
     eval_every: int = 0
@@ -290,9 +299,10 @@ class Profile:
             raise ConfigError(f"profile {name!r}: hyperdistill.loss must be 'nll' or 'kl', got {profile.hyperdistill.loss!r}")
         for section in ("teachers", "distill", "transfer"):
             cfg = getattr(profile, section)
-            if cfg.env_backend not in ENV_BACKENDS or cfg.worlds_per_robot < 1:
-                raise ConfigError(f"profile {name!r}: {section}.env_backend must be one of {list(ENV_BACKENDS)} "
-                                  f"and {section}.worlds_per_robot >= 1, got {cfg.env_backend!r}, {cfg.worlds_per_robot}")
+            if cfg.env_backend not in ENV_BACKENDS or cfg.worlds_per_robot < 1 or cfg.terrain_variants < 1:
+                raise ConfigError(f"profile {name!r}: {section}.env_backend must be one of {list(ENV_BACKENDS)}, "
+                                  f"{section}.worlds_per_robot >= 1 and {section}.terrain_variants >= 1, got "
+                                  f"{cfg.env_backend!r}, {cfg.worlds_per_robot}, {cfg.terrain_variants}")
         for section in ("teachers", "transfer", "grl"):
             check_ppo_keys(getattr(profile, section).overrides, f"profile {name!r}, {section}.overrides")
         check_ppo_keys(profile.transfer.finetune_overrides, f"profile {name!r}, transfer.finetune_overrides")

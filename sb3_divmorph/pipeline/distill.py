@@ -128,7 +128,7 @@ def distill_run(profile: Profile, out: Path, progress_bar: bool = True, name: st
     def make_env():
         venv = make_vec_env(
             "Unimal-MultiTask-v0", cfg.n_envs, seed, profile.max_episode_steps, cfg.env_backend, cfg.worlds_per_robot,
-            device, tasks=list(profile.teachers.tasks), morphologies=robots,
+            device, cfg.terrain_variants, tasks=list(profile.teachers.tasks), morphologies=robots,
         )
         return TeacherMixingVecEnv(venv, teachers, beta=cfg.beta_start, seed=seed) if mixing else venv
 

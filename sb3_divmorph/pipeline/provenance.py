@@ -155,6 +155,8 @@ def check_and_record(out: Path, profile: Profile, command: str, force: bool = Fa
         raise ConfigError(f"unknown stage(s) {unknown} for --redo; stages: {list(STAGE_KEYS)}")
     config = configuration(profile)
     device = resolve_device(profile.device)
+    if profile.device == "auto":
+        print(f"[provenance] device auto -> {device} (recorded in {path.name} as device_used)")
     previous = json.loads(path.read_text()) if path.is_file() else None
     begun = begun_stages(out)
     recorded = _with_defaults(previous["configuration"]) if previous else None

@@ -146,19 +146,21 @@ def record_robot_sets(profile: Profile, out: Path) -> Path:
 
 def make_vec_env(
     env_name: str, n_envs: int, seed: int, max_episode_steps: int, backend: str = "single",
-    worlds_per_robot: int = 16, device: str = "cpu", **env_kwargs: Any
+    worlds_per_robot: int = 16, device: str = "cpu", terrain_variants: int = 64, **env_kwargs: Any
 ) -> VecEnv:
     """The monitored training envs of a stage.
 
     ``backend="single"``: ``n_envs`` C-MuJoCo envs in one process (torch stays in this process),
     seeded ``seed + i``. ``backend="batched"``: one MuJoCo Warp env with ``worlds_per_robot`` worlds
-    of every robot on ``device`` (:func:`unimal_envs.batched.make_batched_env`; ``n_envs`` unused).
+    of every robot on ``device`` and a pool of ``terrain_variants`` terrains per terrain task
+    (:func:`unimal_envs.batched.make_batched_env`; ``n_envs`` unused).
     """
     if backend == "batched":
         from unimal_envs.batched import make_batched_env
 
         task = env_name.removeprefix("Unimal-").removesuffix("-v0")
         return VecMonitor(make_batched_env(task, worlds_per_robot=worlds_per_robot, device=device, seed=seed,
+                                           terrain_variants=terrain_variants,
                                            max_episode_steps=max_episode_steps, **env_kwargs))
 
     def factory(rank: int) -> Callable[[], gym.Env]:

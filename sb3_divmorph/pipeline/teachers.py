@@ -62,7 +62,7 @@ def teacher_run(
 
     def make_env():
         return make_vec_env(env_name, entry.n_envs, seed, profile.max_episode_steps, cfg.env_backend, cfg.worlds_per_robot,
-                            device, morphologies=robots)
+                            device, cfg.terrain_variants, morphologies=robots)
 
     def make_model():
         venv = normalizer_for(make_env(), entry.normalize, entry.ppo_kwargs.get("gamma", 0.99))

@@ -260,7 +260,7 @@ def transfer_run(profile: Profile, out: Path, task: str, arm: str, seed: int = 0
 
     def make_env():
         return make_vec_env(env_name, entry.n_envs, run_seed, profile.max_episode_steps, cfg.env_backend,
-                            cfg.worlds_per_robot, device, **env_kwargs)
+                            cfg.worlds_per_robot, device, cfg.terrain_variants, **env_kwargs)
 
     prepare = None
     callbacks: list[BaseCallback] = []

@@ -24,6 +24,8 @@ from unimal_envs.morphology.loader import load_morphologies
 KEYS = tuple(C.observation_space().spaces)
 #: Keys whose values are fixed per world (its robot and task).
 STATIC_KEYS = ("context", "obs_padding_mask", "act_padding_mask", "task_embedding", "task_index")
+#: Terrain variants drawn per terrain task (see :func:`make_batched_env`).
+DEFAULT_TERRAIN_VARIANTS = 64
 #: Refuse a batch whose estimated memory exceeds this share of the device's free memory.
 MEMORY_SHARE = 0.8
 
@@ -37,7 +39,9 @@ class _TaskBlock:
         probe = env._get_world(0)  # the single env's own compiled world draws the terrain pool
         self.pool = TerrainPool.draw(env.arena, probe.model, probe.data, variants, np.random.default_rng(seed))
         env.close()
-        self.groups = [RobotWorlds(env, i, worlds, device, self.pool) for i in range(len(env.morphologies))]
+        self.groups: list[RobotWorlds] = []
+        for i in range(len(env.morphologies)):  # the first robot's model holds the pool's height fields
+            self.groups.append(RobotWorlds(env, i, worlds, device, self.pool, terrain_from=self.groups[0] if i else None))
         dev = self.groups[0].torch_device
         self.n, self.worlds, self.device, self.generator = worlds * len(self.groups), worlds, dev, generator
         self.heightmaps = HeightMaps(self.pool, dev) if self.pool is not None else None
@@ -347,9 +351,10 @@ def _free_memory(device: str) -> int:
     return int(wp.get_device(device).free_memory)
 
 
-def estimate_memory(env: UnimalEnv, device: str, terrain_variants: int) -> tuple[int, int]:
-    """(bytes per world, fixed bytes per robot) of one robot's worlds on ``device``: the data of a
-    1- and a 2-world allocation of the first robot's world, plus its pool of height fields."""
+def estimate_memory(env: UnimalEnv, device: str, terrain_variants: int) -> tuple[int, int, int]:
+    """(bytes per world, fixed bytes per robot, bytes per task) of a task's worlds on ``device``:
+    the data of a 1- and a 2-world allocation of the first robot's world, and the task's pool of
+    height fields (one copy per task, shared by its robots)."""
     import mujoco_warp as mjw
 
     from unimal_envs.batched.worlds import CONSTRAINTS_PER_WORLD, CONTACTS_PER_WORLD
@@ -363,7 +368,7 @@ def estimate_memory(env: UnimalEnv, device: str, terrain_variants: int) -> tuple
         return sum(v.capacity for v in vars(data).values() if isinstance(v, wp.array))
 
     one, two = size(1), size(2)
-    return two - one, 2 * one - two + 4 * model.nhfielddata * terrain_variants
+    return two - one, 2 * one - two, 4 * model.nhfielddata * terrain_variants
 
 
 def make_batched_env(
@@ -374,7 +379,7 @@ def make_batched_env(
     seed: int = 0,
     max_episode_steps: int = 1000,
     tasks: Sequence[str] | None = None,
-    terrain_variants: int = 8,
+    terrain_variants: int = DEFAULT_TERRAIN_VARIANTS,
     ctrl_cost_weight: float = 0.0,
     reset_noise_scale: float = 0.005,
     instruction: str | None = None,
@@ -391,7 +396,12 @@ def make_batched_env(
     :param seed: seeds terrain pools, reset noise, goals and props.
     :param max_episode_steps: truncation, as ``gym.make``'s (1000).
     :param tasks: MultiTask's tasks (default: the five training tasks).
-    :param terrain_variants: arenas drawn per terrain task; each reset picks one per world.
+    :param terrain_variants: arenas drawn per terrain task (VT, Obstacle, Escape), once, with the
+        single env's arena code; every reset picks one per world, so a run sees this many distinct
+        terrains. One copy per task lives on the device, shared by its robots: a VT variant is
+        1.8 MB of height field, an Escape variant 4 MB (64 variants: 113 MB and 256 MB), an
+        Obstacle variant 1.2 KB. 64 by default (a 2e7-step run of 100 robots sees each terrain
+        ~300 times); profiles set it per stage (``terrain_variants``).
     :param ctrl_cost_weight: as for the single env.
     :param reset_noise_scale: as for the single env.
     :param instruction: replaces the task's instruction (its embedding is the ``task_embedding``
@@ -405,6 +415,8 @@ def make_batched_env(
     if int(terrain_variants) < 1:
         raise ValueError(f"terrain_variants must be at least 1, got {terrain_variants}")
     warp_device = _warp_device(device)
+    if device == "auto":
+        print(f"[batched] device auto -> {warp_device}")
     names = list(tasks or C.TRAIN_TASKS) if task == "MultiTask" else [task]
     if task == "MultiTask" and instruction is not None:
         raise ValueError("MultiTask uses each task's own instruction; 'instruction' is not accepted")
@@ -412,8 +424,9 @@ def make_batched_env(
     envs = [UnimalEnv(name, robots, instruction=instruction, text_encoder=text_encoder, ctrl_cost_weight=ctrl_cost_weight,
                       reset_noise_scale=reset_noise_scale) for name in names]
     total = len(robots) * int(worlds_per_robot) * len(envs)
-    per_world, fixed = estimate_memory(envs[0], warp_device, int(terrain_variants))
-    needed, free = per_world * total + fixed * len(robots) * len(envs), _free_memory(warp_device)
+    per_world, per_robot, per_task = estimate_memory(envs[0], warp_device, int(terrain_variants))
+    needed = per_world * total + (per_robot * len(robots) + per_task) * len(envs)
+    free = _free_memory(warp_device)
     if needed > MEMORY_SHARE * free:
         raise ValueError(
             f"{total} worlds ({len(robots)} robots x {worlds_per_robot} worlds x {len(envs)} task(s)) need about "

@@ -160,12 +160,19 @@ class RobotWorlds:
     :param worlds: number of worlds (W).
     :param device: Warp device name (``"cpu"``, ``"cuda:0"``).
     :param pool: the task's terrain variants (``None``: no random terrain).
+    :param terrain_from: another robot's worlds of the same task whose height fields these worlds
+        read (``None``: this robot's model holds the pool's height fields). A pool of height fields
+        is the same for every robot, so one copy on the device serves a whole task: the other
+        robots' models are compiled with the arena's own height field only and then pointed at the
+        first robot's height-field arrays (the arena geometry, and so every address, is the same).
     """
 
-    def __init__(self, env: UnimalEnv, index: int, worlds: int, device: str, pool: TerrainPool | None):
+    def __init__(self, env: UnimalEnv, index: int, worlds: int, device: str, pool: TerrainPool | None,
+                 terrain_from: RobotWorlds | None = None):
         spec, robot = env.world_spec(index)
         name = robot.morphology.name
-        if pool is not None:
+        shares_terrain = terrain_from is not None and pool is not None and pool.hfield is not None
+        if pool is not None and not shares_terrain:
             pool.add_assets(spec)
         model = compile_world(spec, name)
         data = mujoco.MjData(model)
@@ -174,7 +181,12 @@ class RobotWorlds:
         self.mj_model = model
         batch = {}
         self.terrain_geom = self.variant_dataid = None
-        if pool is not None and pool.hfield is not None:
+        if shares_terrain:
+            if model.nhfield != 1:
+                raise MorphologyError(f"{name}: a robot with height fields of its own cannot share its task's terrain pool")
+            self.terrain_geom, self.variant_dataid = terrain_from.terrain_geom, terrain_from.variant_dataid
+            batch["geom_dataid"] = worlds
+        elif pool is not None and pool.hfield is not None:
             self.terrain_geom, self.variant_dataid = pool.hfield_ids(model)
             batch["geom_dataid"] = worlds
         blocks = pool.obstacle_layout.shape[1] if pool is not None and pool.obstacle_layout is not None else 0
@@ -190,6 +202,9 @@ class RobotWorlds:
             except NotImplementedError as err:
                 raise MorphologyError(f"{name}: MuJoCo Warp cannot simulate this robot's world: {err}") from None
             self.data = mjw.make_data(model, nworld=worlds, nconmax=CONTACTS_PER_WORLD, njmax=CONSTRAINTS_PER_WORLD)
+        if shares_terrain:  # before any kernel runs or graph is captured
+            for field in ("hfield_size", "hfield_nrow", "hfield_ncol", "hfield_adr", "hfield_data"):
+                setattr(self.model, field, getattr(terrain_from.model, field))
         self._views()
         self._indices(model, env)
         self._graphs: dict[str, object] = {}
