@@ -129,7 +129,7 @@ def main(argv: list[str] | None = None) -> None:
         for robots in args.robots:
             files = morphology_files(args.morphologies)[:robots]
             single = single_steps_per_second(task, files, args.seconds)
-            env_rows.append((task, len(files), "single (1 core)", 1, 1, single, 0.0))
+            env_rows.append((task, len(files), "single (1 core)", 1, 1, single, 0.0, "-"))
             print(f"{task} {len(files)} robots single: {single:.0f} steps/s", flush=True)
             for device in devices:
                 for worlds in args.worlds:
@@ -137,8 +137,9 @@ def main(argv: list[str] | None = None) -> None:
                         continue
                     env = make_batched_env(task, morphologies=files, worlds_per_robot=worlds, device=device, seed=0)
                     rate, warmup = batched_steps_per_second(env, args.seconds)
+                    overflow = ", ".join(f"{kind} {n}" for kind, n in env.overflow_report().items()) or "none"
                     env.close()
-                    env_rows.append((task, len(files), f"batched ({device})", worlds, env.num_envs, rate, warmup))
+                    env_rows.append((task, len(files), f"batched ({device})", worlds, env.num_envs, rate, warmup, overflow))
                     print(f"{task} {len(files)} robots batched {device} W={worlds}: {rate:.0f} steps/s "
                           f"({rate / single:.1f}x single; warm-up {warmup:.1f} s)", flush=True)
 
@@ -178,12 +179,16 @@ def main(argv: list[str] | None = None) -> None:
         "",
         "## Env steps/s",
         "",
-        "| task | robots | backend | worlds/robot | envs | env steps/s | vs single | warm-up (s) |",
-        "|---|---|---|---|---|---|---|---|",
+        "Overflow: world-steps in which MuJoCo Warp dropped contacts or constraint rows for lack of room "
+        "(`BatchedUnimalEnv.overflow_report()`, by kind); it should read `none`.",
+        "",
+        "| task | robots | backend | worlds/robot | envs | env steps/s | vs single | warm-up (s) | overflow |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
-    singles = {(t, r): rate for t, r, backend, _, _, rate, _ in env_rows if backend.startswith("single")}
-    for task, robots, backend, worlds, envs, rate, warmup in env_rows:
-        lines.append(f"| {task} | {robots} | {backend} | {worlds} | {envs} | {rate:,.0f} | {rate / singles[task, robots]:.2f}x | {warmup:.1f} |")
+    singles = {(t, r): rate for t, r, backend, _, _, rate, _, _ in env_rows if backend.startswith("single")}
+    for task, robots, backend, worlds, envs, rate, warmup, overflow in env_rows:
+        lines.append(f"| {task} | {robots} | {backend} | {worlds} | {envs} | {rate:,.0f} | {rate / singles[task, robots]:.2f}x "
+                     f"| {warmup:.1f} | {overflow} |")
     lines += [
         "",
         f"## PPO end to end (FT, {len(files)} robots, MetaMorph policy)",
