@@ -53,8 +53,7 @@ _BODY_SENSORS = {
     "quat": _SENSOR.mjSENS_FRAMEQUAT,
 }
 _HINGE_SENSORS = {"angle": _SENSOR.mjSENS_JOINTPOS, "velocity": _SENSOR.mjSENS_JOINTVEL}
-# proprioception() copies the body readings as one block into these columns.
-_BODY_COLUMNS = slice(C.XPOS.start, C.XQUAT.stop)
+# proprioception() scatters the body readings, in sensor order, into columns 0-12.
 if [(c.start, c.stop) for c in (C.XPOS, C.XVELP, C.XVELR, C.XQUAT)] != [(0, 3), (3, 6), (6, 9), (9, 13)]:
     raise ImportError("unimal_envs.contract moved the body columns; update Robot's proprioception sensors")
 
@@ -197,9 +196,7 @@ class Robot:
         if int(last_sensor.adr[0]) + int(last_sensor.dim[0]) != start + 13 * n + 2 * dof:
             raise RuntimeError("the robot's proprioception sensors are not one contiguous block of sensordata")
         readings = data.sensordata[start : start + 13 * n + 2 * dof]
-        self._body_readings = readings[: 13 * n].reshape(n, 13)
         self._torso_relative_x = readings[: 13 * n : 13]  # body x, made relative to the torso in place
-        self._hinge_readings = readings[13 * n :]
         sensor_hinges = list(self._slot_of_hinge)  # token order, "x" before "y", as the sensors
         token, slot = np.divmod(np.array([self._slot_of_hinge[h] for h in sensor_hinges], dtype=np.intp), C.SLOTS_PER_TOKEN)
         column = token * C.PROPRIO_DIM + np.array([C.HINGE_SLOT_COLUMNS[s].start for s in slot], dtype=np.intp)
@@ -209,7 +206,14 @@ class Robot:
         scale = 1.0 / np.maximum(hi - lo, 1e-8)
         self._hinge_scale = np.concatenate([scale, np.ones(dof)])
         self._hinge_offset = np.concatenate([-lo * scale, np.zeros(dof)])
-        self._hinge_buffer = np.empty(2 * dof)
+        # The whole sensor block in one affine map and one scatter: body readings pass unchanged,
+        # hinge readings are normalised; _targets are their flat indices in the observation.
+        body_targets = (np.arange(n)[:, None] * C.PROPRIO_DIM + np.arange(13)[None, :]).reshape(-1)
+        self._targets = np.concatenate([body_targets, self._hinge_targets])
+        self._scale = np.concatenate([np.ones(13 * n), self._hinge_scale])
+        self._offset = np.concatenate([np.zeros(13 * n), self._hinge_offset])
+        self._readings = readings
+        self._buffer = np.empty(len(readings))
         self._static = self.morphology.proprio_static.astype(np.float32)
         self._option = model.opt
         self._flags_stepping = int(model.opt.disableflags) | _SENSORS
@@ -274,9 +278,8 @@ class Robot:
         option.disableflags = self._flags_stepping
         x = self._torso_relative_x
         x -= x[0]  # x relative to the torso; y, z absolute (MetaMorph)
-        hinges = np.multiply(self._hinge_readings, self._hinge_scale, out=self._hinge_buffer)
-        hinges += self._hinge_offset
+        values = np.multiply(self._readings, self._scale, out=self._buffer)
+        values += self._offset
         obs = self._static.copy()
-        obs[: self.num_tokens, _BODY_COLUMNS] = self._body_readings
-        obs.reshape(-1)[self._hinge_targets] = hinges
+        obs.put(self._targets, values)
         return obs

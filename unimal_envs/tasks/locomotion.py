@@ -129,6 +129,12 @@ class InclineTask(_Corridor):
     angle_deg = 10.0
     start_along_slope = -73.0
 
+    def __init__(self) -> None:
+        super().__init__()
+        # Per-step constants: the reward divides by cos(10 deg) every step.
+        self._along_slope = 1.0 / math.cos(math.radians(self.angle_deg))
+        self._start_x = self.start_along_slope * math.cos(math.radians(self.angle_deg))
+
     def make_arena(self) -> Arena:
         return Incline(self.angle_deg, half_length=75.0, half_width=self.half_width)
 
@@ -137,8 +143,8 @@ class InclineTask(_Corridor):
         return (x, 0.0, self.arena.ground_height(x, 0.0) + robot.morphology.torso_height), self.arena.quat
 
     def reward_terms(self, robot: Robot, torso_before: np.ndarray) -> dict[str, float]:
-        return {"forward": (robot.torso_x - float(torso_before[0])) / CONTROL_DT / math.cos(math.radians(self.angle_deg))}
+        return {"forward": (robot.torso_x - float(torso_before[0])) / CONTROL_DT * self._along_slope}
 
     def metrics(self, robot: Robot) -> dict[str, float]:
-        start = self.start_along_slope * math.cos(math.radians(self.angle_deg))
-        return {"x_position": robot.torso_x, "distance_along_slope": (robot.torso_x - start) / math.cos(math.radians(self.angle_deg))}
+        x = robot.torso_x
+        return {"x_position": x, "distance_along_slope": (x - self._start_x) * self._along_slope}
