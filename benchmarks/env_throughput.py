@@ -34,6 +34,22 @@ from unimal_envs.tasks import TASKS
 RESULTS = Path(__file__).resolve().parent.parent / "results" / "env_throughput.md"
 
 
+class _TimedPhysics:
+    """Stands in for the ``mujoco`` module inside :mod:`unimal_envs.env` and times its ``mj_step``
+    calls, so the physics of the env's own trajectory can be told from the rest of a step."""
+
+    def __init__(self):
+        self.seconds = 0.0
+
+    def __getattr__(self, name: str):
+        return getattr(mujoco, name)
+
+    def mj_step(self, *args, **kwargs) -> None:
+        start = time.perf_counter()
+        mujoco.mj_step(*args, **kwargs)
+        self.seconds += time.perf_counter() - start
+
+
 def time_env(env: gym.Env, actions: np.ndarray) -> float:
     """Seconds per env step (time spent in resets after a termination is subtracted)."""
     in_resets = 0.0
@@ -45,6 +61,25 @@ def time_env(env: gym.Env, actions: np.ndarray) -> float:
             env.reset()
             in_resets += time.perf_counter() - reset_start
     return (time.perf_counter() - start - in_resets) / len(actions)
+
+
+def time_overhead(env: gym.Env, actions: np.ndarray) -> tuple[float, float]:
+    """(seconds per env step, seconds of ``mj_step`` inside those steps), on the env's own trajectory.
+
+    The separate physics run of :func:`time_physics` replays the controls from the spawn state, so
+    where the env ends episodes early (a robot sliding off the incline's lower edge is a fall for
+    the env, but keeps falling cheaply in a bare ``mj_step`` loop) the two trajectories differ; the
+    time per step minus its own ``mj_step`` time is the env's overhead (its Python, the
+    kinematics and sensors it evaluates once per step) on the very states it simulated."""
+    import unimal_envs.env as env_module
+
+    timed = _TimedPhysics()
+    env_module.mujoco = timed
+    try:
+        per_step = time_env(env, actions)
+    finally:
+        env_module.mujoco = mujoco
+    return per_step, timed.seconds / len(actions)
 
 
 def time_physics(model: mujoco.MjModel, data: mujoco.MjData, ctrls: np.ndarray) -> float:
@@ -67,10 +102,13 @@ def measure_task(task: str, files: list[Path], steps: int, blocks: int, wrapped:
         rng = np.random.default_rng(i)
         actions = rng.uniform(-1, 1, size=(steps, unimal_envs.contract.ACTION_DIM)).astype(np.float32)
         ctrls = actions[:, base.robot._ctrl_slots]
-        env_times, phys_times = [], []
+        env_times, phys_times, overheads, inside = [], [], [], []
         for _ in range(blocks):
             env_times.append(time_env(env, actions))
             phys_times.append(time_physics(base.model, mujoco.MjData(base.model), ctrls))
+            step_s, physics_s = time_overhead(env, actions)
+            overheads.append(step_s - physics_s)
+            inside.append(physics_s / step_s)
         reset_times = []
         for k in range(10):
             start = time.perf_counter()
@@ -78,7 +116,8 @@ def measure_task(task: str, files: list[Path], steps: int, blocks: int, wrapped:
             reset_times.append(time.perf_counter() - start)
         env_s, phys_s = statistics.median(env_times), statistics.median(phys_times)
         rows.append({"name": path.stem, "env": 1 / env_s, "physics": 1 / phys_s, "ratio": phys_s / env_s,
-                     "reset_ms": 1000 * statistics.median(reset_times)})
+                     "reset_ms": 1000 * statistics.median(reset_times), "overhead_us": 1e6 * statistics.median(overheads),
+                     "own_ratio": statistics.median(inside)})
         env.close()
     # Worst case: every reset draws a robot whose world is not cached, so it is compiled anew.
     cold = gym.make(unimal_envs.env_id(task), morphologies=files, world_cache_size=1)
@@ -99,6 +138,9 @@ def measure_task(task: str, files: list[Path], steps: int, blocks: int, wrapped:
         "ratio": statistics.median(r["ratio"] for r in rows),
         "min_ratio": min(r["ratio"] for r in rows),
         "reset_ms": statistics.median(r["reset_ms"] for r in rows),
+        "overhead_us": statistics.median(r["overhead_us"] for r in rows),
+        "own_ratio": statistics.median(r["own_ratio"] for r in rows),
+        "min_own_ratio": min(r["own_ratio"] for r in rows),
     }
 
 
@@ -119,7 +161,9 @@ def main(argv: list[str] | None = None) -> None:
         result = measure_task(task, files, args.steps, args.blocks, wrapped=not args.unwrapped)
         results.append(result)
         print(f"{task:<16} env {result['env']:8.0f} steps/s   physics {result['physics']:8.0f} steps/s   "
-              f"ratio {result['ratio']:.2f} (min {result['min_ratio']:.2f})   reset {result['reset_ms']:.1f} ms, "
+              f"ratio {result['ratio']:.2f} (min {result['min_ratio']:.2f})   own trajectory {result['own_ratio']:.2f} "
+              f"(min {result['min_own_ratio']:.2f}), {result['overhead_us']:.1f} us/step besides mj_step   "
+              f"reset {result['reset_ms']:.1f} ms, "
               f"with a new robot {result['cold_reset_ms']:.1f} ms (max {result['cold_reset_max_ms']:.1f})")
 
     command = "python benchmarks/env_throughput.py " + " ".join(argv if argv is not None else sys.argv[1:])
@@ -138,11 +182,18 @@ def main(argv: list[str] | None = None) -> None:
         "Reset = a new episode of a cached world (terrain and props re-randomised in place); "
         "reset with a new robot = the world is compiled first (cache miss).",
         "",
-        "| task | env steps/s | physics steps/s | ratio (median) | ratio (min) | reset (ms, median) | reset with a new robot (ms, median / max) |",
-        "|---|---|---|---|---|---|---|",
+        "Own trajectory = the share of an env step spent in its own `mj_step` call, and us/step = the rest of the "
+        "step (Python, and the kinematics and sensors evaluated once per step), timed inside the env's steps: the "
+        "separate physics run replays the controls from the spawn state, so where the env ends episodes early "
+        "(a robot sliding off the incline's lower edge falls for the env but keeps falling, cheaply, in a bare "
+        "`mj_step` loop) the first ratio compares different trajectories.",
+        "",
+        "| task | env steps/s | physics steps/s | ratio (median) | ratio (min) | own trajectory (median / min) | us/step besides mj_step | reset (ms, median) | reset with a new robot (ms, median / max) |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
         lines.append(f"| {r['task']} | {r['env']:.0f} | {r['physics']:.0f} | {r['ratio']:.2f} | {r['min_ratio']:.2f} | "
+                     f"{r['own_ratio']:.2f} / {r['min_own_ratio']:.2f} | {r['overhead_us']:.1f} | "
                      f"{r['reset_ms']:.1f} | {r['cold_reset_ms']:.1f} / {r['cold_reset_max_ms']:.1f} |")
     lines += ["", "Per morphology:", "", "| task | morphology | env steps/s | physics steps/s | ratio | reset (ms) |", "|---|---|---|---|---|---|"]
     for r in results:

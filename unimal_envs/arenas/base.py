@@ -55,6 +55,36 @@ class Arena(abc.ABC):
     The world is compiled once per morphology (:meth:`build`); every episode :meth:`reset`
     re-randomises the arena *in place* in the compiled model (heightfield data, prop positions).
     One arena instance belongs to one env and is re-bound to whichever world is current.
+
+    **Moving things at reset without breaking collisions.** What a compiled model may change at
+    run time and still collide where it is drawn, in MuJoCo and MuJoCo Warp alike:
+
+    * height-field *data* (``model.hfield_data``): collision reads it directly; the geom's bounds
+      come from the height field's size, which never changes;
+    * the pose of a *mocap* body (``data.mocap_pos``): state, read by both engines every step;
+    * the size of a geom (``geom_size`` with ``geom_aabb``, ``geom_rbound``) only if it was compiled
+      at its largest size (MuJoCo's per-body bounding volumes are fixed at compile time).
+
+    What may **not** change: the position of a world-body geom (``model.geom_pos``). MuJoCo bounds
+    world geoms once, at compile time, and MuJoCo Warp computes their poses once, in ``make_data``:
+    the geom is drawn where it was moved and collides where it was compiled.
+
+    Audit of every arena and task (what changes at reset, and how):
+
+    ====================  =========================================================================
+    Floor, walls          static geoms, never moved
+    Incline               a static slab, never moved
+    VariableTerrain       height-field data rewritten (batched: a pool of height fields picked per
+                          world with ``geom_dataid``, one device copy per task)
+    Bowl (Escape)         as VariableTerrain
+    ObstacleCourse        50 mocap bodies placed through ``mocap_pos``, box sizes rewritten with
+                          their bounds, compiled at the largest size (batched: per-world
+                          ``mocap_pos``, batched sizes and bounds)
+    box tasks             the box is a free body placed through ``qpos``
+    goal tasks            the goal marker is a visual site (no collision); ``site_pos`` is moved
+    ====================  =========================================================================
+
+    ``tests/test_scenarios.py`` checks each of these physically, on both backends.
     """
 
     #: True if :meth:`height_map` gives a real height map (terrain tasks observe it as ``hfield``).
