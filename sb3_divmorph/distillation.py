@@ -333,8 +333,8 @@ class DAggerCallback(BaseCallback):
     :param seed: seed of the minibatch shuffling.
     :param load_balance: weight of a Switch-Transformer load-balancing term on both gates
         (:func:`~sb3_divmorph.gates.load_balancing_loss`, minus its uniform value 1 per gate) added
-        to the KL. Default 0 (off, DivMorph's recipe). Use it against gate collapse, or with
-        ``top_k = 1``, where the TopK weights give the gate's scorer no gradient at all.
+        to the KL. Default 0 (off, DivMorph's recipe). Use it against gate collapse (a top-1 gate
+        learns without it too: its weight is straight-through, see :class:`~sb3_divmorph.gates.TopKSoftGate`).
     :param verbose: SB3 verbosity.
     """
 

@@ -21,7 +21,12 @@ class TopKSoftGate(nn.Module):
 
     Scores outside the top ``k`` are set to ``-inf`` before the softmax, so their weights are exact
     zeros (the tailors they gate can be pruned) and only the kept scores receive gradient. With
-    ``k = 1`` the single weight is always 1, so the scorer gets no gradient at all (hard routing).
+    ``k = 1`` the softmax over the single kept score is the constant 1 and would pass no gradient
+    to the scorer (nor to the morphology encoder before it): the gate would never learn. A top-1
+    gate is therefore straight-through: its weight is ``1 + p - stop_gradient(p)``, with ``p`` the
+    dense ``softmax(G(e))`` probability of the selected tailor, exactly 1 in the forward pass (the
+    same actions as hard routing) and with the gradient of ``p`` in the backward pass (as the
+    Switch Transformer's router, which scales its one expert by ``p``).
 
     :param in_dim: size of the conditioning embedding.
     :param n_units: number of tailors gated.
@@ -53,6 +58,11 @@ class TopKSoftGate(nn.Module):
         if self.k == self.n_units:
             return probabilities, probabilities
         top, index = scores.topk(self.k, dim=-1)
+        if self.k == 1:
+            # straight-through: the weight is exactly 1, its gradient that of the selected probability
+            chosen = probabilities.gather(-1, index)
+            weight = 1.0 + (chosen - chosen.detach())
+            return th.zeros_like(scores).scatter(-1, index, weight), probabilities
         masked = th.full_like(scores, float("-inf")).scatter(-1, index, top)
         return th.softmax(masked, dim=-1), probabilities
 

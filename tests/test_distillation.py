@@ -164,7 +164,7 @@ def test_a_resumed_distillation_keeps_its_dataset_and_optimiser(teachers, tmp_pa
 
 
 @pytest.mark.parametrize("load_balance", [0.0, 0.1])
-def test_load_balancing_gives_top1_gates_a_gradient_and_usage_is_logged(teachers, load_balance):
+def test_top1_gates_train_with_and_without_load_balancing_and_usage_is_logged(teachers, load_balance):
     th.manual_seed(0)
     venv = multitask_venv()
     kwargs = dict(TINY_DIVMORPH, top_k_morph=1, top_k_task=1)
@@ -173,8 +173,8 @@ def test_load_balancing_gives_top1_gates_a_gradient_and_usage_is_logged(teachers
     scorer = [p.detach().clone() for p in student.policy.router.morphology_gate.parameters()]
     student.learn(256, callback=callback)  # 2 envs x 64 steps: two distillation rounds
     moved = max((a - b.detach()).abs().max().item() for a, b in zip(scorer, student.policy.router.morphology_gate.parameters()))
-    # top-1 weights are always 1: only the load-balancing term reaches the scorer
-    assert (moved > 0) == (load_balance > 0)
+    # top-1 weights are 1 in the forward pass, straight-through in the backward pass: the KL alone trains the scorer
+    assert moved > 0
     assert len(callback.tailor_usage["morphology"]) == 2 and all(1 <= n <= 6 for n in callback.tailor_usage["morphology"])
 
 

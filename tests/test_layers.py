@@ -275,9 +275,11 @@ def test_topk_gate_has_exactly_k_weights_summing_to_one(k):
     # the kept weights are the k largest scores
     scores = gate.score(embedding)
     assert th.equal(weights.topk(k, dim=-1).indices.sort(-1).values, scores.topk(k, dim=-1).indices.sort(-1).values)
+    if k == 1:  # a top-1 weight is exactly 1 (hard routing in the forward pass) ...
+        assert th.equal(weights.max(-1).values, th.ones(32))
     (weights * th.randn(32, 8)).sum().backward()
-    # softmax over a single kept score is constant: only k > 1 lets the task loss train the gate
-    assert (gate.score[0].weight.grad.abs().sum() > 0) == (k > 1)
+    # ... and straight-through in the backward pass: the task loss trains the gate for every k
+    assert gate.score[0].weight.grad.abs().sum() > 0 and embedding.grad.abs().sum() > 0
 
 
 def test_topk_gate_rejects_bad_k():

@@ -222,6 +222,30 @@ def test_gate_activations_for_analysis():
     assert len({tuple(np.round(row, 5)) for row in morph}) > 1
 
 
+@pytest.mark.parametrize("diversion", sorted(sb3_divmorph.policies.DIVERSIONS))
+def test_every_named_diversion_trains_its_gates_and_morphology_encoder(diversion):
+    """The policy loss reaches both gates' scorers and the morphology encoder, top-1 gates included
+    (``deploy-g2k1``, ``deploy-g1k1``: a softmax over one kept score is the constant 1, so without the
+    straight-through weight of :class:`~sb3_divmorph.gates.TopKSoftGate` they got exactly 0)."""
+    # the named diversion decides tailor counts and top-k (TINY_DIVMORPH's own are for "default")
+    named = {} if diversion == "default" else dict(n_morph_tailors=None, n_task_tailors=None, top_k_morph=None, top_k_task=None)
+    policy = make_policy("divmorph", diversion=diversion, **named)
+    obs = batch(policy, size=12, n_morphologies=4, n_tasks=3)
+    gates = policy.get_gates(obs)
+    k = policy.config["top_k_morph"], policy.config["top_k_task"]
+    for weights, kept in zip(gates, k):
+        assert th.all((weights > 0).sum(-1) == kept) and th.allclose(weights.sum(-1), th.ones(len(weights)))  # forward unchanged
+    actions = th.as_tensor(np.random.default_rng(0).uniform(-1, 1, (12, 24)).astype(np.float32))
+    _, log_prob, _ = policy.evaluate_actions(obs, actions)
+    policy.optimizer.zero_grad()
+    (-log_prob.mean()).backward()
+    router = policy.router
+    for name, module in (("morphology gate", router.morphology_gate), ("task gate", router.task_gate),
+                         ("morphology encoder", router.morphology_encoder)):
+        norm = sum(float(p.grad.abs().sum()) for p in module.parameters() if p.grad is not None)
+        assert norm > 0, f"{diversion}: no gradient reaches the {name}"
+
+
 # -- PPO: save / load, learning ------------------------------------------------------------------
 class StandInEnv(gym.Env):
     """Tiny env with the contract spaces: each robot must output a fixed target on its hinges."""
