@@ -1,6 +1,6 @@
 """Export a student as a pruned compact actor for one robot and task (ONNX and TorchScript).
 
-    python examples/export_actor.py runs/demo/student --task FT --robot train-000 --out exported
+    python examples/export_actor.py runs/demo/student --task FT --out exported   # first robot it was trained on
 
 ``CompactActor.from_policy`` evaluates the gates once for this robot and task, prunes the tailors
 they switch off, merges the rest of every layer, folds what is constant for the robot (context,
@@ -25,6 +25,7 @@ from sb3_divmorph.compact import CompactActor, actor_parameter_count, export_tor
 from sb3_divmorph.deployment import export_onnx
 from sb3_divmorph.distillation import load_normalizer
 from sb3_divmorph.onnx_actor import OnnxActor
+from sb3_divmorph.pipeline.runs import trained_robot_set, trained_robots
 from unimal_envs.contract import TASK_NAMES
 from unimal_envs.morphology.loader import morphology_files
 from unimal_envs.tasks import TASKS
@@ -34,14 +35,17 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("student", type=Path, help="folder with the student's model.zip and vecnormalize.pkl")
     parser.add_argument("--task", default="FT", choices=TASK_NAMES)
-    parser.add_argument("--robot", default="train-000", help="robot of the shipped train set")
+    parser.add_argument("--robot", default=None,
+                        help="robot name (default: the first robot the student was trained on, from its run's robot_sets.json; else train-000)")
     parser.add_argument("--out", type=Path, default=Path("exported"))
     args = parser.parse_args(argv)
     th.set_num_threads(1)  # batch-1 inference of a small model: one thread is fastest
 
-    robot = next((f for f in morphology_files("train") if f.stem == args.robot), None)
+    trained = trained_robots(args.student)
+    candidates = trained if trained is not None else morphology_files("train")
+    robot = candidates[0] if args.robot is None else next((f for f in candidates if f.stem == args.robot), None)
     if robot is None:
-        parser.error(f"no robot {args.robot!r} in the train set")
+        parser.error(f"no robot {args.robot!r} among {'the robots the student was trained on' if trained else 'the train set'}")
     policy = PPO.load(args.student / "model.zip", device="cpu").policy.eval()
     normalizer = load_normalizer(args.student / "vecnormalize.pkl")
 
@@ -49,7 +53,8 @@ def main(argv: list[str] | None = None) -> None:
     obs, _ = env.reset(seed=0)
     actor = CompactActor.from_policy(policy, obs, TASKS[args.task].observation_keys, normalizer)
     args.out.mkdir(parents=True, exist_ok=True)
-    metadata = {"robot": robot.stem, "task": args.task, "source": str(args.student / "model.zip")}
+    robot_set = trained_robot_set(args.student) or "train"
+    metadata = {"robot": robot.stem, "robot_set": robot_set, "task": args.task, "source": str(args.student / "model.zip")}
     onnx_file = export_onnx(actor, obs, args.out / "actor.onnx", metadata)
     script_file = export_torchscript(actor, obs, args.out / "actor.pt", metadata)
 

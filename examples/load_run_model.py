@@ -21,6 +21,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import VecNormalize
 
 import sb3_divmorph  # noqa: F401  (policy aliases)
+from sb3_divmorph.pipeline.runs import trained_robots
 import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
 from unimal_envs.contract import TASK_NAMES
 
@@ -29,7 +30,8 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("folder", type=Path, help="a run folder with model.zip (+ vecnormalize.pkl)")
     parser.add_argument("--task", default=None, help="task to run (default: the folder's name when it is a task, e.g. teachers/FT)")
-    parser.add_argument("--robots", type=int, default=2, help="first N robots of the train set, one episode each")
+    parser.add_argument("--robots", type=int, default=2,
+                        help="first N robots the model was trained on (its run's robot_sets.json; else the train set), one episode each")
     parser.add_argument("--steps", type=int, default=200, help="longest episode")
     args = parser.parse_args(argv)
     th.set_num_threads(1)  # small models: a second thread only contends with the simulation
@@ -41,7 +43,11 @@ def main(argv: list[str] | None = None) -> None:
     if not model_file.is_file():
         parser.error(f"{model_file} does not exist")
 
-    robots = unimal_envs.morphology.loader.morphology_files("train")[: args.robots]
+    # The robots the model was trained on, by default: a pipeline run records them (robot_sets.json);
+    # a teacher run on other robots would look untrained.
+    trained = trained_robots(args.folder)
+    robots = (trained if trained is not None else unimal_envs.morphology.loader.morphology_files("train"))[: args.robots]
+    print(f"robots: {[r.stem for r in robots]} ({'the ones it was trained on' if trained else 'the shipped train set'})")
     venv = make_vec_env(f"Unimal-{task}-v0", n_envs=len(robots), seed=0,
                         env_kwargs=dict(morphologies=robots, max_episode_steps=args.steps))
     if stats_file.is_file():

@@ -127,7 +127,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--task", help="task to record (default: the one the model was trained on, when its folder tells)")
     parser.add_argument("--algo", choices=ALGOS, help="algorithm the model was saved by (default: from the rl-zoo folder, else ppo)")
     parser.add_argument("--normalizer", help="VecNormalize statistics (default: the ones saved with the model)")
-    parser.add_argument("--morphologies", default="train", help="robot set, directory or .xml file (default: train)")
+    parser.add_argument("--morphologies", default=None,
+                        help="robot set, directory or .xml file (default: the robots the model was trained on, from its "
+                             "run's robot_sets.json; else train)")
     parser.add_argument("--robot", action="append", help="robot name in that set (repeatable; default: the first ones, one per episode)")
     parser.add_argument("--episodes", type=int, default=1, help="episodes to record, one after the other (default: 1)")
     parser.add_argument("--steps", type=int, default=1000, help="longest episode, in steps of 0.02 s (default: 1000)")
@@ -135,7 +137,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--width", type=int, default=480)
     parser.add_argument("--height", type=int, default=480)
-    parser.add_argument("--out", help="MP4 file, or GIF when it ends in .gif (default: <model folder>/videos/<env id>.mp4)")
+    parser.add_argument("--out", help="MP4 file, or GIF when it ends in .gif (default: videos/<model folder>-<env id>.mp4 in "
+                                      "the current folder, never inside the model's folder)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -153,7 +156,7 @@ def record(args: argparse.Namespace) -> Path:
     import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
     from sb3_divmorph.distillation import check_spaces, load_normalizer
     from unimal_envs.contract import TASK_NAMES
-    from unimal_envs.rendering import record_episode, write_video
+    from unimal_envs.rendering import episode_frames, write_video
 
     if args.episodes < 1 or args.steps < 1:
         raise RecordError(f"--episodes and --steps must be at least 1, got {args.episodes} and {args.steps}")
@@ -170,13 +173,18 @@ def record(args: argparse.Namespace) -> Path:
     if normalizer_file is not None and not normalizer_file.is_file():
         raise RecordError(f"no such statistics file: {normalizer_file}")
 
-    env = gym.make(env_id, morphologies=args.morphologies, render_mode="rgb_array",
+    morphologies = args.morphologies
+    if morphologies is None:  # the model's own robots: a teacher run on other robots would look untrained
+        from sb3_divmorph.pipeline.runs import trained_robots
+
+        morphologies = trained_robots(saved.model) or "train"
+    env = gym.make(env_id, morphologies=morphologies, render_mode="rgb_array",
                    width=args.width, height=args.height, max_episode_steps=args.steps)
     robots = [m.name for m in env.unwrapped.morphologies]
     unknown = sorted(set(args.robot or []) - set(robots))
     if unknown:
         env.close()
-        raise RecordError(f"robot(s) {unknown} not in {args.morphologies!r} (e.g. {robots[:3]})")
+        raise RecordError(f"robot(s) {unknown} not among the robots recorded from (e.g. {robots[:3]})")
     chosen = args.robot or robots
 
     algo = {"ppo": PPO, "a2c": A2C}[args.algo or saved.algo or "ppo"]
@@ -190,18 +198,25 @@ def record(args: argparse.Namespace) -> Path:
         action, _ = model.predict(obs if normalizer is None else normalizer.normalize_obs(obs), deterministic=not args.stochastic)
         return action
 
-    frames = []
-    out = Path(args.out) if args.out else saved.model.parent / "videos" / f"{env_id}.mp4"
-    try:
+    out = Path(args.out) if args.out else Path("videos") / f"{saved.model.parent.name}-{env_id}.mp4"
+    count = 0
+
+    def frames():  # streamed to the encoder: memory stays flat however long the video
+        nonlocal count
         for episode in tqdm(range(args.episodes), desc="[record]", unit="episode", disable=args.no_progress):
             robot = chosen[episode % len(chosen)]
-            clip, total = record_episode(env, policy, steps=args.steps, seed=args.seed + episode, options={"morphology": robot})
-            frames.extend(clip)
-            print(f"[record] episode {episode}: {robot}, {len(clip) - 1} steps, return {total:.1f}")
+            outcome: dict = {}
+            for frame in episode_frames(env, policy, steps=args.steps, seed=args.seed + episode,
+                                        options={"morphology": robot}, outcome=outcome):
+                count += 1
+                yield frame
+            print(f"[record] episode {episode}: {robot}, {outcome['steps']} steps, return {outcome['return']:.1f}")
+
+    try:
+        write_video(frames(), out, fps=env.metadata.get("render_fps", 50))
     finally:
         env.close()
-    write_video(frames, out, fps=env.metadata.get("render_fps", 50))
-    print(f"[record] {len(frames)} frames of {env_id} -> {out}")
+    print(f"[record] {count} frames of {env_id} -> {out}")
     return out
 
 

@@ -240,21 +240,31 @@ def test_record_finds_the_statistics_and_the_task(tmp_path):
         find_model(tmp_path / "nothing")
 
 
-def test_record_films_a_pipeline_stage(tmp_path, capsys):
+def test_record_films_a_pipeline_stage_on_its_own_robots_outside_its_folder(tmp_path, capsys, monkeypatch):
     import argparse
+    import inspect
+    import json
 
     import imageio.v3 as iio
 
+    import unimal_envs.rendering as rendering
     from sb3_divmorph.record import add_arguments
 
     student = tmp_path / "run" / "student"
     tiny_model(student)
+    # The run records the robots it trained on: train-002 here, not the set's first robot.
+    (tmp_path / "run" / "robot_sets.json").write_text(json.dumps({"train": {"set": "train", "robots": ["train-002"]}}))
+    streamed = []
+    original = rendering.write_video
+    monkeypatch.setattr(rendering, "write_video", lambda frames, *a, **k: streamed.append(inspect.isgenerator(frames)) or original(frames, *a, **k))
+    monkeypatch.chdir(tmp_path)
     parser = argparse.ArgumentParser()
     add_arguments(parser)
     with pytest.raises(RecordError, match="pass --task"):  # a multi-task student: which task?
         record(parser.parse_args([str(student)]))
     video = record(parser.parse_args([str(student), "--task", "FT", "--steps", "4", "--width", "48", "--height", "48", "--no-progress"]))
-    assert video == student / "videos" / "Unimal-FT-v0.mp4"
+    assert video == Path("videos") / "student-Unimal-FT-v0.mp4" and not (student / "videos").exists()
+    assert streamed == [True], "frames go to the encoder as they are rendered, not as a list"
     frames = iio.imread(video)
     assert frames.shape[1:] == (48, 48, 3) and 2 <= len(frames) <= 5 and np.ptp(frames) > 0
-    assert "episode 0: train-000" in capsys.readouterr().out
+    assert "episode 0: train-002" in capsys.readouterr().out

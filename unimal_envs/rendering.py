@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 import gymnasium as gym
@@ -39,16 +39,56 @@ def write_video(frames: Iterable[np.ndarray], path: str | Path, fps: int = 50) -
     else:
         # macro_block_size=1 keeps odd frame sizes as they are instead of resizing with a warning.
         writer = imageio.get_writer(partial, fps=fps, codec="libx264", macro_block_size=1, quality=7)
-    with writer:
-        count = 0
-        for frame in frames:
-            writer.append_data(np.asarray(frame))
-            count += 1
+    count = 0
+    try:
+        with writer:
+            for frame in frames:  # frames may be a generator: each is encoded as it comes, none kept
+                writer.append_data(np.asarray(frame))
+                count += 1
+    except BaseException:
+        partial.unlink(missing_ok=True)
+        raise
     if count == 0:
         partial.unlink(missing_ok=True)
         raise ValueError(f"no frames to write to {path}")
     os.replace(partial, path)
     return path
+
+
+def episode_frames(
+    env: gym.Env,
+    policy: Callable[[dict], np.ndarray] | None = None,
+    steps: int = 200,
+    seed: int | None = None,
+    options: dict | None = None,
+    outcome: dict | None = None,
+) -> Iterator[np.ndarray]:
+    """Roll out one episode (up to ``steps``) in an ``rgb_array`` env, yielding each frame as it is
+    rendered (the first one before any step), so a long video streams to :func:`write_video`
+    without holding its frames in memory.
+
+    :param env: an env made with ``render_mode="rgb_array"``.
+    :param policy: maps an observation to an action; random actions when ``None``.
+    :param steps: maximum number of steps.
+    :param seed: reset seed.
+    :param options: reset options, e.g. ``{"morphology": name}``.
+    :param outcome: filled at the end with ``return`` (undiscounted) and ``steps``.
+    """
+    if env.render_mode != "rgb_array":
+        raise ValueError(f"episode_frames needs an env made with render_mode='rgb_array', got {env.render_mode!r}")
+    outcome = {} if outcome is None else outcome
+    obs, _ = env.reset(seed=seed, options=options)
+    total, taken = 0.0, 0
+    yield env.render()
+    for _ in range(steps):
+        action = env.action_space.sample() if policy is None else policy(obs)
+        obs, reward, terminated, truncated, _ = env.step(action)
+        total += float(reward)
+        taken += 1
+        yield env.render()
+        if terminated or truncated:
+            break
+    outcome.update({"return": total, "steps": taken})
 
 
 def record_episode(
@@ -69,13 +109,6 @@ def record_episode(
     """
     if env.render_mode != "rgb_array":
         raise ValueError(f"record_episode needs an env made with render_mode='rgb_array', got {env.render_mode!r}")
-    obs, _ = env.reset(seed=seed, options=options)
-    frames, total = [env.render()], 0.0
-    for _ in range(steps):
-        action = env.action_space.sample() if policy is None else policy(obs)
-        obs, reward, terminated, truncated, _ = env.step(action)
-        total += float(reward)
-        frames.append(env.render())
-        if terminated or truncated:
-            break
-    return frames, total
+    outcome: dict = {}
+    frames = list(episode_frames(env, policy, steps, seed, options, outcome))
+    return frames, outcome["return"]

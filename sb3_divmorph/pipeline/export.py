@@ -185,8 +185,11 @@ def export_actor(
     counts = actor.stored_numbers()
     student_actor = actor_parameter_count(policy)
     sizes = size_comparison(policy, actor, first, TASKS[task].observation_keys, normalizer)
+    in_train = robot_file.resolve() in {f.resolve() for f in profile_robots(profile, "train")}
     metadata = {
         "robot": robot_file.stem,
+        # the robot's set, so that a reader finds its MJCF: morphology_files(robot_set) has robot
+        "robot_set": profile.train_set if in_train else profile.novel_set,
         "task": task,
         "student": student,
         "source": str(source / MODEL),

@@ -121,14 +121,56 @@ def profile_robots(profile: Profile, split: str) -> list[Path]:
     return robot_files(profile.novel_set, profile.novel_robots, exclude=train)
 
 
+#: The record of which robots a run trains and evaluates on (at the run folder's root).
+ROBOT_SETS = "robot_sets.json"
+
+
+def trained_robots(folder: str | Path) -> list[Path] | None:
+    """The robots a pipeline model was trained on: the ``train`` robots of the run it belongs to,
+    read from the nearest ``robot_sets.json`` in ``folder`` or above it (``None`` when there is none,
+    e.g. an rl-zoo run). A shipped model then runs on its own robots by default, wherever they live
+    on this machine (a set name resolves to this machine's fetched copy).
+
+    :param folder: a model folder (``teachers/FT``, ``student``, ``transfer/<task>/<arm>/seed-0``) or a
+        ``model.zip`` inside one.
+    :raises ConfigError: the record names robots that its set does not hold here.
+    """
+    record = _robot_sets_record(folder)
+    if record is None:
+        return None
+    entry = json.loads(record.read_text())["train"]
+    available = {f.stem: f for f in robot_files(entry["set"], None)}
+    missing = [name for name in entry["robots"] if name not in available]
+    if missing:
+        raise ConfigError(f"{record} names robots of the set {entry['set']!r} that are not there on this machine: "
+                          f"{missing[:3]}{'...' if len(missing) > 3 else ''}")
+    return [available[name] for name in entry["robots"]]
+
+
+def trained_robot_set(folder: str | Path) -> str | None:
+    """The name (or folder) of the robot set a pipeline model was trained on (see :func:`trained_robots`)."""
+    record = _robot_sets_record(folder)
+    return None if record is None else json.loads(record.read_text())["train"]["set"]
+
+
+def _robot_sets_record(folder: str | Path) -> Path | None:
+    """The nearest ``robot_sets.json`` in ``folder`` (a model folder or a ``model.zip``) or above it."""
+    folder = Path(folder).resolve()
+    if folder.suffix == ".zip":
+        folder = folder.parent
+    return next((d / ROBOT_SETS for d in (folder, *folder.parents) if (d / ROBOT_SETS).is_file()), None)
+
+
 def robot_set_record(profile: Profile) -> dict[str, Any]:
     """Which robot sets a profile uses, resolved: names, folders, robot counts and, for the official
     sets, the source and checksum manifest they were fetched with (so results name their robots)."""
     record: dict[str, Any] = {}
     for split, name in (("train", profile.train_set), ("novel", profile.novel_set)):
         files = profile_robots(profile, split)
-        entry: dict[str, Any] = {"set": name, "folder": str(files[0].parent.parent if files[0].parent.name == "xml" else files[0].parent), "robots": [f.stem for f in files]}
-        manifest = Path(entry["folder"]) / "MANIFEST.json"
+        folder = files[0].parent.parent if files[0].parent.name == "xml" else files[0].parent
+        # Where the set was read on this machine, with the home folder as ~ (no user's paths in results).
+        entry: dict[str, Any] = {"set": name, "folder": _portable(folder), "robots": [f.stem for f in files]}
+        manifest = folder / "MANIFEST.json"
         if manifest.is_file():
             data = json.loads(manifest.read_text())
             entry["source"] = data.get("source")
@@ -139,7 +181,7 @@ def robot_set_record(profile: Profile) -> dict[str, Any]:
 
 def record_robot_sets(profile: Profile, out: Path) -> Path:
     """Write :func:`robot_set_record` to ``out/robot_sets.json`` (atomically) and return its path."""
-    path = Path(out) / "robot_sets.json"
+    path = Path(out) / ROBOT_SETS
     atomic_write_json(path, robot_set_record(profile))
     return path
 
@@ -369,3 +411,12 @@ def read_progress(folder: Path) -> dict[str, np.ndarray]:
             value = row.get(key, "")
             columns[key].append(float(value) if value not in ("", None) else np.nan)
     return {k: np.asarray(v) for k, v in columns.items()}
+
+
+def _portable(path: Path) -> str:
+    """``path`` with the user's home folder written as ``~``."""
+    home = Path.home()
+    try:
+        return str(Path("~") / path.resolve().relative_to(home))
+    except ValueError:
+        return str(path)

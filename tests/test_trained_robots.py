@@ -1,0 +1,55 @@
+"""Shipped models run on the robots they were trained on, by default, wherever a model folder is accepted."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from sb3_divmorph.pipeline.config import ConfigError
+from sb3_divmorph.pipeline.runs import trained_robot_set, trained_robots
+
+RUN = Path(__file__).resolve().parents[1] / "results" / "cpu"
+
+
+def test_a_model_folder_names_the_robots_of_its_run(tmp_path):
+    run = tmp_path / "run"
+    (run / "teachers" / "FT").mkdir(parents=True)
+    (run / "robot_sets.json").write_text(json.dumps({"train": {"set": "train", "robots": ["train-004", "train-001"]}}))
+    robots = trained_robots(run / "teachers" / "FT" / "model.zip")
+    assert [r.stem for r in robots] == ["train-004", "train-001"] and all(r.is_file() for r in robots)
+    assert trained_robot_set(run / "teachers" / "FT") == "train"
+    assert trained_robots(tmp_path) is None  # no run record: the caller falls back to its default
+    (run / "robot_sets.json").write_text(json.dumps({"train": {"set": "train", "robots": ["train-999"]}}))
+    with pytest.raises(ConfigError, match="train-999"):
+        trained_robots(run / "teachers" / "FT")
+
+
+def test_the_shipped_teachers_default_to_the_official_robots(official_train, monkeypatch):
+    robots = trained_robots(RUN / "teachers" / "FT")
+    assert len(robots) == 10 and robots[0].stem == "floor-1409-0-12-01-12-30-07"
+    assert trained_robot_set(RUN / "student") == "unimals100-train"
+
+
+def test_the_load_example_walks_the_shipped_teacher_with_no_extra_flags(official_train, capsys):
+    import runpy
+    import sys
+
+    argv = sys.argv
+    sys.argv = ["load_run_model.py", str(RUN / "teachers" / "FT"), "--robots", "1", "--steps", "300"]
+    try:
+        runpy.run_path(str(RUN.parents[1] / "examples" / "load_run_model.py"), run_name="__main__")
+    finally:
+        sys.argv = argv
+    out = capsys.readouterr().out
+    assert "floor-1409-0-12-01-12-30-07: return" in out
+    ret = float(out.split("floor-1409-0-12-01-12-30-07: return")[1].split()[0])
+    assert ret > 300, out  # the teacher walks on its own robot (it fell at once on the generated set)
+
+
+def test_the_shipped_compact_actors_name_their_robot_set():
+    onnx = pytest.importorskip("onnx")
+    for path in sorted((RUN / "export").glob("*-FT/actor.onnx")):
+        props = {p.key: p.value for p in onnx.load(str(path)).metadata_props}
+        assert props["robot_set"] == "unimals100-train" and props["robot"] in path.parent.name
