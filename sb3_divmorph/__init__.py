@@ -3,10 +3,13 @@
 Importing the package registers ``"MetaMorphPolicy"``, ``"ModuMorphPolicy"``, ``"DivMorphPolicy"``
 and ``"HyperDistillPolicy"`` as PPO and A2C policy aliases, so ``PPO("DivMorphPolicy", env)`` and rl-zoo configs with ``policy: DivMorphPolicy``
 (with ``--gym-packages sb3_divmorph``) work. They are actor-critic policies, for on-policy algorithms only.
+:class:`DevicePPO` is SB3's PPO with rollouts collected on the device when its env is the batched
+MuJoCo Warp env (``sb3_divmorph.device_ppo``).
 """
 
 from stable_baselines3 import A2C, PPO
 
+from sb3_divmorph.device_ppo import DevicePPO
 from sb3_divmorph.distributions import MaskedDiagGaussianDistribution
 from sb3_divmorph.extractors import MorphologyTransformerExtractor
 from sb3_divmorph.gates import DiversionRouter, GateActivations, MorphologyEncoder, TopKSoftGate
@@ -31,6 +34,7 @@ __all__ = [
     "DIVMORPH_PRESETS",
     "PRESETS",
     "DenseLinear",
+    "DevicePPO",
     "DivMorphPolicy",
     "DiversionRouter",
     "FactorizedLinear",

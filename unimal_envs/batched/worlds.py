@@ -331,15 +331,19 @@ class RobotWorlds:
 
     def select_terrain(self, mask: torch.Tensor, variant: torch.Tensor, pool_layout: torch.Tensor | None) -> None:
         """Point the worlds where ``mask`` is true at terrain ``variant`` (W,) of the pool."""
+        if not hasattr(self, "_terrain_indices"):  # on the device once, not copied at every reset
+            self._terrain_indices = (
+                torch.as_tensor(self.variant_dataid, device=self.torch_device, dtype=self.geom_dataid.dtype)
+                if self.variant_dataid is not None else None,
+                torch.as_tensor(self.obstacle_ids, device=self.torch_device),
+                torch.as_tensor(self.obstacle_mocap, device=self.torch_device))
+        ids, g, b = self._terrain_indices
         if self.variant_dataid is not None:
-            ids = torch.as_tensor(self.variant_dataid, device=self.torch_device, dtype=self.geom_dataid.dtype)
             col = self.geom_dataid[:, self.terrain_geom]
             col.copy_(torch.where(mask, ids[variant], col))
         if self.obstacle_ids.size:
             # As apply_block_layout does in the single env: mocap poses, sizes, collision bounds.
             layout = pool_layout[variant]  # (W, blocks, 6): centre, half-size
-            g = torch.as_tensor(self.obstacle_ids, device=self.torch_device)
-            b = torch.as_tensor(self.obstacle_mocap, device=self.torch_device)
             m = mask[:, None, None]
             half = layout[..., 3:]
             self.mocap_pos[:, b] = torch.where(m, layout[..., :3], self.mocap_pos[:, b])

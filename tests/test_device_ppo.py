@@ -1,0 +1,192 @@
+"""DevicePPO: rollouts through the batched env's torch interface, on CPU Warp here.
+
+What a user relies on: the device path collects the same rollout as SB3's VecEnv path from the
+same seed (observations, actions, rewards, dones, values, advantages, episode statistics and
+VecNormalize statistics) and makes the same update; its hot loop uses neither the VecEnv methods
+nor per-step host copies; it trains, saves and loads as a normal SB3 model; and with any other
+env it is SB3's PPO.
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from gymnasium import spaces
+
+pytest.importorskip("mujoco_warp", reason="the batched backend needs the mujoco-warp extra")
+
+from stable_baselines3 import PPO  # noqa: E402
+from stable_baselines3.common.buffers import DictRolloutBuffer  # noqa: E402
+from stable_baselines3.common.logger import configure  # noqa: E402
+from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor, VecNormalize  # noqa: E402
+
+import sb3_divmorph  # noqa: E402,F401  (policy aliases)
+import unimal_envs  # noqa: E402,F401
+from sb3_divmorph.device_ppo import DeviceDictRolloutBuffer, DevicePPO, HostTransferCounter  # noqa: E402
+from unimal_envs.batched import make_batched_env  # noqa: E402
+from unimal_envs.batched.env import BatchedUnimalEnv  # noqa: E402
+from unimal_envs.morphology.loader import morphology_files  # noqa: E402
+
+ROBOTS = morphology_files("train")[:2]
+TINY = dict(d_model=16, n_layers=1, ff_dim=32, exteroception=dict(hfield=[8], goal=[4], object=[4]))
+POLICIES = {"MetaMorphPolicy": TINY, "DivMorphPolicy": dict(TINY, n_morph_tailors=4, n_task_tailors=4, top_k_morph=2, top_k_task=2)}
+NORM_KEYS = ["proprioceptive", "hfield"]
+
+
+def batched(task: str = "VT", max_episode_steps: int = 5, worlds: int = 2) -> VecNormalize:
+    """2 robots x ``worlds`` worlds, monitored and normalised as the pipeline wraps them."""
+    env = make_batched_env(task, morphologies=ROBOTS, worlds_per_robot=worlds, device="cpu", seed=0,
+                           max_episode_steps=max_episode_steps, terrain_variants=2)
+    return VecNormalize(VecMonitor(env), norm_obs_keys=NORM_KEYS)
+
+
+def first_rollout(model):
+    """Collect one rollout as ``learn`` would, without the update."""
+    _, callback = model._setup_learn(model.n_steps * model.n_envs, None)
+    callback.on_training_start(locals(), globals())
+    assert model.collect_rollouts(model.env, callback, model.rollout_buffer, model.n_steps)
+    return model.rollout_buffer
+
+
+@pytest.mark.parametrize("policy", list(POLICIES))
+def test_the_device_path_collects_the_same_first_rollout_and_makes_the_same_update_as_sb3s_vecenv_path(policy):
+    # 8 steps with a 5-step time limit: every world is truncated once (bootstrapped from its final
+    # observation) and auto-reset; observations and rewards go through VecNormalize.
+    kwargs = dict(n_steps=8, batch_size=32, n_epochs=1, seed=0, policy_kwargs=POLICIES[policy])
+    # one after the other: each model seeds torch's global generator, which samples the actions
+    sb3 = PPO(policy, batched(), **kwargs)
+    ref = first_rollout(sb3)
+    device = DevicePPO(policy, batched(), **kwargs)
+    buf = first_rollout(device)
+    assert isinstance(ref, DictRolloutBuffer) and isinstance(buf, DeviceDictRolloutBuffer)
+    assert ref.episode_starts[5].all() and buf.episode_starts[5].all(), "every world was truncated after 5 steps"
+
+    obs = buf.stacked_observations()
+    for key in ref.observations:
+        np.testing.assert_allclose(obs[key].numpy(), ref.observations[key], atol=1e-4, err_msg=key)
+    for name in ("actions", "rewards", "episode_starts", "values", "log_probs", "advantages", "returns"):
+        np.testing.assert_allclose(getattr(buf, name).numpy(), getattr(ref, name), atol=1e-5, err_msg=name)
+    # episode statistics (VecMonitor's, kept in tensors) and the VecNormalize statistics written back
+    assert [e["l"] for e in device.ep_info_buffer] == [e["l"] for e in sb3.ep_info_buffer] == [5] * 4
+    np.testing.assert_allclose([e["r"] for e in device.ep_info_buffer], [e["r"] for e in sb3.ep_info_buffer], atol=1e-5)
+    ref_norm, norm = sb3.get_vec_normalize_env(), device.get_vec_normalize_env()
+    for key in NORM_KEYS:
+        assert norm.obs_rms[key].count == ref_norm.obs_rms[key].count == pytest.approx(1e-4 + 9 * 4)
+        np.testing.assert_allclose(norm.obs_rms[key].mean, ref_norm.obs_rms[key].mean, atol=1e-5)
+        np.testing.assert_allclose(norm.obs_rms[key].var, ref_norm.obs_rms[key].var, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(norm.ret_rms.var, ref_norm.ret_rms.var, rtol=1e-5)
+    np.testing.assert_allclose(norm.returns, ref_norm.returns, atol=1e-5)
+
+    # One minibatch of the whole rollout: the gradient does not depend on the order, so SB3's
+    # update on either buffer gives the same weights (the device buffer's samples are aligned).
+    sb3.train()
+    device.train()
+    for (name, p), q in zip(sb3.policy.named_parameters(), device.policy.parameters()):
+        np.testing.assert_allclose(q.detach().numpy(), p.detach().numpy(), atol=1e-5, err_msg=name)
+
+
+def test_gae_bootstrapping_and_minibatches_match_sb3s_rollout_buffer_on_the_same_data():
+    space = spaces.Dict({"moving": spaces.Box(-1, 1, (3,)), "fixed": spaces.Box(-1, 1, (2,))})
+    action_space = spaces.Box(-1, 1, (2,))
+    steps, envs = 6, 3
+    ref = DictRolloutBuffer(steps, space, action_space, "cpu", gae_lambda=0.9, gamma=0.95, n_envs=envs)
+    buf = DeviceDictRolloutBuffer(steps, space, action_space, "cpu", gae_lambda=0.9, gamma=0.95, n_envs=envs, static_keys=["fixed"])
+    rng = np.random.default_rng(0)
+    fixed = rng.normal(size=(envs, 2)).astype(np.float32)
+    for _ in range(steps):
+        obs = {"moving": rng.normal(size=(envs, 3)).astype(np.float32), "fixed": fixed}
+        action = rng.normal(size=(envs, 2)).astype(np.float32)
+        reward = rng.normal(size=envs).astype(np.float32)
+        start = (rng.random(envs) < 0.3).astype(np.float32)
+        value, log_prob = torch.randn(envs, 1), torch.randn(envs)
+        ref.add(obs, action, reward, start, value, log_prob)
+        buf.add({k: torch.as_tensor(v) for k, v in obs.items()}, torch.as_tensor(action), torch.as_tensor(reward),
+                torch.as_tensor(start), value, log_prob)
+    last, dones = torch.randn(envs), np.array([True, False, True])
+    ref.compute_returns_and_advantage(last, dones)
+    buf.compute_returns_and_advantage(last, torch.as_tensor(dones))
+    np.testing.assert_allclose(buf.advantages.numpy(), ref.advantages, atol=1e-6)
+    np.testing.assert_allclose(buf.returns.numpy(), ref.returns, atol=1e-6)
+
+    list(ref.get(4))  # SB3 flattens its arrays (env-major); the device buffer gathers the same order
+    everything = buf._get_samples(torch.arange(steps * envs))
+    expected = ref._get_samples(np.arange(steps * envs))
+    for a, b in zip(everything[1:], expected[1:]):
+        np.testing.assert_allclose(a.numpy(), b.numpy().reshape(a.shape), atol=1e-6)
+    for key in space.spaces:
+        np.testing.assert_allclose(everything.observations[key].numpy(), expected.observations[key].numpy(), atol=1e-6)
+    batches = list(buf.get(4))
+    assert [len(b.actions) for b in batches] == [4, 4, 4, 4, 2]
+    seen = torch.cat([b.old_log_prob for b in batches]).sort().values
+    assert torch.equal(seen, buf.log_probs.flatten().sort().values), "every sample once per epoch"
+
+
+def test_the_hot_loop_stays_on_the_device(monkeypatch):
+    def refuse(*args, **kwargs):
+        raise AssertionError("DevicePPO went through the numpy VecEnv interface")
+
+    for name in ("reset", "step_async", "step_wait", "_numpy"):
+        monkeypatch.setattr(BatchedUnimalEnv, name, refuse)
+    model = DevicePPO("MetaMorphPolicy", batched(max_episode_steps=3), n_steps=8, batch_size=32, n_epochs=1, seed=0,
+                      policy_kwargs=TINY)
+    model.learn(2 * 8 * 4)  # would raise through `refuse` if any VecEnv method ran
+    assert model.num_timesteps == 64 and len(model.ep_info_buffer) >= 8
+
+    # Host copies per rollout do not grow with its length; waits for the device are at most 2 a step
+    # (the env's auto-reset check and the truncation check).
+    counts = {}
+    for steps in (4, 8):
+        with HostTransferCounter() as counter:
+            model.collect_rollouts(model.env, model._init_callback(None), model.rollout_buffer, steps)
+        counts[steps] = counter.counts
+    assert counts[4]["to_host"] == counts[8]["to_host"] and counts[4]["to_device"] == counts[8]["to_device"], counts
+    assert counts[8]["to_host_bytes"] < 64 * 1024, counts  # normaliser statistics and episode records
+    assert counts[8]["syncs"] - counts[4]["syncs"] <= 2 * 4, counts
+
+
+def test_device_ppo_trains_saves_and_loads_as_a_normal_sb3_model(tmp_path):
+    venv = batched("FT", max_episode_steps=8)
+    model = DevicePPO("DivMorphPolicy", venv, n_steps=8, batch_size=16, n_epochs=2, seed=0, policy_kwargs=POLICIES["DivMorphPolicy"])
+    model.set_logger(configure(str(tmp_path / "log"), ["csv"]))
+    before = [p.detach().clone() for p in model.policy.parameters()]
+    model.learn(3 * 8 * 4)
+    assert any(not torch.equal(a, b) for a, b in zip(before, model.policy.parameters()))
+    assert model.timings["rollout"] > 0 and model.timings["update"] > 0
+    progress = (tmp_path / "log" / "progress.csv").read_text().splitlines()
+    header = progress[0].split(",")
+    assert "rollout/ep_rew_mean" in header and "train/explained_variance" in header
+    assert progress[-1].split(",")[header.index("rollout/ep_len_mean")] not in ("", "nan")
+    # VecNormalize holds what the device normaliser learnt: 1 reset + 24 steps of 4 worlds
+    assert venv.obs_rms["proprioceptive"].count == pytest.approx(1e-4 + 4 * 25)
+
+    model.save(tmp_path / "model")
+    venv.save(str(tmp_path / "vecnormalize.pkl"))
+    loaded_env = VecNormalize.load(str(tmp_path / "vecnormalize.pkl"), venv.venv)
+    loaded = DevicePPO.load(tmp_path / "model", env=loaded_env)
+    plain = PPO.load(tmp_path / "model")
+    obs = loaded_env.normalize_obs(loaded_env.venv.reset())
+    action = model.predict(obs, deterministic=True)[0]
+    np.testing.assert_allclose(loaded.predict(obs, deterministic=True)[0], action, atol=1e-6)
+    np.testing.assert_allclose(plain.predict(obs, deterministic=True)[0], action, atol=1e-6)
+    loaded.learn(8 * 4, reset_num_timesteps=False)  # resumes on the device
+    assert loaded.num_timesteps == 4 * 8 * 4 and isinstance(loaded.rollout_buffer, DeviceDictRolloutBuffer)
+
+
+def test_with_any_other_env_it_is_sb3s_ppo(tmp_path):
+    def single():
+        return DummyVecEnv([lambda: gym.make("Unimal-FT-v0", morphologies=ROBOTS[:1], max_episode_steps=6)])
+
+    kwargs = dict(n_steps=8, batch_size=8, n_epochs=1, seed=0, policy_kwargs=TINY)
+    ref = first_rollout(PPO("MetaMorphPolicy", single(), **kwargs))
+    buf = first_rollout(DevicePPO("MetaMorphPolicy", single(), **kwargs))
+    assert type(buf) is DictRolloutBuffer
+    for name in ("actions", "rewards", "values", "advantages"):
+        np.testing.assert_array_equal(getattr(buf, name), getattr(ref, name), err_msg=name)
+    # a model trained on the device path falls back too when loaded with another env
+    on_device = DevicePPO("MetaMorphPolicy", batched(), **kwargs).learn(8 * 4)
+    on_device.save(tmp_path / "model")
+    elsewhere = DevicePPO.load(tmp_path / "model", env=single())
+    assert type(elsewhere.rollout_buffer) is DictRolloutBuffer
+    elsewhere.learn(8)
