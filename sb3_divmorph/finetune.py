@@ -29,6 +29,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.running_mean_std import RunningMeanStd
+from stable_baselines3.common.vec_env import VecNormalize
 from torch import nn
 
 from sb3_divmorph.layers import FactorizedLinear, _upper_indices
@@ -154,6 +156,51 @@ class UnitLearningRates:
             handle.remove()
 
 
+class FrozenRunningMeanStd(RunningMeanStd):
+    """Running statistics that no longer learn: ``update`` and ``combine`` leave them as they are.
+
+    A ``VecNormalize`` holding these as its observation statistics normalises observations with
+    the statistics it was given while its reward statistics (a plain ``RunningMeanStd``) go on
+    learning. It pickles with the normaliser, so checkpoints and the saved ``vecnormalize.pkl``
+    keep the statistics frozen when loaded again.
+
+    :param statistics: the statistics to freeze (copied).
+    """
+
+    def __init__(self, statistics: RunningMeanStd):
+        super().__init__(shape=statistics.mean.shape)
+        self.mean = np.array(statistics.mean, dtype=np.float64, copy=True)
+        self.var = np.array(statistics.var, dtype=np.float64, copy=True)
+        self.count = float(statistics.count)
+
+    def update_from_moments(self, batch_mean: np.ndarray, batch_var: np.ndarray, batch_count: float) -> None:  # noqa: ARG002
+        """Ignored: frozen statistics do not move."""
+
+
+def freeze_observation_statistics(normalizer: VecNormalize) -> VecNormalize:
+    """Freeze a ``VecNormalize``'s observation statistics in place; its reward statistics still learn
+    while ``normalizer.training`` is True.
+
+    A fine-tuned policy was trained on inputs normalised by the statistics it comes with; were they to
+    go on moving (``VecNormalize`` with ``training=True``), the inputs of even a frozen network would
+    change under it (measured in ``results/normalizer_drift.md``).
+
+    :param normalizer: the ``VecNormalize`` (e.g. loaded from a trained model's ``vecnormalize.pkl``).
+    :return: the same object.
+    """
+    if isinstance(normalizer.obs_rms, dict):
+        normalizer.obs_rms = {key: FrozenRunningMeanStd(rms) for key, rms in normalizer.obs_rms.items()}
+    else:
+        normalizer.obs_rms = FrozenRunningMeanStd(normalizer.obs_rms)
+    return normalizer
+
+
+def observation_statistics_frozen(normalizer: VecNormalize) -> bool:
+    """Whether every observation statistic of ``normalizer`` is frozen (see :func:`freeze_observation_statistics`)."""
+    statistics = normalizer.obs_rms.values() if isinstance(normalizer.obs_rms, dict) else [normalizer.obs_rms]
+    return all(isinstance(rms, FrozenRunningMeanStd) for rms in statistics)
+
+
 def freeze(modules: Iterable[nn.Module]) -> int:
     """``requires_grad = False`` on every parameter of ``modules``; returns how many elements."""
     count = 0
@@ -237,8 +284,33 @@ def unit_groups(layer: FactorizedLinear, unit: th.Tensor) -> dict[str, dict[nn.P
 TRANSFER_ADAM_EPS = 1e-10
 
 
+def undiverted_modules(policy: nn.Module) -> list[nn.Module]:
+    """The actor parts a DivMorph ablation does not divert: the Transformer encoder with
+    ``divert_transformer=False``, the actor's decoder layers with ``divert_decoder=False`` (empty for
+    the full DivMorph, whose undiverted pieces -- the action head, embeddings -- are shared knowledge)."""
+    extractor = policy.features_extractor if policy.share_features_extractor else policy.pi_features_extractor
+    config = getattr(policy, "config", {})
+    parts = []
+    if not config.get("divert_transformer", True):
+        parts.append(extractor.encoder)
+    if not config.get("divert_decoder", True):
+        parts.append(policy.mlp_extractor.policy_net)
+    return parts
+
+
+def set_adam_eps(optimizer: th.optim.Optimizer, eps: float) -> None:
+    """Set ``eps`` in every parameter group of an Adam-type optimiser (those without one are left)."""
+    for group in optimizer.param_groups:
+        if "eps" in group:
+            group["eps"] = eps
+
+
 def prepare_transfer(
-    policy: nn.Module, selection: UnitSelection, learngene_scale: float = 0.1, adam_eps: float | None = TRANSFER_ADAM_EPS
+    policy: nn.Module,
+    selection: UnitSelection,
+    learngene_scale: float = 0.1,
+    adam_eps: float | None = TRANSFER_ADAM_EPS,
+    undiverted_scale: float | None = 1.0,
 ) -> UnitLearningRates:
     """Set a DivMorph policy up for DivMorph transfer, in place.
 
@@ -249,6 +321,10 @@ def prepare_transfer(
       learngenes at ``learngene_scale`` of it, unselected tailors not at all;
     * the actor's other parameters (token embedding, layer norms, biases, exteroception
       encoders), which carry shared knowledge like the learngenes, train at ``learngene_scale``;
+    * a part an ablation does not divert (:func:`undiverted_modules`: it has no tailors, so every
+      unit of it would count as a learngene) trains at ``undiverted_scale`` -- by default the full
+      rate, as any fine-tuned network, so that the ablation differs from DivMorph in its
+      diversion, not in a learning rate;
     * the critic (never distilled) trains at the full rate;
     * the optimiser's ``eps`` is set to ``adam_eps`` so that Adam normalises even the small
       gradients of a distilled student and the configured ratio is the one applied.
@@ -257,20 +333,41 @@ def prepare_transfer(
     :param selection: the tailors the fixed gates select (:meth:`UnitSelection.from_gates`).
     :param learngene_scale: learning-rate ratio of the shared knowledge to the selected tailors.
     :param adam_eps: ``eps`` for every parameter group of the optimiser; ``None`` keeps it.
+    :param undiverted_scale: learning-rate scale of the parts an ablation does not divert;
+        ``None``: ``learngene_scale`` (every unit a learngene, the behaviour before this option).
     :return: the installed :class:`UnitLearningRates` (keep it, or call ``remove``); its
-        :meth:`~UnitLearningRates.measured_ratio` is the learngene / selected-tailor update ratio.
+        :meth:`~UnitLearningRates.measured_ratio` is the learngene / selected-tailor update ratio
+        (units of undiverted parts are measured apart, as the group ``undiverted``).
     """
     if not hasattr(policy, "router"):
         raise TypeError(f"transfer with fixed gates needs a DivMorphPolicy, got {type(policy).__name__}")
     if not 0 <= learngene_scale <= 1:
         raise ValueError(f"learngene_scale must be in [0, 1], got {learngene_scale}")
+    if undiverted_scale is None:
+        undiverted_scale = learngene_scale
+    if not 0 <= undiverted_scale <= 1:
+        raise ValueError(f"undiverted_scale must be in [0, 1] (or None), got {undiverted_scale}")
     freeze([policy.router])
     optimizer = policy.optimizer
     scales: dict[nn.Parameter, th.Tensor] = {}
-    groups: dict[str, dict[nn.Parameter, th.Tensor]] = {"learngene": {}, "selected_tailor": {}}
+    groups: dict[str, dict[nn.Parameter, th.Tensor]] = {"learngene": {}, "selected_tailor": {}, "undiverted": {}}
+    undiverted = undiverted_modules(policy)
+    for part in undiverted:
+        for layer in part.modules():
+            if isinstance(layer, FactorizedLinear):
+                layer.rebase_square_factor()
+                if layer.orthogonal:
+                    optimizer.state.pop(layer.square_skew, None)
+                unit = th.full((layer.rank,), float(undiverted_scale))
+                scales.update(factor_parameter_scales(layer, unit, undiverted_scale))
+                groups["undiverted"].update(unit_groups(layer, unit)["learngene"])
+        for p in part.parameters():
+            if p.requires_grad and p not in scales:
+                scales[p] = th.full((), float(undiverted_scale))
+    handled = {id(layer) for part in undiverted for layer in part.modules()}
     for module in actor_modules(policy):
         for layer in module.modules():
-            if isinstance(layer, FactorizedLinear):
+            if isinstance(layer, FactorizedLinear) and id(layer) not in handled:
                 layer.rebase_square_factor()
                 if layer.orthogonal:
                     # Adam's moments of the skew belonged to the old parametrisation
@@ -285,7 +382,5 @@ def prepare_transfer(
     if isinstance(getattr(policy, "log_std", None), nn.Parameter):
         scales[policy.log_std] = th.full((), float(learngene_scale))
     if adam_eps is not None:
-        for group in optimizer.param_groups:
-            if "eps" in group:
-                group["eps"] = adam_eps
+        set_adam_eps(optimizer, adam_eps)
     return UnitLearningRates(optimizer, scales, groups)

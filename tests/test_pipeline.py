@@ -38,7 +38,8 @@ TINY = {
         "hyperparams": str(REPO / "zoo_configs" / "ppo.yml"),
         "n_timesteps": 128,
         "overrides": {"n_envs": 1, "n_steps": 64, "batch_size": 64, "n_epochs": 1},
-        "policy_kwargs": TINY_POLICY,
+        # as in the shipped profiles, each teacher's exteroception follows its task's zoo entry (FT: none)
+        "policy_kwargs": {k: v for k, v in TINY_POLICY.items() if k != "exteroception"},
         "checkpoint_every": 64,
     },
     "student": {"policy_kwargs": {**TINY_POLICY, "n_morph_tailors": 6, "n_task_tailors": 6, "top_k_morph": 2, "top_k_task": 2}},
@@ -381,6 +382,9 @@ def test_profile_errors_name_the_key_and_the_choices(tmp_path):
         load_profile("tiny", write_profiles(tmp_path, transfer__instructions={"PointNav": "go"}))
     with pytest.raises(ConfigError, match="ppo_loss needs beta"):
         load_profile("tiny", write_profiles(tmp_path, distill__ppo_loss=True))
+    with pytest.raises(ConfigError, match=r"teachers.n_timesteps must be a positive whole number of env steps, got -5"):
+        load_profile("tiny", write_profiles(tmp_path, teachers__n_timesteps=-5))
+    assert load_profile("tiny", write_profiles(tmp_path, teachers__n_timesteps=2e3)).teachers.n_timesteps == 2000
     zoo = tmp_path / "zoo.yml"
     zoo.write_text("Unimal-FT-v0:\n  n_timesteps: 10\n  learning_rat: 0.1\n")
     with pytest.raises(ConfigError, match="learning_rat"):
@@ -682,3 +686,86 @@ def test_a_branch_reuses_a_runs_stages_and_trains_only_what_follows(finished_run
     assert "is not a run folder" in capsys.readouterr().err and not (tmp_path / "new").exists()
     assert cli(["branch", "--from", str(source), "--out", str(out)]) == 2
     assert "not an empty folder" in capsys.readouterr().err
+
+
+def copied_run(finished_run, tmp_path) -> tuple[Path, Path]:
+    """A copy of the finished run to start new transfer runs in (the shared one stays as the other tests see it)."""
+    import shutil
+
+    out, profiles = finished_run
+    shutil.copytree(out, tmp_path / "run")
+    return tmp_path / "run", profiles
+
+
+def fixed_states(task: str, robots: list[Path], steps: int = 8) -> dict[str, np.ndarray]:
+    """Raw observations of each robot at reset and after a few random actions."""
+    states = []
+    rng = np.random.default_rng(0)
+    for robot in robots:
+        env = gym.make(f"Unimal-{task}-v0", morphologies=[robot])
+        obs, _ = env.reset(seed=3)
+        states.append(obs)
+        for _ in range(steps):
+            obs = env.step(rng.uniform(-1, 1, 24).astype(np.float32))[0]
+            states.append(obs)
+        env.close()
+    return {key: np.stack([s[key] for s in states]) for key in states[0]}
+
+
+FINETUNED_ARMS = [arm for arm in ARMS if arm not in ("scratch", "modumorph")]
+
+
+def test_with_learning_rate_zero_a_transfer_run_leaves_every_fine_tuned_arms_actions_exactly_unchanged(finished_run, tmp_path):
+    """The inherited observation statistics stay frozen: with no weight update at all, a transfer run
+    must not change what the policy does on fixed states (with statistics that go on learning, the
+    inputs drift under the frozen weights and the actions move: the issue-26 defect)."""
+    from sb3_divmorph.finetune import observation_statistics_frozen
+    from sb3_divmorph.pipeline.runs import profile_robots
+    from sb3_divmorph.pipeline.transfer import transfer_run
+
+    out, profiles = copied_run(finished_run, tmp_path)
+    profile = load_profile("tiny", profiles, overrides={"transfer.finetune_overrides": {"learning_rate": 0.0}, "transfer.eval_every": 0})
+    raw = fixed_states("Escape", profile_robots(profile, "train"))
+    for arm in FINETUNED_ARMS:
+        run = transfer_run(profile, out, "Escape", arm, 1, progress_bar=False)
+        start = run.make_model()
+        if run.prepare is not None:
+            run.prepare(start)
+        before = start.predict(start.get_vec_normalize_env().normalize_obs(raw), deterministic=True)[0]
+        trained = run.run()
+        normalizer = trained.get_vec_normalize_env()
+        assert observation_statistics_frozen(normalizer), arm
+        assert normalizer.ret_rms.count > 100, f"{arm}: the reward statistics must learn the new task"
+        after = trained.predict(normalizer.normalize_obs(raw), deterministic=True)[0]
+        np.testing.assert_array_equal(after, before, err_msg=f"{arm}: actions moved with learning rate 0")
+
+
+@pytest.mark.parametrize("task", ["Escape", "PointNav", "PushBoxIncline", "ManipulateBox"])
+def test_every_arm_sees_its_novel_tasks_inputs_under_one_optimiser_rule(finished_run, tmp_path, task):
+    """Perturbing an input the novel task observes (Escape: height map; PointNav: goal; the box
+    tasks: box and goal) changes every arm's actions at the start of its run -- MetaMorph→ from an
+    FT teacher (no encoders) included -- and every arm's Adam runs with ``transfer.adam_eps``."""
+    from unimal_envs.tasks import TASKS
+    from sb3_divmorph.pipeline.runs import atomic_write_json, profile_robots
+    from sb3_divmorph.pipeline.transfer import closest_file, transfer_run
+
+    out, profiles = copied_run(finished_run, tmp_path)
+    profile = load_profile("tiny", profiles)
+    raw = fixed_states(task, profile_robots(profile, "train"), steps=2)
+    rng = np.random.default_rng(1)
+    starts = [(arm, None) for arm in ARMS if arm != "closest"] + [("closest", "FT"), ("closest", "Patrol")]
+    for arm, teacher in starts:
+        if teacher is not None:  # force the teacher the closest arm starts from
+            atomic_write_json(closest_file(out, task, "embedding"), {"task": task, "closest": teacher, "by": "embedding",
+                                                                     "criterion": "test", "scores": {}})
+        run = transfer_run(profile, out, task, arm, 1 if teacher == "Patrol" else 0, progress_bar=False)
+        model = run.make_model()
+        run.prepare(model)
+        assert {g["eps"] for g in model.policy.optimizer.param_groups} == {profile.transfer.adam_eps}, arm
+        normalizer = model.get_vec_normalize_env()
+        actions = model.predict(normalizer.normalize_obs(raw), deterministic=True)[0]
+        for key in TASKS[task].observation_keys:
+            changed = {k: v.copy() for k, v in raw.items()}
+            changed[key] = changed[key] + rng.normal(0, 1, changed[key].shape).astype(np.float32)
+            moved = np.abs(model.predict(normalizer.normalize_obs(changed), deterministic=True)[0] - actions).max()
+            assert moved > 1e-6, f"{arm}{f' (from the {teacher} teacher)' if teacher else ''} is blind to {task}'s {key}"

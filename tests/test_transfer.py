@@ -30,7 +30,7 @@ def distilled_like_student(seed: int = 0, **ppo_kwargs) -> tuple[PPO, VecNormali
     venv = VecNormalize(DummyVecEnv([lambda: gym.make("Unimal-Escape-v0", morphologies=ROBOTS, max_episode_steps=50)]),
                         norm_obs_keys=["proprioceptive"])
     kwargs = dict(n_steps=64, batch_size=16, n_epochs=5, learning_rate=3e-3, seed=seed)
-    model = PPO("DivMorphPolicy", venv, policy_kwargs=TINY_DIVMORPH, **{**kwargs, **ppo_kwargs})
+    model = PPO("DivMorphPolicy", venv, **{"policy_kwargs": TINY_DIVMORPH, **kwargs, **ppo_kwargs})
     with th.no_grad():
         for layer in model.policy.modules():
             if isinstance(layer, FactorizedLinear) and layer.orthogonal:
@@ -116,3 +116,87 @@ def test_sb3_default_adam_eps_would_break_the_ratio():
         loss.backward()
         model.policy.optimizer.step()
     assert not 0.07 <= rates.measured_ratio() <= 0.14
+
+
+def ratio_after_tiny_steps(model, obs, rates, numerator: str) -> float:
+    batch = {k: np.repeat(v, 32, axis=0) for k, v in obs.items()}
+    obs_t, _ = model.policy.obs_to_tensor(batch)
+    actions = th.as_tensor(np.random.default_rng(0).uniform(-1, 1, (32, 24)).astype(np.float32))
+    for _ in range(20):
+        loss = -model.policy.get_distribution(obs_t).log_prob(actions).mean() * 1e-5
+        model.policy.optimizer.zero_grad()
+        loss.backward()
+        model.policy.optimizer.step()
+    return rates.measured_ratio(numerator=numerator)
+
+
+@pytest.mark.parametrize("undiverted_scale, expected", [(1.0, 1.0), (None, 0.1)])
+def test_a_part_an_ablation_does_not_divert_trains_at_the_full_rate_unless_asked(undiverted_scale, expected):
+    """``no-kdiv-transformer``: the Transformer has no tailors, so every unit of it was a learngene
+    and trained 10x slower than DivMorph's selected tailors, confounding the ablation with a learning
+    rate. By default it now trains at the full rate (the selected tailors' rate); ``None`` keeps the
+    former rule (``learngene_scale``)."""
+    model, venv = distilled_like_student(seed=2, policy_kwargs={**TINY_DIVMORPH, "divert_transformer": False})
+    obs = venv.reset()
+    gates = model.policy.get_gates(obs)
+    selection = UnitSelection.from_gates(gates.morphology.numpy(), gates.task.numpy())
+    rates = prepare_transfer(model.policy, selection, learngene_scale=0.1, undiverted_scale=undiverted_scale)
+    measured = ratio_after_tiny_steps(model, obs, rates, "undiverted")
+    assert 0.7 * expected <= measured <= 1.4 * expected, f"undiverted / selected tailor update ratio {measured:.3f}, expected {expected}"
+    assert 0.07 <= rates.measured_ratio() <= 0.14  # the decoder's learngenes keep their rate
+
+
+def test_frozen_observation_statistics_stay_while_reward_statistics_learn(tmp_path):
+    from sb3_divmorph.finetune import freeze_observation_statistics, observation_statistics_frozen
+
+    venv = VecNormalize(DummyVecEnv([lambda: gym.make("Unimal-FT-v0", morphologies=ROBOTS, max_episode_steps=50)]),
+                        norm_obs_keys=["proprioceptive"])
+    venv.reset()
+    for _ in range(5):
+        venv.step(np.zeros((1, 24), dtype=np.float32))
+    freeze_observation_statistics(venv)
+    mean, var, count = (venv.obs_rms["proprioceptive"].mean.copy(), venv.obs_rms["proprioceptive"].var.copy(),
+                        venv.obs_rms["proprioceptive"].count)
+    returns_count = venv.ret_rms.count
+    raw = venv.get_original_obs()
+    normalised = venv.normalize_obs(raw)["proprioceptive"].copy()
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        venv.step(rng.uniform(-1, 1, (1, 24)).astype(np.float32))
+    venv.reset()
+    assert venv.training and venv.ret_rms.count == returns_count + 20  # rewards still learn
+    stats = venv.obs_rms["proprioceptive"]
+    assert np.array_equal(stats.mean, mean) and np.array_equal(stats.var, var) and stats.count == count
+    assert np.array_equal(venv.normalize_obs(raw)["proprioceptive"], normalised)
+    venv.save(str(tmp_path / "vecnormalize.pkl"))  # a checkpoint (or a resumed run) keeps them frozen
+    loaded = VecNormalize.load(str(tmp_path / "vecnormalize.pkl"), venv.venv)
+    assert observation_statistics_frozen(loaded)
+    loaded.reset()
+    assert np.array_equal(loaded.obs_rms["proprioceptive"].mean, mean)
+
+
+@pytest.mark.parametrize("task, keys", [("Escape", ["hfield"]), ("PushBoxIncline", ["object", "goal"]), ("PointNav", ["goal"])])
+def test_a_teacher_without_an_encoder_for_a_task_input_gets_one_and_keeps_its_weights(task, keys):
+    """MetaMorph→ from an FT teacher (no exteroception encoders) must see Escape's height map,
+    PushBoxIncline's box and goal: the encoders the task's own architecture has are added freshly
+    initialised; every trained weight is kept (the decoder's first layer column by column)."""
+    from sb3_divmorph.pipeline.transfer import finetuned_model
+
+    tiny = dict(d_model=16, n_layers=1, ff_dim=32)
+    th.manual_seed(0)
+    teacher = PPO("MetaMorphPolicy", DummyVecEnv([lambda: gym.make("Unimal-FT-v0", morphologies=ROBOTS)]),
+                  policy_kwargs={**tiny, "exteroception": {}}, n_steps=64, batch_size=64)
+    venv = DummyVecEnv([lambda: gym.make(f"Unimal-{task}-v0", morphologies=ROBOTS)])
+    model = finetuned_model(teacher, venv, task, {**tiny, "exteroception": dict(hfield=[8], goal=[4], object=[4])}, 0, "cpu",
+                            dict(n_steps=64, batch_size=64))
+    assert sorted(model.policy.pi_features_extractor.exteroception) == sorted(keys)
+    old, new = teacher.policy.state_dict(), model.policy.state_dict()
+    for name, value in old.items():
+        target = new[name]
+        assert th.equal(target[:, :value.shape[1]] if target.shape != value.shape else target, value), name
+    obs = venv.reset()
+    actions = model.predict(obs, deterministic=True)[0]
+    for key in keys:
+        changed = {k: v.copy() for k, v in obs.items()}
+        changed[key] = changed[key] + np.random.default_rng(1).normal(0, 1, changed[key].shape).astype(np.float32)
+        assert np.abs(model.predict(changed, deterministic=True)[0] - actions).max() > 1e-6, f"{task}: blind to {key}"

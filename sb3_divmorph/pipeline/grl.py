@@ -40,9 +40,11 @@ from typing import Any
 import numpy as np
 import torch as th
 from stable_baselines3 import PPO
+from stable_baselines3.common.running_mean_std import RunningMeanStd
 from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 from torch import nn
 
+from sb3_divmorph.finetune import freeze_observation_statistics
 from sb3_divmorph.pipeline.config import Profile, load_zoo_entry
 from sb3_divmorph.pipeline.runs import (
     MODEL,
@@ -105,16 +107,27 @@ def inherit(child: nn.Module, parent: nn.Module, units: list[str]) -> None:
             mine.copy_(theirs)
 
 
-def inherited_normalizer(source: Path, venv: VecEnv, gamma: float) -> VecEnv:
-    """``venv`` wrapped in the observation statistics saved in ``source`` (if any), still learning;
-    rewards are normalised afresh for the new task."""
+def inherited_normalizer(source: Path, venv: VecEnv, gamma: float, freeze_observations: bool = False) -> VecEnv:
+    """``venv`` wrapped in the observation statistics saved in ``source`` (if any); rewards are
+    normalised afresh for the new task (their statistics learn).
+
+    :param source: the folder of the trained model whose ``vecnormalize.pkl`` is inherited.
+    :param venv: the new task's envs.
+    :param gamma: the new run's discount (for the reward statistics).
+    :param freeze_observations: keep the observation statistics exactly as inherited
+        (:func:`~sb3_divmorph.finetune.freeze_observation_statistics`): transfer does, so that the
+        inputs of the weights it starts from do not move under them. ``False`` (GRL's evolution,
+        where a child trains every layer on a training task) lets them go on learning.
+    """
     if not (source / NORMALIZER).is_file():
         return venv
     normalizer = VecNormalize.load(str(source / NORMALIZER), venv)
     normalizer.training, normalizer.norm_reward = True, True
     normalizer.gamma = gamma
-    normalizer.ret_rms = type(normalizer.ret_rms)(shape=())
+    normalizer.ret_rms = RunningMeanStd(shape=())
     normalizer.returns = np.zeros(venv.num_envs)
+    if freeze_observations:
+        freeze_observation_statistics(normalizer)
     return normalizer
 
 

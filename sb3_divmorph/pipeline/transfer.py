@@ -4,14 +4,21 @@ Folders: ``transfer/<task>/<arm>/seed-<s>/`` (one resumable run each; with ``tra
 an ``eval.csv`` of deterministic returns on the training and novel robots, see
 :mod:`sb3_divmorph.pipeline.curves`), and the metrics of every arm in ``transfer/<task>/metrics.csv``.
 
-Every arm trains with the novel task's rl-zoo settings on the training robots (``Unimal-<task>-v0``).
-Arms that start from a trained model (student, teacher, GRL agent) take its weights and
-observation statistics; reward statistics start afresh for the new task. In the DivMorph arm
-(and the ablations, transferred the same way) the gates see the embedding of the task's
-instruction (the built-in one, or ``transfer.instructions[task]`` of the profile, embedded by the
-text encoder) and stay fixed; PPO trains the tailors those gates select and, ``learngene_lr_scale``
-times slower, the shared knowledge (:func:`sb3_divmorph.finetune.prepare_transfer`). A part an
-ablation does not divert has no tailors: all its units are learngenes and train at the slow rate.
+Every arm trains with the novel task's rl-zoo settings on the training robots (``Unimal-<task>-v0``),
+with one optimiser rule for all: Adam's ``eps`` is ``transfer.adam_eps`` in every arm.
+Arms that start from a trained model (student, teacher, GRL agent) take its weights and its
+observation statistics, which stay *frozen* for the whole run (the weights were trained on inputs
+normalised by exactly these; letting them move changes what even a frozen network does, see
+``results/normalizer_drift.md``); reward statistics start afresh for the new task and learn.
+Every arm sees the novel task's inputs: a source without an encoder for one of them (the teacher
+of a task without a height map, fine-tuned on Escape) gets the encoder the task's own
+architecture has, freshly initialised, next to all its trained weights (:func:`finetuned_model`).
+In the DivMorph arm (and the ablations, transferred the same way) the gates see the embedding of
+the task's instruction (the built-in one, or ``transfer.instructions[task]`` of the profile,
+embedded by the text encoder) and stay fixed; PPO trains the tailors those gates select and,
+``learngene_lr_scale`` times slower, the shared knowledge (:func:`sb3_divmorph.finetune.prepare_transfer`).
+A part an ablation does not divert has no tailors; it trains at ``transfer.undiverted_lr_scale``
+(default: the full rate, as any fine-tuned network; ``null``: as learngenes, the former rule).
 """
 
 from __future__ import annotations
@@ -28,7 +35,7 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecNormalize
 
-from sb3_divmorph.finetune import CriticWarmup, UnitLearningRates, UnitSelection, prepare_transfer
+from sb3_divmorph.finetune import CriticWarmup, UnitLearningRates, UnitSelection, prepare_transfer, set_adam_eps
 from sb3_divmorph.pipeline.arms import ARMS
 from sb3_divmorph.pipeline.config import ConfigError, Profile, check_arms, check_seeds, load_zoo_entry
 from sb3_divmorph.pipeline.curves import EVAL_FILE, EvalCurveCallback
@@ -47,8 +54,9 @@ from sb3_divmorph.pipeline.runs import (
     task_env_name,
 )
 from sb3_divmorph.pipeline.teachers import teacher_folder
-from sb3_divmorph.policies import DivMorphPolicy
+from sb3_divmorph.policies import PRESETS, DivMorphPolicy
 from unimal_envs.contract import NOVEL_TASKS, TASK_NAMES
+from unimal_envs.tasks import TASKS
 from unimal_envs.instructions import INSTRUCTIONS, embed_instruction, shipped_embeddings
 
 
@@ -116,6 +124,8 @@ class UpdateRatioLogger(BaseCallback):
             if means["selected_tailor"] > 0:
                 self.logger.record("transfer/update_ratio", means["learngene"] / means["selected_tailor"])
                 self.logger.record("transfer/update_selected_tailor", means["selected_tailor"])
+            if np.isfinite(means.get("undiverted", np.nan)):
+                self.logger.record("transfer/update_undiverted", means["undiverted"])
 
 
 def closest_file(out: Path, task: str, by: str) -> Path:
@@ -224,6 +234,103 @@ def _check_source(folder: Path, source: dict[str, Any], write: bool = True) -> N
         atomic_write_json(path, source)
 
 
+def resolved_exteroception(policy_kwargs: dict[str, Any]) -> dict[str, list[int]]:
+    """The exteroception encoders (``{key: widths}``) a MetaMorph built with ``policy_kwargs`` has:
+    its ``exteroception`` keyword, or its preset's."""
+    extero = policy_kwargs.get("exteroception")
+    if extero is None:
+        extero = PRESETS[policy_kwargs.get("preset", "small")]["exteroception"]
+    return {key: list(dims) for key, dims in extero.items() if len(dims) > 0}
+
+
+def _feature_layout(policy: th.nn.Module) -> list[tuple[str, int]]:
+    """``[(part, width)]`` of the token features the decoders read: the Transformer's ``d_model``
+    columns, then each exteroception encoder's output in the extractor's order."""
+    extractor = policy.features_extractor if policy.share_features_extractor else policy.pi_features_extractor
+    return [("tokens", extractor.d_model), *((key, encoder.out_dim) for key, encoder in extractor.exteroception.items())]
+
+
+@th.no_grad()
+def load_widened(policy: th.nn.Module, source: th.nn.Module) -> list[str]:
+    """Load ``source``'s weights into ``policy``, a copy of its architecture with more exteroception
+    encoders; returns the names of the tensors left at ``policy``'s fresh initialisation.
+
+    Tensors of the same name and shape are copied. The layers that read the token features (the
+    first layer of each decoder) are wider by the new encoders' outputs: their columns for the
+    Transformer's output and for the encoders ``source`` has are copied, the new encoders' columns
+    and the new encoders themselves keep their fresh initialisation (so the policy reads the new
+    inputs from the first step).
+
+    :param policy: the widened policy (freshly initialised).
+    :param source: the trained policy.
+    :raises ValueError: a tensor differs in a way other than these columns (the architectures differ).
+    """
+    old_layout, new_layout = _feature_layout(source), _feature_layout(policy)
+    missing = [part for part, _ in old_layout if part not in dict(new_layout)]
+    if missing:
+        raise ValueError(f"cannot widen: the new policy lacks the source's encoder(s) {missing}")
+
+    def offsets(layout):
+        result, start = {}, 0
+        for part, width in layout:
+            result[part] = slice(start, start + width)
+            start += width
+        return result, start
+
+    old_cols, old_width = offsets(old_layout)
+    new_cols, new_width = offsets(new_layout)
+    theirs = source.state_dict()
+    fresh = []
+    for name, tensor in policy.state_dict().items():
+        if name not in theirs:
+            fresh.append(name)
+            continue
+        value = theirs[name]
+        if value.shape == tensor.shape:
+            tensor.copy_(value)
+        elif value.dim() == 2 and value.shape[0] == tensor.shape[0] and (value.shape[1], tensor.shape[1]) == (old_width, new_width):
+            for part, columns in old_cols.items():
+                tensor[:, new_cols[part]] = value[:, columns]
+            fresh.append(f"{name} (the new encoders' columns)")
+        else:
+            raise ValueError(f"cannot widen: {name} is {tuple(value.shape)} in the source and {tuple(tensor.shape)} here")
+    return fresh
+
+
+def finetuned_model(saved: PPO, venv, task: str, task_policy_kwargs: dict[str, Any], seed: int, device: str,
+                    ppo_kwargs: dict[str, Any]) -> PPO:
+    """A PPO model on ``venv`` that starts from ``saved``'s policy and sees ``task``'s inputs.
+
+    A policy without an encoder for one of the task's observations (a teacher of a task without a
+    height map, fine-tuned on Escape) gets the encoder the task's own architecture
+    (``task_policy_kwargs``, what the ``scratch`` arm is built with) has, freshly initialised, and
+    keeps every weight it has (:func:`load_widened`); otherwise its architecture and weights are
+    taken as they are.
+
+    :param saved: the trained model.
+    :param venv: the novel task's envs (normalised).
+    :param task: the novel task.
+    :param task_policy_kwargs: the novel task's MetaMorph kwargs.
+    """
+    kwargs = dict(saved.policy_kwargs)
+    extractor = saved.policy.features_extractor if saved.policy.share_features_extractor else saved.policy.pi_features_extractor
+    has = set(extractor.exteroception.keys()) if hasattr(extractor, "exteroception") else None
+    needed = [key for key in TASKS[task].observation_keys if has is not None and key not in has]
+    if needed:
+        wanted = resolved_exteroception(task_policy_kwargs)
+        lacking = [key for key in needed if key not in wanted]
+        if lacking:
+            raise ConfigError(f"{task} observes {lacking}, but neither the source policy nor {task}'s own architecture "
+                              f"(policy_kwargs {task_policy_kwargs}) has an encoder for it")
+        kwargs["exteroception"] = {**{key: wanted[key] for key in needed}, **saved.policy.config["exteroception"]}
+    model = PPO(type(saved.policy), venv, policy_kwargs=kwargs, seed=seed, device=device, **ppo_kwargs)
+    if needed:
+        load_widened(model.policy, saved.policy)
+    else:
+        model.policy.load_state_dict(saved.policy.state_dict())
+    return model
+
+
 def transfer_seed(profile: Profile, task: str, seed: int) -> int:
     """PPO seed of one run (seed 0 is the pre-arms seed, so older runs stay comparable)."""
     return profile.seed + 7000 + TASK_NAMES.index(task) + 100 * seed
@@ -262,7 +369,6 @@ def transfer_run(profile: Profile, out: Path, task: str, arm: str, seed: int = 0
         return make_vec_env(env_name, entry.n_envs, run_seed, profile.max_episode_steps, cfg.env_backend,
                             cfg.worlds_per_robot, device, cfg.terrain_variants, **env_kwargs)
 
-    prepare = None
     callbacks: list[BaseCallback] = []
     if source is not None and cfg.critic_warmup > 0:
         callbacks.append(CriticWarmup(cfg.critic_warmup))
@@ -285,20 +391,21 @@ def transfer_run(profile: Profile, out: Path, task: str, arm: str, seed: int = 0
 
         def make_model():
             # a new MetaMorph; only the learngene's layers (and the observation statistics they were trained with) inherited
-            venv = inherited_normalizer(source, make_env(), gamma)
+            venv = inherited_normalizer(source, make_env(), gamma, freeze_observations=True)
             model = PPO("MetaMorphPolicy", venv, policy_kwargs=grl_policy_kwargs(profile), seed=run_seed, device=device, **entry.ppo_kwargs)
             inherit(model.policy, PPO.load(source / MODEL, device=device).policy, learngene["units"])
             return model
 
     else:
 
+        task_policy_kwargs = {**entry.policy_kwargs, **profile.teachers.policy_kwargs}
+
         def make_model():
-            # the source's weights and observation statistics; reward statistics start afresh for the new task
+            # the source's weights and observation statistics (frozen); reward statistics start afresh for the
+            # new task; an encoder for a task input the source never had (a teacher of another task) is added
             saved = PPO.load(source / MODEL, device=device)
-            venv = inherited_normalizer(source, make_env(), gamma)
-            model = PPO(type(saved.policy), venv, policy_kwargs=saved.policy_kwargs, seed=run_seed, device=device, **entry.ppo_kwargs)
-            model.policy.load_state_dict(saved.policy.state_dict())
-            return model
+            venv = inherited_normalizer(source, make_env(), gamma, freeze_observations=True)
+            return finetuned_model(saved, venv, task, task_policy_kwargs, run_seed, device, entry.ppo_kwargs)
 
     if spec.divmorph_transfer:
         selection_obs = robot_observations(env_name, robots, run_seed, env_kwargs.get("instruction"))
@@ -308,9 +415,15 @@ def transfer_run(profile: Profile, out: Path, task: str, arm: str, seed: int = 0
             with th.no_grad():
                 selection = gate_selection(model.policy, selection_obs, model.get_vec_normalize_env())
             # the hooks live on the optimiser; they are installed again whenever the run is loaded
-            installed["rates"] = prepare_transfer(model.policy, selection, cfg.learngene_lr_scale)
+            installed["rates"] = prepare_transfer(model.policy, selection, cfg.learngene_lr_scale, adam_eps=cfg.adam_eps,
+                                                  undiverted_scale=cfg.undiverted_lr_scale)
 
         callbacks.append(UpdateRatioLogger(lambda: installed.get("rates")))
+    else:
+
+        def prepare(model):
+            # one optimiser rule for every arm (set again whenever the run is loaded)
+            set_adam_eps(model.policy.optimizer, cfg.adam_eps)
 
     _check_source(folder, _source_record(out, arm, seed, source))
     return TrainingRun(
