@@ -385,6 +385,9 @@ def test_profile_errors_name_the_key_and_the_choices(tmp_path):
     with pytest.raises(ConfigError, match=r"teachers.n_timesteps must be a positive whole number of env steps, got -5"):
         load_profile("tiny", write_profiles(tmp_path, teachers__n_timesteps=-5))
     assert load_profile("tiny", write_profiles(tmp_path, teachers__n_timesteps=2e3)).teachers.n_timesteps == 2000
+    with pytest.raises(ConfigError, match=r"teachers.n_timesteps must be a positive whole number of env steps, got -5"):
+        load_profile("tiny", write_profiles(tmp_path, teachers__n_timesteps=-5))
+    assert load_profile("tiny", write_profiles(tmp_path, teachers__n_timesteps=2e3)).teachers.n_timesteps == 2000
     zoo = tmp_path / "zoo.yml"
     zoo.write_text("Unimal-FT-v0:\n  n_timesteps: 10\n  learning_rat: 0.1\n")
     with pytest.raises(ConfigError, match="learning_rat"):

@@ -323,6 +323,12 @@ class Profile:
                 if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 1 or not float(value).is_integer():
                     raise ConfigError(f"profile {name!r}: {section}.{key} must be a positive whole number of env steps, got {value!r}")
                 setattr(getattr(profile, section), key, int(value))  # 2e7 in YAML arrives as a float
+        for section in ("teachers", "distill", "transfer"):
+            for key in ("n_timesteps", "checkpoint_every"):
+                value = getattr(getattr(profile, section), key)
+                if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 1 or not float(value).is_integer():
+                    raise ConfigError(f"profile {name!r}: {section}.{key} must be a positive whole number of env steps, got {value!r}")
+                setattr(getattr(profile, section), key, int(value))  # 2e7 in YAML arrives as a float
         for section in ("teachers", "transfer", "grl"):
             check_ppo_keys(getattr(profile, section).overrides, f"profile {name!r}, {section}.overrides")
         check_ppo_keys(profile.transfer.finetune_overrides, f"profile {name!r}, transfer.finetune_overrides")
