@@ -84,8 +84,11 @@ def _parser() -> argparse.ArgumentParser:
     grid(command("grl", "GRL baseline: evolve a population of MetaMorph agents; the best learngene (whole layers) for the grl arm"))
     p = grid(command("transfer", "race the transfer arms on novel tasks (arms x tasks x seeds, one run each)"))
     p.add_argument("--task", action="append", help="novel task (repeatable; default: the profile's)")
+    from sb3_divmorph.pipeline.arms import ARMS
+
     p.add_argument("--arms", type=arms_list, default=None,
-                   help="comma-separated arms (default: the profile's transfer.arms); see the README for the list")
+                   help="comma-separated arms (default: the profile's transfer.arms), of: "
+                        + "; ".join(f"{name} ({arm.label})" for name, arm in ARMS.items()))
     p.add_argument("--seeds", type=int, nargs="+", default=None, help="seeds, one run each (default: the profile's transfer.seeds)")
     p.add_argument("--closest-by", choices=("embedding", "return"), default=None,
                    help="closest arm: most similar instruction embedding (default) or best zero-shot teacher return")
@@ -196,6 +199,10 @@ def _overrides(args: argparse.Namespace) -> dict:
     return overrides
 
 
+#: Commands that read the stages of an existing run (a missing --run folder is a typo, not a new run).
+_READS_A_RUN = ("evaluate", "report", "export", "figure")
+
+
 def _remove_if_untouched(out: Path) -> None:
     """Remove a run folder this command created when nothing but its records were written:
     a command that fails on its arguments leaves no empty run behind (and never deletes results)."""
@@ -233,6 +240,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"divmorph: {error}", file=sys.stderr)
         return 2
     out = Path(args.out or f"runs/{profile.name}")
+    if args.command in _READS_A_RUN and args.out and not out.is_dir():
+        print(f"divmorph {args.command}: no such run folder: {out} (train its stages with --out {out} first, or check the path)",
+              file=sys.stderr)
+        return 2
     created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     seed_everything(profile.seed, profile.torch_threads)

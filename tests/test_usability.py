@@ -268,3 +268,18 @@ def test_record_films_a_pipeline_stage_on_its_own_robots_outside_its_folder(tmp_
     frames = iio.imread(video)
     assert frames.shape[1:] == (48, 48, 3) and 2 <= len(frames) <= 5 and np.ptp(frames) > 0
     assert "episode 0: train-002" in capsys.readouterr().out
+
+
+def test_commands_that_read_a_run_name_a_missing_folder_and_transfer_help_lists_the_arms(tmp_path, capsys):
+    from sb3_divmorph.cli import main as cli
+    from sb3_divmorph.pipeline.arms import ARMS
+
+    missing = tmp_path / "no-such-run"
+    for command in ("evaluate", "report", "export"):
+        assert cli([command, "--run", str(missing)]) == 2
+        assert f"no such run folder: {missing}" in capsys.readouterr().err
+        assert not missing.exists(), "a typo must not create a run folder"
+    with pytest.raises(SystemExit):
+        cli(["transfer", "--help"])
+    shown = "".join(capsys.readouterr().out.split())  # argparse wraps lines, also at hyphens
+    assert all(name in shown for name in ARMS), shown
