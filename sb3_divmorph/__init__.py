@@ -30,6 +30,30 @@ for _algo in (PPO, A2C):
     _algo.policy_aliases.update(MetaMorphPolicy=MetaMorphPolicy, DivMorphPolicy=DivMorphPolicy,
                                 ModuMorphPolicy=ModuMorphPolicy, HyperDistillPolicy=HyperDistillPolicy)
 
+
+def _on_policy_only(name: str) -> type:
+    """A stand-in registered with the off-policy algorithms, so that ``SAC("DivMorphPolicy", env)``
+    says what is wrong instead of SB3's generic "Policy DivMorphPolicy unknown"."""
+
+    class OnPolicyOnly:
+        def __init__(self, *args, **kwargs):
+            raise TypeError(f"{name} is an on-policy actor-critic policy (stochastic actor + state-value critic): use it "
+                            "with PPO or A2C; off-policy algorithms (SAC, TD3, DDPG, DQN) need Q-function policies")
+
+    OnPolicyOnly.__name__ = OnPolicyOnly.__qualname__ = f"{name}OnPolicyOnly"
+    return OnPolicyOnly
+
+
+def _register_off_policy_guards() -> None:
+    from stable_baselines3 import DDPG, DQN, SAC, TD3
+
+    names = ("MetaMorphPolicy", "DivMorphPolicy", "ModuMorphPolicy", "HyperDistillPolicy")
+    for algo in (SAC, TD3, DDPG, DQN):
+        algo.policy_aliases.update({name: _on_policy_only(name) for name in names if name not in algo.policy_aliases})
+
+
+_register_off_policy_guards()
+
 __all__ = [
     "DIVMORPH_PRESETS",
     "PRESETS",

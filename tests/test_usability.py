@@ -283,3 +283,19 @@ def test_commands_that_read_a_run_name_a_missing_folder_and_transfer_help_lists_
         cli(["transfer", "--help"])
     shown = "".join(capsys.readouterr().out.split())  # argparse wraps lines, also at hyphens
     assert all(name in shown for name in ARMS), shown
+
+
+def test_off_policy_algorithms_say_the_policies_are_on_policy_and_robots_can_be_named():
+    import gymnasium as gym
+    from stable_baselines3 import SAC
+
+    import sb3_divmorph  # noqa: F401
+    import unimal_envs  # noqa: F401
+    from unimal_envs.morphology.loader import MorphologyError, morphology_files
+
+    with pytest.raises(TypeError, match="DivMorphPolicy is an on-policy actor-critic policy.*PPO or A2C"):
+        SAC("DivMorphPolicy", gym.make("Unimal-FT-v0", morphologies=["train-000"]))
+    named = morphology_files(["train-003", "novel-001"])
+    assert [p.stem for p in named] == ["train-003", "novel-001"] and all(p.is_file() for p in named)
+    with pytest.raises(MorphologyError, match="no robot named 'trian-003'"):
+        morphology_files(["trian-003"])

@@ -84,3 +84,8 @@ def test_installed_rl_zoo_trains_with_the_shipped_entries_and_record_films_it(in
     assert "no statistics" not in record.stdout  # the run's vecnormalize.pkl was found and used
     frames = iio.imread(video)
     assert frames.shape[1:] == (64, 64, 3) and 2 <= len(frames) <= 11
+
+
+def test_the_installed_packages_declare_their_type_hints(installed):
+    site, _ = installed
+    assert (site / "sb3_divmorph" / "py.typed").is_file() and (site / "unimal_envs" / "py.typed").is_file()

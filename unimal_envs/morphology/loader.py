@@ -368,7 +368,8 @@ def morphology_files(morphologies: str | Path | Iterable[str | Path]) -> list[Pa
     :param morphologies: ``"train"`` or ``"novel"`` (shipped sets), ``"unimals100-train"``,
         ``"unimals100-test"`` or ``"unimals100-mutants"`` (the official sets, once fetched), a
         directory in the unimals_100 layout (``DIR/xml/*.xml``) or holding ``*.xml`` directly, one
-        ``.xml`` file, or a list of files.
+        ``.xml`` file, or a list of files and robot names (a name is looked up in the shipped sets
+        and the official sets fetched on this machine).
     :raises MorphologyError: unknown set name, official set not fetched, empty directory, missing file.
     """
     if isinstance(morphologies, (str, Path)):
@@ -390,13 +391,37 @@ def morphology_files(morphologies: str | Path | Iterable[str | Path]) -> list[Pa
             where = "" if path.expanduser().is_absolute() else f" (relative to {Path.cwd()})"
             raise MorphologyError(f"{kind}: {path}{where}; {choices}")
         raise MorphologyError(f"unknown morphology set '{morphologies}' (and no such directory in {Path.cwd()}); {choices}")
-    files = [Path(p) for p in morphologies]
+    files = [_robot_by_name(p) if _is_robot_name(p) else Path(p) for p in morphologies]
     if not files:
         raise MorphologyError("the list of morphology files is empty")
     missing = [str(p) for p in files if not p.is_file()]
     if missing:
         raise MorphologyError(f"no such MJCF file(s): {missing}")
     return files
+
+
+def _is_robot_name(entry: str | Path) -> bool:
+    """A bare robot name (``train-003``, ``floor-1409-0-3-01-15-56-55``) rather than a file path."""
+    return isinstance(entry, str) and not entry.endswith(".xml") and len(Path(entry).parts) == 1 and not Path(entry).is_file()
+
+
+def _robot_by_name(name: str) -> Path:
+    """The MJCF file of a robot named in a shipped set or in an official set fetched on this machine.
+
+    :raises MorphologyError: no such robot in any of them (the message lists where it looked).
+    """
+    searched = []
+    for set_name in (*SHIPPED_SETS, *OFFICIAL_SET_NAMES):
+        try:
+            folder = set_dir(set_name)
+        except MorphologyError:  # an official set that is not fetched here
+            continue
+        searched.append(set_name)
+        candidate = (folder / "xml" if (folder / "xml").is_dir() else folder) / f"{name}.xml"
+        if candidate.is_file():
+            return candidate
+    raise MorphologyError(f"no robot named {name!r} in the sets on this machine ({', '.join(searched)}); give an .xml path, "
+                          "or fetch the official sets with `python -m unimal_envs.morphology fetch`")
 
 
 def load_morphologies(morphologies: str | Path | Iterable[str | Path | Morphology]) -> list[Morphology]:
