@@ -11,6 +11,7 @@
     divmorph report   --profile demo                 # summary.md + every figure with data
     divmorph figure transfer-train --profile demo    # one figure (PNG + CSV) in report/figures/
     divmorph record   runs/demo/teachers/FT              # MP4 of a pipeline or rl-zoo model, headless
+    divmorph plot     logs/ppo/Unimal-FT-v0_1            # learning curves of rl-zoo runs or stages, PNG, headless
     divmorph profiles [--profile demo]                   # the profiles and where they are read from
     divmorph branch --from runs/demo --out runs/demo-long  # a new run reusing demo's teachers and students
 
@@ -111,6 +112,10 @@ def _parser() -> argparse.ArgumentParser:
 
     help_text = "record a trained model (pipeline stage or rl-zoo run) to MP4, headless"
     record_arguments(sub.add_parser("record", help=help_text, description=help_text))
+    from sb3_divmorph.plot import add_arguments as plot_arguments
+
+    help_text = "learning curves of rl-zoo runs (Monitor files) or pipeline stages (progress.csv) as a PNG, headless"
+    plot_arguments(sub.add_parser("plot", help=help_text, description=help_text))
     from sb3_divmorph.pipeline.branch import REUSABLE_STAGES
 
     help_text = "start a run folder that reuses another run's finished teachers, students and GRL learngene"
@@ -219,6 +224,10 @@ def main(argv: list[str] | None = None) -> int:
         from sb3_divmorph.record import run as record
 
         return record(args)
+    if args.command == "plot":
+        from sb3_divmorph.plot import run as plot
+
+        return plot(args)
     if args.command == "profiles":
         return _profiles(args)
     if args.command == "branch":

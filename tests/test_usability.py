@@ -299,3 +299,34 @@ def test_off_policy_algorithms_say_the_policies_are_on_policy_and_robots_can_be_
     assert [p.stem for p in named] == ["train-003", "novel-001"] and all(p.is_file() for p in named)
     with pytest.raises(MorphologyError, match="no robot named 'trian-003'"):
         morphology_files(["trian-003"])
+
+
+def test_plot_draws_rl_zoo_monitor_files_and_pipeline_logs_headless(tmp_path, capsys):
+    import json
+
+    import imageio.v3 as iio
+
+    from sb3_divmorph.cli import main as cli
+
+    zoo = tmp_path / "logs" / "ppo" / "Unimal-FT-v0_1"
+    zoo.mkdir(parents=True)
+    for rank in range(2):  # SB3 Monitor files: a JSON header line, then r,l,t per episode
+        rows = "\n".join(f"{10.0 * i + rank},{100},{i + 0.5 * rank}" for i in range(30))
+        (zoo / f"{rank}.monitor.csv").write_text("#" + json.dumps({"t_start": 0, "env_id": "Unimal-FT-v0"}) + "\nr,l,t\n" + rows + "\n")
+    stage = tmp_path / "run" / "teachers" / "FT" / "logs" / "run-0"
+    stage.mkdir(parents=True)
+    (stage / "progress.csv").write_text("time/total_timesteps,rollout/ep_rew_mean\n2048,1.5\n4096,3.0\n6144,8.0\n")
+    out = tmp_path / "curves.png"
+    assert cli(["plot", str(zoo), str(tmp_path / "run" / "teachers" / "FT"), "--out", str(out), "--window", "5"]) == 0
+    image = iio.imread(out)
+    assert image.ndim == 3 and image.shape[0] > 200 and image.std() > 10
+    assert "2 curve(s)" in capsys.readouterr().out
+    from sb3_divmorph.plot import learning_curve
+
+    steps, returns, source = learning_curve(zoo, window=5)
+    assert len(steps) == 60 - 4 and steps[-1] == 6000 and "60 episodes" in source  # every episode, cumulative steps
+    assert cli(["plot", str(tmp_path / "empty-run"), "--out", str(tmp_path / "x.png")]) == 2
+    assert "no such folder" in capsys.readouterr().err and not (tmp_path / "x.png").exists()
+    (tmp_path / "bare").mkdir()
+    assert cli(["plot", str(tmp_path / "bare"), "--out", str(tmp_path / "x.png")]) == 2
+    assert "holds no SB3 Monitor files" in capsys.readouterr().err
