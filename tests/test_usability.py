@@ -330,3 +330,11 @@ def test_plot_draws_rl_zoo_monitor_files_and_pipeline_logs_headless(tmp_path, ca
     (tmp_path / "bare").mkdir()
     assert cli(["plot", str(tmp_path / "bare"), "--out", str(tmp_path / "x.png")]) == 2
     assert "holds no SB3 Monitor files" in capsys.readouterr().err
+
+
+def test_the_report_says_which_robots_are_novel():
+    from sb3_divmorph.pipeline.config import load_profile
+    from sb3_divmorph.pipeline.report import _robots_sentence
+
+    assert "novel: robots 11-20 of `unimals100-train`" in _robots_sentence(load_profile("cpu"))
+    assert "novel: the first 4 of `novel`" in _robots_sentence(load_profile("demo"))

@@ -273,9 +273,7 @@ def report(profile: Profile, out: Path, command: str = "") -> str:
         f"- command: `{command or 'divmorph pipeline --profile ' + profile.name}`",
         f"- written {time.strftime('%Y-%m-%d %H:%M')} on {platform.node() or 'this machine'} "
         f"({platform.processor() or platform.machine()}), seed {profile.seed}, device {profile.device}",
-        f"- robots: first {profile.train_robots or 'all'} of `{profile.train_set}`, first {profile.novel_robots or 'all'} "
-        f"of `{profile.novel_set}` (never a training robot); "
-        f"episodes of at most {profile.max_episode_steps} steps",
+        f"- robots: {_robots_sentence(profile)}; episodes of at most {profile.max_episode_steps} steps",
         f"- transfer: tasks {profile.transfer.tasks}, arms {profile.transfer.arm_list()}, seeds {profile.transfer.seeds}, "
         f"{profile.transfer.n_timesteps} env steps per run; teachers {profile.teachers.n_timesteps}, "
         f"distillation {profile.distill.n_timesteps} env steps",
@@ -370,3 +368,17 @@ def report(profile: Profile, out: Path, command: str = "") -> str:
     summary = "\n".join(lines) + "\n"
     atomic_write_text(out / "summary.md", summary)
     return summary
+
+
+def _robots_sentence(profile: Profile) -> str:
+    """Which robots train and which are novel, as a reader can check them: novel robots drawn from
+    the training set are the ones after the training robots (robots 11-20, not "the first 10")."""
+    def count(n: int | None) -> str:
+        return "all" if n is None else str(n)
+
+    train = f"training: the first {count(profile.train_robots)} of `{profile.train_set}`"
+    if profile.novel_set == profile.train_set:
+        start = (profile.train_robots or 0) + 1
+        span = f"{start}-{start + profile.novel_robots - 1}" if profile.novel_robots else f"{start} onward"
+        return f"{train}; novel: robots {span} of `{profile.novel_set}` (the ones after the training robots)"
+    return f"{train}; novel: the first {count(profile.novel_robots)} of `{profile.novel_set}` (never a training robot)"
