@@ -27,7 +27,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from sb3_divmorph.pipeline.config import ConfigError
-from sb3_divmorph.pipeline.provenance import RECORD, STAGE_FOLDERS
+from sb3_divmorph.pipeline.provenance import RECORD, STAGE_FOLDERS, with_current_values
 from sb3_divmorph.pipeline.runs import DONE, atomic_write_json
 
 #: The stages a branch can reuse: those trained before transfer, which every later stage reads.
@@ -79,6 +79,8 @@ def branch(source: Path, out: Path, stages: Sequence[str] = REUSABLE_STAGES, com
     if (source / "robot_sets.json").is_file():
         shutil.copyfile(source / "robot_sets.json", out / "robot_sets.json")
     record = json.loads((source / RECORD).read_text())
+    # the branch's own stages (transfer and after) run under today's rules, not a legacy record's
+    record["configuration"] = with_current_values(record["configuration"])
     record["history"] = [*record.get("history", []), {
         "command": command, "time": time.strftime("%Y-%m-%d %H:%M:%S"), "changed": [], "forced": False,
         "retrained": [], "superseded": None,

@@ -175,18 +175,20 @@ class TransferConfig:
     #: episodes per robot of each of those evaluations (deterministic policy; the episodes differ
     #: by their reset noise and terrain)
     eval_episodes: int = 3
+    #: observation statistics of the arms that start from trained weights: ``frozen`` (as inherited,
+    #: for the whole run) or ``learning`` (they go on moving under the inherited weights; the rule
+    #: before issue 26, kept for comparison). Reward statistics always start afresh and learn
+    observation_statistics: str = "frozen"
     #: Adam's ``eps`` of every arm's optimiser (one rule for the whole race). DivMorph's per-unit
     #: learning rates need it far below a distilled student's gradients
-    #: (:data:`~sb3_divmorph.finetune.TRANSFER_ADAM_EPS`), so every arm gets that value
-    adam_eps: float = 1e-10
+    #: (:data:`~sb3_divmorph.finetune.TRANSFER_ADAM_EPS`), so every arm gets that value; ``null``:
+    #: the rule before issue 26 (1e-10 for the DivMorph-way arms, SB3's 1e-5 for the others)
+    adam_eps: float | None = 1e-10
     #: learning-rate scale of the parts a DivMorph ablation does not divert (``no-kdiv-*``: every unit
     #: of the undiverted part would otherwise be a learngene, trained ``learngene_lr_scale`` times
     #: slower); 1.0: the full rate, like any fine-tuned network; ``null``: ``learngene_lr_scale``
-    #: (the behaviour before issue 26)
+    #: (the rule before issue 26)
     undiverted_lr_scale: float | None = 1.0
-    #: the sample-efficiency level: this fraction of the way from scratch's zero-shot return to the
-    #: best arm's final return (see :mod:`sb3_divmorph.pipeline.metrics`)
-    efficiency_fraction: float = 0.8
 
     def arm_list(self) -> list[str]:
         """The arms to run: ``arms``, or the pre-arms default (``divmorph`` [+ ``scratch``])."""
@@ -323,12 +325,6 @@ class Profile:
                 if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 1 or not float(value).is_integer():
                     raise ConfigError(f"profile {name!r}: {section}.{key} must be a positive whole number of env steps, got {value!r}")
                 setattr(getattr(profile, section), key, int(value))  # 2e7 in YAML arrives as a float
-        for section in ("teachers", "distill", "transfer"):
-            for key in ("n_timesteps", "checkpoint_every"):
-                value = getattr(getattr(profile, section), key)
-                if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 1 or not float(value).is_integer():
-                    raise ConfigError(f"profile {name!r}: {section}.{key} must be a positive whole number of env steps, got {value!r}")
-                setattr(getattr(profile, section), key, int(value))  # 2e7 in YAML arrives as a float
         for section in ("teachers", "transfer", "grl"):
             check_ppo_keys(getattr(profile, section).overrides, f"profile {name!r}, {section}.overrides")
         check_ppo_keys(profile.transfer.finetune_overrides, f"profile {name!r}, transfer.finetune_overrides")
@@ -375,16 +371,17 @@ def check_transfer(cfg: TransferConfig, where: str) -> None:
         raise ConfigError(f"{where}: eval_every must be >= 0 and eval_episodes >= 1")
     if cfg.critic_warmup < 0:
         raise ConfigError(f"{where}.critic_warmup must be >= 0 env steps, got {cfg.critic_warmup}")
-    try:
-        cfg.adam_eps = float(cfg.adam_eps)  # YAML reads 1e-10 (no dot) as a string
-    except (TypeError, ValueError):
-        raise ConfigError(f"{where}.adam_eps must be a number > 0, got {cfg.adam_eps!r}") from None
-    if not cfg.adam_eps > 0:
-        raise ConfigError(f"{where}.adam_eps must be a number > 0, got {cfg.adam_eps!r}")
+    if cfg.observation_statistics not in ("frozen", "learning"):
+        raise ConfigError(f"{where}.observation_statistics must be 'frozen' or 'learning', got {cfg.observation_statistics!r}")
+    if cfg.adam_eps is not None:
+        try:
+            cfg.adam_eps = float(cfg.adam_eps)  # YAML reads 1e-10 (no dot) as a string
+        except (TypeError, ValueError):
+            raise ConfigError(f"{where}.adam_eps must be a number > 0 or null, got {cfg.adam_eps!r}") from None
+        if not cfg.adam_eps > 0:
+            raise ConfigError(f"{where}.adam_eps must be a number > 0 or null, got {cfg.adam_eps!r}")
     if cfg.undiverted_lr_scale is not None and not 0 <= cfg.undiverted_lr_scale <= 1:
         raise ConfigError(f"{where}.undiverted_lr_scale must be in [0, 1] or null (= learngene_lr_scale), got {cfg.undiverted_lr_scale!r}")
-    if not 0 < cfg.efficiency_fraction <= 1:
-        raise ConfigError(f"{where}.efficiency_fraction must be in (0, 1], got {cfg.efficiency_fraction!r}")
 
 
 def load_profiles(path: str | Path = DEFAULT_PROFILES) -> dict[str, dict[str, Any]]:

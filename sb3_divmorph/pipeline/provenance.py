@@ -81,6 +81,37 @@ def _versions() -> dict[str, str | None]:
     return versions
 
 
+#: Keys added since runs were first recorded whose default is not what a run recorded before them
+#: did: a record without one is read with the value that reproduces its rule (issue 26: frozen
+#: transfer statistics, one Adam eps, ablations at the full rate), so such a run folder goes on
+#: under its own rules and a profile with the new ones counts as a change of its transfer stage.
+LEGACY_VALUES: dict[str, dict[str, Any]] = {
+    "transfer": {"observation_statistics": "learning", "adam_eps": None, "undiverted_lr_scale": None},
+}
+
+
+def with_legacy_values(recorded: dict[str, Any]) -> dict[str, Any]:
+    """A recorded configuration with :data:`LEGACY_VALUES` for the keys it lacks."""
+    values = dict(recorded)
+    for section, legacy in LEGACY_VALUES.items():
+        if isinstance(values.get(section), dict):
+            values[section] = {**legacy, **values[section]}
+    return values
+
+
+def with_current_values(recorded: dict[str, Any]) -> dict[str, Any]:
+    """A recorded configuration with today's defaults, written out, for the :data:`LEGACY_VALUES` keys
+    it lacks: what a branch records for its own (not reused) stages, so they run under today's rules."""
+    from sb3_divmorph.pipeline.config import TransferConfig
+
+    current = {"transfer": {f.name: f.default for f in dataclasses.fields(TransferConfig) if f.name in LEGACY_VALUES["transfer"]}}
+    values = dict(recorded)
+    for section, defaults in current.items():
+        if isinstance(values.get(section), dict):
+            values[section] = {**defaults, **values[section]}
+    return values
+
+
 def configuration(profile: Profile) -> dict[str, Any]:
     """The profile as plain values (what a run's models depend on)."""
     return json.loads(json.dumps(dataclasses.asdict(profile), default=str))
@@ -88,7 +119,7 @@ def configuration(profile: Profile) -> dict[str, Any]:
 
 def recorded_profile(path: Path, overrides: dict[str, Any] | None = None) -> Profile:
     """The profile a run was run with, from its ``run.json`` (``overrides`` applied, validated like the YAML)."""
-    values = json.loads(Path(path).read_text())["configuration"]
+    values = with_legacy_values(json.loads(Path(path).read_text())["configuration"])
     name = values.pop("name")
     try:
         return Profile.from_dict(name, apply_overrides(values, overrides or {}))
@@ -99,7 +130,7 @@ def recorded_profile(path: Path, overrides: dict[str, Any] | None = None) -> Pro
 def _with_defaults(recorded: dict[str, Any]) -> dict[str, Any]:
     """A recorded configuration with the defaults of keys added to the profile since it was
     recorded (a new key at its default changes nothing a run did); as recorded if it no longer parses."""
-    values = dict(recorded)
+    values = with_legacy_values(recorded)
     try:
         return configuration(Profile.from_dict(values.pop("name", "recorded"), values))
     except ConfigError:

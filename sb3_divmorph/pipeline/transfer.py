@@ -35,7 +35,14 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecNormalize
 
-from sb3_divmorph.finetune import CriticWarmup, UnitLearningRates, UnitSelection, prepare_transfer, set_adam_eps
+from sb3_divmorph.finetune import (
+    TRANSFER_ADAM_EPS,
+    CriticWarmup,
+    UnitLearningRates,
+    UnitSelection,
+    prepare_transfer,
+    set_adam_eps,
+)
 from sb3_divmorph.pipeline.arms import ARMS
 from sb3_divmorph.pipeline.config import ConfigError, Profile, check_arms, check_seeds, load_zoo_entry
 from sb3_divmorph.pipeline.curves import EVAL_FILE, EvalCurveCallback
@@ -391,7 +398,7 @@ def transfer_run(profile: Profile, out: Path, task: str, arm: str, seed: int = 0
 
         def make_model():
             # a new MetaMorph; only the learngene's layers (and the observation statistics they were trained with) inherited
-            venv = inherited_normalizer(source, make_env(), gamma, freeze_observations=True)
+            venv = inherited_normalizer(source, make_env(), gamma, freeze_observations=cfg.observation_statistics == "frozen")
             model = PPO("MetaMorphPolicy", venv, policy_kwargs=grl_policy_kwargs(profile), seed=run_seed, device=device, **entry.ppo_kwargs)
             inherit(model.policy, PPO.load(source / MODEL, device=device).policy, learngene["units"])
             return model
@@ -404,7 +411,7 @@ def transfer_run(profile: Profile, out: Path, task: str, arm: str, seed: int = 0
             # the source's weights and observation statistics (frozen); reward statistics start afresh for the
             # new task; an encoder for a task input the source never had (a teacher of another task) is added
             saved = PPO.load(source / MODEL, device=device)
-            venv = inherited_normalizer(source, make_env(), gamma, freeze_observations=True)
+            venv = inherited_normalizer(source, make_env(), gamma, freeze_observations=cfg.observation_statistics == "frozen")
             return finetuned_model(saved, venv, task, task_policy_kwargs, run_seed, device, entry.ppo_kwargs)
 
     if spec.divmorph_transfer:
@@ -415,7 +422,8 @@ def transfer_run(profile: Profile, out: Path, task: str, arm: str, seed: int = 0
             with th.no_grad():
                 selection = gate_selection(model.policy, selection_obs, model.get_vec_normalize_env())
             # the hooks live on the optimiser; they are installed again whenever the run is loaded
-            installed["rates"] = prepare_transfer(model.policy, selection, cfg.learngene_lr_scale, adam_eps=cfg.adam_eps,
+            eps = TRANSFER_ADAM_EPS if cfg.adam_eps is None else cfg.adam_eps
+            installed["rates"] = prepare_transfer(model.policy, selection, cfg.learngene_lr_scale, adam_eps=eps,
                                                   undiverted_scale=cfg.undiverted_lr_scale)
 
         callbacks.append(UpdateRatioLogger(lambda: installed.get("rates")))
@@ -423,7 +431,8 @@ def transfer_run(profile: Profile, out: Path, task: str, arm: str, seed: int = 0
 
         def prepare(model):
             # one optimiser rule for every arm (set again whenever the run is loaded)
-            set_adam_eps(model.policy.optimizer, cfg.adam_eps)
+            if cfg.adam_eps is not None:
+                set_adam_eps(model.policy.optimizer, cfg.adam_eps)
 
     _check_source(folder, _source_record(out, arm, seed, source))
     return TrainingRun(
