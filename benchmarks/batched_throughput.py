@@ -8,14 +8,25 @@ In one run on one machine, for FT and VT on the first R robots of a set:
   robot, stepped through its torch interface (observations, rewards and resets included);
 * **batched (cuda)**: the same on the GPU, when a CUDA device is present.
 
-Then end-to-end PPO steps/s (rollout + update, SB3's PPO with the MetaMorph policy at the
-``small`` and ``paper`` presets) on the single backend (``n_envs`` single envs) and on the batched
-one. Warm-up (kernel compilation, CUDA graph capture, the first rollout) is excluded from every
+Then end-to-end PPO steps/s (rollout + update, with the MetaMorph policy at the ``small`` and
+``paper`` presets) on the single backend (``n_envs`` single envs, SB3's PPO) and on the batched one
+twice: through SB3's ``VecEnv`` interface (SB3's PPO: numpy observations and per-world infos every
+step) and device-native (:class:`sb3_divmorph.device_ppo.DevicePPO`: rollouts through
+``step_tensors``, the buffer, GAE and normalisation on the device), each with its rollout/update
+split. Warm-up (kernel compilation, CUDA graph capture, the first rollout) is excluded from every
 timing and reported separately.
+
+Last, counts that explain the per-step cost (``--count-robots``, on each device): kernel nodes per
+robot in one control step's physics program (``RobotWorlds._step_physics``: Warp launches, memsets,
+copies and conditional nodes, counted as the graph is captured, and the kernels it actually runs
+once with the solver's iterations), graph launches and torch calls per env step, and the host <->
+device copies and waits per step of the VecEnv path against the device path
+(:class:`sb3_divmorph.device_ppo.HostTransferCounter`).
 
 Usage::
 
     python benchmarks/batched_throughput.py [--robots 10 100] [--worlds 1 8 32] [--devices cpu cuda]
+    python benchmarks/batched_throughput.py --tasks --robots --ppo-robots 2 --ppo-worlds 8 --out results/x.md  # PPO and counts only
 
 Writes ``results/batched_throughput.md``. Targets on one H100: >= 200k env steps/s on FT across
 100 robots, >= 100k on VT, PPO end-to-end (small model) >= 30k steps/s.
@@ -87,21 +98,209 @@ def _synchronize(env) -> None:
         torch.cuda.synchronize(env.torch_device)
 
 
-def ppo_steps_per_second(make_env, preset: str, device: str, n_steps: int, rollouts: int) -> tuple[float, int]:
-    """End-to-end PPO samples/s (rollouts + updates) after one warm-up rollout; and the rollout size."""
+def ppo_steps_per_second(make_env, preset: str, device: str, n_steps: int, rollouts: int,
+                         algo: str = "sb3") -> tuple[float, int, float, float]:
+    """End-to-end PPO samples/s (rollouts + updates) after one warm-up rollout.
+
+    :param make_env: builds the (monitored) VecEnv.
+    :param preset: the MetaMorph policy's preset (``small``, ``paper``).
+    :param device: torch device of the policy.
+    :param n_steps: steps per env per rollout.
+    :param rollouts: timed rollouts (each followed by its update).
+    :param algo: ``"sb3"`` (SB3's PPO, through the VecEnv interface) or ``"device"`` (DevicePPO).
+    :return: (samples/s, rollout size, seconds collecting, seconds updating) of the timed rollouts.
+    """
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import VecNormalize
 
     import sb3_divmorph  # noqa: F401  (policy aliases)
+    from sb3_divmorph.device_ppo import DevicePPO
 
     venv = VecNormalize(make_env(), norm_obs_keys=["proprioceptive", "hfield"], norm_reward=True)
     rollout = venv.num_envs * n_steps
-    model = PPO("MetaMorphPolicy", venv, n_steps=n_steps, batch_size=min(rollout, 4096), n_epochs=2,
+    cls = DevicePPO if algo == "device" else PPO
+    model = cls("MetaMorphPolicy", venv, n_steps=n_steps, batch_size=min(rollout, 4096), n_epochs=2,
                 policy_kwargs={"preset": preset}, device=device, seed=0)
+    split = {"rollout": 0.0, "update": 0.0}
+
+    def timed(name, method):
+        def run(*args, **kwargs):
+            start = time.perf_counter()
+            try:
+                return method(*args, **kwargs)
+            finally:
+                if torch.cuda.is_available() and model.device.type == "cuda":
+                    torch.cuda.synchronize(model.device)
+                split[name] += time.perf_counter() - start
+        return run
+
+    model.collect_rollouts = timed("rollout", model.collect_rollouts)
+    model.train = timed("update", model.train)
     model.learn(rollout)
+    split.update(rollout=0.0, update=0.0)
     start = time.perf_counter()
     model.learn(rollouts * rollout, reset_num_timesteps=False)
-    return rollouts * rollout / (time.perf_counter() - start), rollout
+    return rollouts * rollout / (time.perf_counter() - start), rollout, split["rollout"], split["update"]
+
+
+class _WarpCounter:
+    """Counts Warp operations while active: kernel launches, memsets (``zero_``/``fill_``), copies
+    and conditional nodes (``capture_while``/``capture_if``); operations nested in a counted one
+    (a ``fill_`` that launches a kernel) count once. Inside a capture each is one graph node; run
+    eagerly, a ``capture_while`` body counts once per iteration. Launches over zero threads (a
+    kernel for a feature the model lacks: tendons, flexes, equality constraints) are not graph
+    nodes (Warp skips them); they are counted apart as ``empty``."""
+
+    def __init__(self):
+        self.counts = {"kernels": 0, "memsets": 0, "copies": 0, "conditionals": 0, "empty": 0}
+
+    def __enter__(self):
+        import warp as wp
+
+        self._saved = []
+        inside = [False]
+
+        def patch(owner, name, kind, leaf=True):
+            original = getattr(owner, name)
+
+            def counted(*args, **kwargs):
+                if inside[0]:
+                    return original(*args, **kwargs)
+                if kind == "kernels":
+                    dim = kwargs.get("dim", args[1] if len(args) > 1 else 1)
+                    if int(np.prod(dim if isinstance(dim, (tuple, list)) else [dim])) == 0:
+                        self.counts["empty"] += 1
+                        return original(*args, **kwargs)
+                self.counts[kind] += 1
+                if not leaf:
+                    return original(*args, **kwargs)
+                inside[0] = True
+                try:
+                    return original(*args, **kwargs)
+                finally:
+                    inside[0] = False
+
+            self._saved.append((owner, name, original))
+            setattr(owner, name, counted)
+
+        patch(wp, "launch", "kernels")
+        patch(wp, "launch_tiled", "kernels")
+        patch(wp, "copy", "copies")
+        patch(wp.array, "zero_", "memsets")
+        patch(wp.array, "fill_", "memsets")
+        patch(wp, "capture_while", "conditionals", leaf=False)
+        patch(wp, "capture_if", "conditionals", leaf=False)
+        return self
+
+    def __exit__(self, *exc):
+        for owner, name, original in reversed(self._saved):
+            setattr(owner, name, original)
+
+
+def launch_counts(task: str, files: list[Path], worlds: int, device: str) -> dict:
+    """Kernel nodes per robot in one control step's physics program, and per-step launches and
+    torch calls of the whole env (see the module docstring)."""
+    import warp as wp
+    from torch.overrides import TorchFunctionMode
+
+    from unimal_envs.batched import make_batched_env
+
+    env = make_batched_env(task, morphologies=files, worlds_per_robot=worlds, device=device, seed=0, terrain_variants=2)
+    env.reset_tensors()
+    generator = torch.Generator(device=env.torch_device).manual_seed(0)
+    random = lambda: torch.rand((env.num_envs, C.ACTION_DIM), generator=generator, device=env.torch_device) * 2 - 1  # noqa: E731
+    for _ in range(20):  # eager (compiles), captures, replays; robots in contact with the ground
+        env.step_tensors(random())
+    env.blocks[0].actions.copy_(random())
+    captured, eager = [], []
+    for group in env.blocks[0].groups:
+        with wp.ScopedDevice(group.device):
+            with _WarpCounter() as counter, wp.ScopedCapture(device=group.device, stream=group.stream):
+                group._step_physics()
+            captured.append(counter.counts)
+            with _WarpCounter() as counter:
+                group._step_physics()
+            eager.append(counter.counts)
+
+    class TorchCalls(TorchFunctionMode):
+        calls = 0
+
+        def __torch_function__(self, func, types, args=(), kwargs=None):
+            TorchCalls.calls += 1
+            return func(*args, **(kwargs or {}))
+
+    launches = [0]
+    original = wp.capture_launch
+
+    def counting_launch(*args, **kwargs):
+        launches[0] += 1
+        return original(*args, **kwargs)
+
+    wp.capture_launch = counting_launch
+    try:
+        with TorchCalls():
+            for _ in range(10):
+                env.step_tensors(random())
+    finally:
+        wp.capture_launch = original
+    env.close()
+    return {"captured": captured, "eager": eager, "graph_launches": launches[0] / 10, "torch_calls": TorchCalls.calls / 10,
+            "robots": len(files), "envs": env.num_envs}
+
+
+def transfer_counts(files: list[Path], worlds: int, device: str, n_steps: int = 8, max_episode_steps: int = 1000) -> dict:
+    """Per-step host <-> device copies and waits of one PPO rollout on the batched env, through
+    SB3's VecEnv interface and through DevicePPO (tiny MetaMorph policy, VecNormalize as the
+    pipeline uses it); and the per-world Python objects the VecEnv path builds per step."""
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
+
+    import sb3_divmorph  # noqa: F401
+    from sb3_divmorph.device_ppo import DevicePPO, HostTransferCounter
+    from unimal_envs.batched import make_batched_env
+    from unimal_envs.batched.env import BatchedUnimalEnv
+
+    tiny = dict(d_model=16, n_layers=1, ff_dim=32)
+    rows = {}
+    for name, cls in (("VecEnv (SB3 PPO)", PPO), ("device (DevicePPO)", DevicePPO)):
+        env = make_batched_env("FT", morphologies=files, worlds_per_robot=worlds, device=device, seed=0,
+                               max_episode_steps=max_episode_steps)
+        venv = VecNormalize(VecMonitor(env), norm_obs_keys=["proprioceptive", "hfield"])
+        model = cls("MetaMorphPolicy", venv, n_steps=2 * n_steps, batch_size=2 * n_steps * env.num_envs, n_epochs=1,
+                    seed=0, policy_kwargs=tiny, device=device)
+        _, callback = model._setup_learn(10 * n_steps * env.num_envs, None)
+        model.collect_rollouts(model.env, callback, model.rollout_buffer, n_steps)  # warm-up
+        infos, ended = [0, 0], []
+        original_wait, original_step = BatchedUnimalEnv.step_wait, BatchedUnimalEnv.step_tensors
+
+        def counting_step_wait(self):
+            out = original_wait(self)
+            infos[0] += len(out[3])
+            infos[1] += sum("terminal_observation" in info for info in out[3])
+            return out
+
+        def recording_step_tensors(self, actions):
+            out = original_step(self, actions)
+            ended.append(out[2] | out[3])
+            return out
+
+        BatchedUnimalEnv.step_wait, BatchedUnimalEnv.step_tensors = counting_step_wait, recording_step_tensors
+        counted = {}
+        try:
+            for steps in (n_steps, 2 * n_steps):  # the difference is what a step costs, when steps cost alike
+                infos[:], ended[:] = [0, 0], []
+                with HostTransferCounter() as counter:
+                    model.collect_rollouts(model.env, callback, model.rollout_buffer, steps)
+                counted[steps] = dict(counter.counts, info_dicts=infos[0], terminal_dicts=infos[1],
+                                      episodes=int(sum(int(e.sum()) for e in ended)))
+        finally:
+            BatchedUnimalEnv.step_wait, BatchedUnimalEnv.step_tensors = original_wait, original_step
+        longer = counted[2 * n_steps]
+        per_step = {k: v / (2 * n_steps) for k, v in longer.items()}  # averaged, per-rollout work included
+        per_rollout = {k: longer[k] - 2 * (longer[k] - counted[n_steps][k]) for k in longer}
+        rows[name] = {"per_step": per_step, "per_rollout": per_rollout, "envs": env.num_envs, "episodes": longer["episodes"],
+                      "steps": 2 * n_steps}
+    return rows
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -116,6 +315,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--ppo-robots", type=int, default=10)
     parser.add_argument("--ppo-worlds", nargs="*", type=int, default=[8], help="worlds per robot of the PPO rows (cpu, cuda)")
     parser.add_argument("--ppo-presets", nargs="*", default=["small", "paper"])
+    parser.add_argument("--ppo-algos", nargs="*", default=["sb3", "device"],
+                        help="batched PPO paths: sb3 (SB3's PPO through the VecEnv interface), device (DevicePPO)")
+    parser.add_argument("--count-robots", type=int, default=10, help="robots of the launch and copy counts (0: skip them)")
+    parser.add_argument("--count-worlds", type=int, default=8, help="worlds per robot of the launch and copy counts")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
 
@@ -149,16 +352,30 @@ def main(argv: list[str] | None = None) -> None:
 
     for preset in args.ppo_presets:
         single_envs = 8
-        rate, rollout = ppo_steps_per_second(lambda: make_vec_env("Unimal-FT-v0", single_envs, 0, 1000, morphologies=files),
-                                             preset, "cpu", 64, 2)
-        ppo_rows.append((preset, f"single x {single_envs} (cpu)", single_envs, rollout, rate))
+        rate, rollout, collect, update = ppo_steps_per_second(
+            lambda: make_vec_env("Unimal-FT-v0", single_envs, 0, 1000, morphologies=files), preset, "cpu", 64, 2)
+        ppo_rows.append((preset, f"single x {single_envs} (cpu)", single_envs, rollout, rate, collect, update))
         print(f"PPO {preset} single x{single_envs}: {rate:.0f} steps/s", flush=True)
         for device in devices:
             for worlds in args.ppo_worlds:
                 make = lambda: make_vec_env("Unimal-FT-v0", 0, 0, 1000, "batched", worlds, device, morphologies=files)  # noqa: E731
-                rate, rollout = ppo_steps_per_second(make, preset, device, 16, 2)
-                ppo_rows.append((preset, f"batched ({device}), {worlds} worlds/robot", len(files) * worlds, rollout, rate))
-                print(f"PPO {preset} batched {device} W={worlds}: {rate:.0f} steps/s", flush=True)
+                for algo in args.ppo_algos:
+                    rate, rollout, collect, update = ppo_steps_per_second(make, preset, device, 16, 2, algo)
+                    path = "VecEnv, SB3 PPO" if algo == "sb3" else "device, DevicePPO"
+                    ppo_rows.append((preset, f"batched ({device}, {path}), {worlds} worlds/robot", len(files) * worlds,
+                                     rollout, rate, collect, update))
+                    print(f"PPO {preset} batched {device} {algo} W={worlds}: {rate:.0f} steps/s "
+                          f"(rollout {collect:.2f} s, update {update:.2f} s)", flush=True)
+
+    counts: dict[str, dict] = {}
+    if args.count_robots:
+        count_files = morphology_files(args.morphologies)[: args.count_robots]
+        for device in devices:
+            for task in ("FT", "VT"):
+                counts[f"launches {task} {device}"] = launch_counts(task, count_files, args.count_worlds, device)
+                print(f"counted launches {task} {device}", flush=True)
+            counts[f"transfers {device}"] = transfer_counts(count_files, args.count_worlds, device)
+            print(f"counted transfers {device}", flush=True)
 
     command = "python benchmarks/batched_throughput.py " + " ".join(argv if argv is not None else sys.argv[1:])
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "none"
@@ -175,6 +392,9 @@ def main(argv: list[str] | None = None) -> None:
     ]
     if skipped:
         lines.append(f"No {', '.join(skipped)} device on this machine: those rows are missing; run the same command on a GPU machine.")
+    if devices == ["cpu"]:
+        lines.append("**Every batched row and count here is CPU Warp** (MuJoCo Warp's kernels compiled for the CPU, one core): "
+                     "a correctness backend, not a measurement of the GPU.")
     lines += [
         "",
         "## Env steps/s",
@@ -193,17 +413,81 @@ def main(argv: list[str] | None = None) -> None:
         "",
         f"## PPO end to end (FT, {len(files)} robots, MetaMorph policy)",
         "",
-        "Samples/s of `PPO.learn` over two rollouts (collection + 2 epochs of updates, batch <= 4096) after one warm-up rollout; "
-        "single rollouts are 64 steps x 8 envs, batched rollouts 16 steps x all worlds.",
+        "Samples/s of `learn` over two rollouts (collection + 2 epochs of updates, batch <= 4096) after one warm-up rollout; "
+        "single rollouts are 64 steps x 8 envs, batched rollouts 16 steps x all worlds. Batched rows run twice: SB3's PPO "
+        "through the VecEnv interface (numpy observations and one info dict per world every step) and DevicePPO "
+        "(rollouts through `step_tensors`, buffer, GAE and VecNormalize's arithmetic on the device). Rollout and update "
+        "are the seconds of the two timed rollouts spent collecting and in PPO's update (CUDA synchronised at the boundaries).",
         "",
-        "| preset | backend | envs | rollout | PPO steps/s |",
-        "|---|---|---|---|---|",
+        "| preset | backend | envs | rollout | PPO steps/s | rollout (s) | update (s) | rollout share |",
+        "|---|---|---|---|---|---|---|---|",
     ]
-    for preset, backend, envs, rollout, rate in ppo_rows:
-        lines.append(f"| {preset} | {backend} | {envs} | {rollout} | {rate:,.0f} |")
+    for preset, backend, envs, rollout, rate, collect, update in ppo_rows:
+        lines.append(f"| {preset} | {backend} | {envs} | {rollout} | {rate:,.0f} | {collect:.2f} | {update:.2f} "
+                     f"| {collect / max(collect + update, 1e-9):.0%} |")
+    lines += _count_lines(counts, args)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text("\n".join(lines) + "\n")
     print(f"wrote {args.out}")
+
+
+def _count_lines(counts: dict[str, dict], args) -> list[str]:
+    """The markdown of the launch and copy counts."""
+    if not counts:
+        return []
+    lines = [
+        "",
+        f"## Kernel launches and host <-> device traffic per env step ({args.count_robots} robots x {args.count_worlds} worlds)",
+        "",
+        "Physics program of one control step (`RobotWorlds._step_physics`: actions onto the motors, 4 MuJoCo Warp substeps, "
+        "kinematics, the observation kernel), per robot. *Graph nodes*: Warp operations recorded while the program is "
+        "captured (kernels, memsets, copies; a conditional node holds the solver's iteration loop, whose body is counted "
+        "once). *Run eagerly*: the operations one step actually executes kernel by kernel, solver iterations included. "
+        "min-max over the robots.",
+        "",
+        "| task | device | graph nodes: kernels | memsets | copies | conditionals | zero-size launches (no node) "
+        "| run eagerly: kernels | memsets + copies | graph launches per env step | torch calls per env step |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    span = lambda rows, key: f"{min(r[key] for r in rows)}-{max(r[key] for r in rows)}"  # noqa: E731
+    for name, c in counts.items():
+        if not name.startswith("launches"):
+            continue
+        _, task, device = name.split()
+        cap, eager = c["captured"], c["eager"]
+        eager_mem = [{"n": r["memsets"] + r["copies"]} for r in eager]
+        lines.append(f"| {task} | {device} | {span(cap, 'kernels')} | {span(cap, 'memsets')} | {span(cap, 'copies')} "
+                     f"| {span(cap, 'conditionals')} | {span(cap, 'empty')} | {span(eager, 'kernels')} | {span(eager_mem, 'n')} "
+                     f"| {c['graph_launches']:.0f} ({c['robots']} robots) | {c['torch_calls']:.0f} |")
+    lines += [
+        "",
+        "Graph launches: one captured physics graph per robot per step (plus one `sync` graph per robot on steps where a "
+        "world resets). Torch calls: every torch function the env's step makes (actions, readings, rewards, "
+        "terminations, observations, auto-reset), for all robots together; on CUDA each is at most one small kernel.",
+        "",
+        "Host <-> device traffic of one 16-step PPO rollout on FT (tiny MetaMorph policy, VecNormalize on "
+        "proprioceptive/hfield, the timestep limit 1000: the episodes that end are falls), counted with "
+        "`HostTransferCounter` (on a CPU-only machine: the calls that would be copies or waits on CUDA). Per step: the "
+        "rollout's totals over its 16 steps (the per-rollout work included). Fixed per rollout (from a 16- minus an "
+        "8-step rollout; exact only where every step costs the same, i.e. the device path).",
+        "",
+        "| path | envs | episodes ended | to host per step (calls / KB) | host to device per step (calls / KB) "
+        "| waits per step | per-world info dicts per step | torch calls per step | fixed per rollout: copies (calls / KB), waits |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, c in counts.items():
+        if not name.startswith("transfers"):
+            continue
+        device = name.split()[1]
+        for path, row in c.items():
+            s, r = row["per_step"], row["per_rollout"]
+            fixed = (f"{r['to_host'] + r['to_device']:.0f} / {(r['to_host_bytes'] + r['to_device_bytes']) / 1024:.0f}, "
+                     f"{r['syncs']:.0f}") if path.startswith("device") else "-"
+            lines.append(
+                f"| {path} ({device}) | {row['envs']} | {row['episodes']} | {s['to_host']:.1f} / {s['to_host_bytes'] / 1024:.0f} "
+                f"| {s['to_device']:.1f} / {s['to_device_bytes'] / 1024:.0f} | {s['syncs']:.1f} | {s['info_dicts']:.0f} "
+                f"| {s['calls']:.0f} | {fixed} |")
+    return lines
 
 
 def _version(name: str) -> str:

@@ -346,7 +346,9 @@ class HostTransferCounter(TorchFunctionMode):
     * ``syncs``: scalar reads that wait for the device: ``.item()``, ``bool()``, ``float()``,
       ``int()``, ``nonzero`` and indexing with a boolean mask;
     * ``to_device``: tensors made from host data (``torch.as_tensor`` / ``torch.tensor`` of numpy
-      arrays or lists) -- with their bytes (``to_device_bytes``).
+      arrays or lists) -- with their bytes (``to_device_bytes``);
+    * ``calls``: every torch function called (on CUDA, an upper bound on the kernels launched
+      outside Warp's graphs).
 
     Use as a context manager: ``with HostTransferCounter() as counter: ...; counter.counts``.
     """
@@ -357,13 +359,14 @@ class HostTransferCounter(TorchFunctionMode):
 
     def __init__(self):
         super().__init__()
-        self.counts = {"to_host": 0, "to_host_bytes": 0, "syncs": 0, "to_device": 0, "to_device_bytes": 0}
+        self.counts = {"to_host": 0, "to_host_bytes": 0, "syncs": 0, "to_device": 0, "to_device_bytes": 0, "calls": 0}
         self._on_host: set[int] = set()
 
     def __torch_function__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
         result = func(*args, **kwargs)
         name = getattr(func, "__name__", "")
+        self.counts["calls"] += 1
         first = args[0] if args else None
         if name in self._TO_HOST and isinstance(first, th.Tensor):
             if not (name in ("numpy", "tolist", "__array__") and id(first) in self._on_host):

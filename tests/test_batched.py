@@ -240,6 +240,10 @@ def test_the_pipeline_trains_its_stages_on_the_batched_backend_when_the_profile_
         return original(task, **kwargs)
 
     monkeypatch.setattr(batched, "make_batched_env", counting)
+    from sb3_divmorph.device_ppo import DevicePPO
+
+    on_device, collect = [], DevicePPO._collect_on_device
+    monkeypatch.setattr(DevicePPO, "_collect_on_device", lambda self, *a: on_device.append(1) or collect(self, *a))
     on_warp = {"env_backend": "batched", "worlds_per_robot": 2, "terrain_variants": 3}
     profiles = write_profiles(
         tmp_path, teachers__n_timesteps=64, teachers__overrides={"n_steps": 16, "batch_size": 32, "n_epochs": 1}, **{
@@ -251,6 +255,7 @@ def test_the_pipeline_trains_its_stages_on_the_batched_backend_when_the_profile_
     for stage in ("teachers", "distill", "transfer"):
         assert cli([stage, "--profile", "tiny", "--profiles", str(profiles), "--out", str(out), "--no-progress"]) == 0
     assert [task for task, _, _, _ in built] == ["FT", "Patrol", "MultiTask", "PointNav"]
+    assert len(on_device) >= 2, "each teacher's rollouts stayed on the device (DevicePPO)"
     assert all(worlds == 2 and device == "cpu" and variants == 3 for _, worlds, device, variants in built)
     assert (out / "transfer" / "PointNav" / "divmorph" / "seed-0" / "model.zip").is_file()
     recorded = json.loads((out / "run.json").read_text())["configuration"]

@@ -11,6 +11,7 @@ from pathlib import Path
 
 from stable_baselines3 import PPO
 
+from sb3_divmorph.device_ppo import DevicePPO
 from sb3_divmorph.distillation import Teacher
 from sb3_divmorph.pipeline.config import ConfigError, Profile, load_zoo_entry
 from sb3_divmorph.pipeline.runs import (
@@ -64,16 +65,20 @@ def teacher_run(
         return make_vec_env(env_name, entry.n_envs, seed, profile.max_episode_steps, cfg.env_backend, cfg.worlds_per_robot,
                             device, cfg.terrain_variants, morphologies=robots)
 
+    # On the batched backend, rollouts stay on the device (DevicePPO; the same PPO otherwise). The
+    # balanced robot sampler reads per-world infos, which only SB3's VecEnv path builds.
+    algo = DevicePPO if cfg.env_backend == "batched" and not entry.callbacks else PPO
+
     def make_model():
         venv = normalizer_for(make_env(), entry.normalize, entry.ppo_kwargs.get("gamma", 0.99))
-        return PPO(entry.policy, venv, policy_kwargs=policy_kwargs, seed=seed, device=device, verbose=0, **entry.ppo_kwargs)
+        return algo(entry.policy, venv, policy_kwargs=policy_kwargs, seed=seed, device=device, verbose=0, **entry.ppo_kwargs)
 
     from sb3_divmorph.recipe import BalancedRobotSampler  # the only callback a zoo entry may name
 
     callbacks = [BalancedRobotSampler(**kwargs) for _, kwargs in entry.callbacks]
     return TrainingRun(
         teacher_folder(out, task, root), cfg.n_timesteps, cfg.checkpoint_every, make_model, make_env,
-        callbacks=callbacks, device=device, progress_bar=progress_bar,
+        algo=algo, callbacks=callbacks, device=device, progress_bar=progress_bar,
     )
 
 
