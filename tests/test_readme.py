@@ -19,6 +19,8 @@ from sb3_divmorph.cli import main as cli
 
 REPO = Path(__file__).resolve().parents[1]
 README = (REPO / "README.md").read_text()
+#: the README and the documentation pages: every code block of either is held to the same rules
+PAGES = [README, *(p.read_text() for p in sorted((REPO / "docs").glob("*.md")))]
 EXAMPLES = REPO / "examples"
 #: every example with the arguments the test runs it with (smaller than the defaults where it matters)
 EXAMPLE_RUNS = [
@@ -29,8 +31,10 @@ EXAMPLE_RUNS = [
 ]
 
 
-def code_blocks(language: str) -> list[str]:
-    return [code for lang, code in re.findall(r"```(\w*)\n(.*?)```", README, flags=re.S) if lang == language]
+def code_blocks(language: str, pages: list[str] | None = None) -> list[str]:
+    """The ``language`` code blocks of the README and the docs pages (or of ``pages``), in order."""
+    return [code for page in (PAGES if pages is None else pages)
+            for lang, code in re.findall(r"```(\w*)\n(.*?)```", page, flags=re.S) if lang == language]
 
 
 def run_example(name: str, args: list[str], monkeypatch, capsys) -> str:
@@ -47,7 +51,7 @@ def restore_threads():
 
 
 def test_readme_opens_with_make_demo_and_make_test():
-    first = code_blocks("bash")[0].splitlines()
+    first = code_blocks("bash", [README])[0].splitlines()
     assert [line.split()[:2] for line in first[:2]] == [["make", "demo"], ["make", "test"]]
 
 
@@ -71,14 +75,14 @@ def test_every_example_and_python_block_runs(tmp_path, monkeypatch, capsys, rest
     assert float(re.search(r"max \|ONNX - student\| over 20 steps (\S+)", out).group(1)) <= 1e-5
     assert (tmp_path / "exported" / "actor.onnx").is_file() and (tmp_path / "exported" / "actor.pt").is_file()
 
-    # Every README Python block runs on its own in a fresh interpreter, as a reader pasting only that
-    # block would run it (the last two run the actor exported above, from this folder).
+    # Every README and docs Python block runs on its own in a fresh interpreter, as a reader pasting
+    # only that block would run it (the ONNX and TorchScript ones run the actor exported above).
     blocks = code_blocks("python")
     assert len(blocks) >= 5
     for index, code in enumerate(blocks):
         done = subprocess.run([sys.executable, "-c", "import torch; torch.set_num_threads(1)\n" + code], cwd=tmp_path,
                               capture_output=True, text=True, timeout=600)
-        assert done.returncode == 0, f"README.md python block {index} fails on its own:\n{code}\n{done.stderr[-2000:]}"
+        assert done.returncode == 0, f"python block {index} (README, then docs/) fails on its own:\n{code}\n{done.stderr[-2000:]}"
     # ... and the quick start's numbers, checked in this process.
     namespace: dict = {"__name__": "__readme__"}
     quick_start = None
