@@ -8,15 +8,26 @@ import numpy as np
 import pytest
 
 from sb3_divmorph.pipeline.metrics import (
+    EFFICIENCY_FRACTION,
+    RobotCurves,
     area_under_curve,
-    arm_metrics,
     final_level,
+    level_for,
     mean_curve,
-    sample_efficiency,
-    steps_to_reach,
+    steps_to_hold,
+    task_metrics_from_curves,
 )
 
 STEPS = np.arange(0, 1001, 10, dtype=float)
+
+
+def run(*robot_curves: np.ndarray, steps: np.ndarray = STEPS) -> RobotCurves:
+    """One seed's evaluations: one curve per robot."""
+    return RobotCurves(steps, [f"robot-{i}" for i in range(len(robot_curves))], np.array(robot_curves, float))
+
+
+def by_arm(metrics):
+    return {m.arm: m for m in metrics}
 
 
 def test_scratch_final_return_is_the_mean_of_its_last_tenth():
@@ -24,20 +35,45 @@ def test_scratch_final_return_is_the_mean_of_its_last_tenth():
     assert final_level(STEPS, STEPS) == pytest.approx(950.0)
 
 
+def test_steps_to_hold_a_level_count_from_the_last_crossing_and_need_the_end_above_it():
+    assert steps_to_hold(STEPS, STEPS, 800.0) == pytest.approx(800.0)
+    assert steps_to_hold(STEPS, 2 * STEPS, 950.0) == pytest.approx(475.0)  # interpolated between 470 and 480
+    assert steps_to_hold(STEPS, np.full_like(STEPS, 5.0), 3.0) == 0.0  # held from the start
+    falls = 1000 - STEPS  # starts at the level, ends below it
+    assert steps_to_hold(STEPS, falls, 800.0) is None
+    dips = np.where((STEPS > 200) & (STEPS < 600), 0.0, 1000.0)  # above, below, above again: counted from the return
+    assert steps_to_hold(STEPS, dips, 800.0) == pytest.approx(590.0 + 10 * 0.8)
+
+
+def test_the_level_is_a_fixed_fraction_from_scratchs_start_to_the_best_final_return():
+    assert level_for({"scratch": 0.0, "a": 50.0}, {"scratch": 500.0, "a": 1000.0}) == pytest.approx(EFFICIENCY_FRACTION * 1000)
+    assert level_for({"a": -20.0, "b": 0.0}, {"a": 80.0, "b": 30.0}, fraction=0.5) == pytest.approx(30.0)  # no scratch: the lowest start
+    assert level_for({"scratch": 10.0}, {"scratch": 5.0}) is None  # nothing was learnt
+
+
 def test_an_arm_twice_as_fast_is_twice_as_sample_efficient():
-    # scratch y = x reaches 950 at 950; the arm y = 2x reaches it at 475 (interpolated between 470 and 480)
-    assert steps_to_reach(STEPS, 2 * STEPS, 950.0) == pytest.approx(475.0)
-    assert sample_efficiency((STEPS, STEPS), (STEPS, 2 * STEPS)) == pytest.approx(2.0)
-    # four times as fast, on coarser evaluations
-    coarse = np.arange(0, 1001, 50, dtype=float)
-    assert sample_efficiency((STEPS, STEPS), (coarse, 4 * coarse)) == pytest.approx(4.0)
-    # slower arms are below 1
-    assert sample_efficiency((STEPS, STEPS), (STEPS, np.minimum(STEPS * 0.5 + 500, 1000))) == pytest.approx(950 / 900)
+    # level 0.8 x 1000 = 800: scratch (y = x) holds it from 800, the arm (y = 2x, capped) from 400
+    metrics = by_arm(task_metrics_from_curves("Escape", "train", {"scratch": [run(STEPS)], "fast": [run(np.minimum(2 * STEPS, 1000))]}))
+    assert metrics["fast"].level == pytest.approx(800.0)
+    assert metrics["fast"].steps_to_level == pytest.approx(400.0) and metrics["scratch"].steps_to_level == pytest.approx(800.0)
+    assert metrics["fast"].efficiency == pytest.approx(2.0) and metrics["fast"].efficiency_text() == "2.00x"
+    assert metrics["scratch"].efficiency == pytest.approx(1.0)
 
 
-def test_never_reaching_is_over_budget_and_starting_there_is_infinite():
-    assert sample_efficiency((STEPS, STEPS), (STEPS, 0.5 * STEPS)) is None
-    assert sample_efficiency((STEPS, STEPS), (STEPS, np.full_like(STEPS, 960.0))) == math.inf
+def test_an_arm_that_starts_high_and_falls_gets_no_speed_up():
+    """The former ratio credited "inf (zero-shot)" to any arm starting above scratch's final level,
+    whatever it did next; an arm must end at the level to be credited with reaching it."""
+    curves = {"scratch": [run(0.5 * STEPS)], "falls": [run(900 - 0.6 * STEPS)], "learns": [run(STEPS)]}
+    metrics = by_arm(task_metrics_from_curves("Exploration", "train", curves))
+    assert metrics["falls"].zero_shot == pytest.approx(900.0) and metrics["falls"].final == pytest.approx(300.0)
+    assert metrics["falls"].steps_to_level is None and metrics["falls"].efficiency is None
+    assert metrics["falls"].efficiency_text() == "-" and metrics["falls"].steps_text().startswith("not held")
+    # scratch never holds 800: the arm that does gets a stated lower bound, not infinity
+    assert metrics["learns"].efficiency == pytest.approx(1000 / 800) and metrics["learns"].efficiency_bound
+    assert metrics["learns"].efficiency_text().startswith(">= 1.25x")
+    # only an arm that holds the level from step 0 on is "from the start", and it says so
+    start = by_arm(task_metrics_from_curves("Exploration", "train", {"scratch": [run(STEPS)], "zero": [run(np.full_like(STEPS, 1000.0))]}))
+    assert math.isinf(start["zero"].efficiency) and start["zero"].efficiency_text() == "from the start (zero-shot)"
 
 
 def test_area_under_the_curve_is_the_mean_return_over_training():
@@ -45,15 +81,33 @@ def test_area_under_the_curve_is_the_mean_return_over_training():
     assert area_under_curve(STEPS, np.full_like(STEPS, 3.0)) == pytest.approx(3.0)
 
 
-def test_arm_metrics_pool_seeds_as_mean_and_sd():
-    seeds = [(STEPS, 2 * STEPS + 10), (STEPS, 2 * STEPS - 10)]
-    scratch = (STEPS, STEPS)
-    m = arm_metrics("Escape", "divmorph", "train", seeds, scratch)
-    assert (m.zero_shot, m.zero_shot_sd) == pytest.approx((0.0, 10.0))
-    assert (m.final, m.final_sd) == pytest.approx((2000.0, 10.0))
-    assert m.efficiency == pytest.approx(2.0) and m.efficiency_text() == "2.00x"
-    assert m.budget == 1000 and m.seeds == 2
-    steps, mean, sd = mean_curve(seeds)
-    assert np.allclose(mean, 2 * STEPS) and np.allclose(sd, 10.0)
-    never = arm_metrics("Escape", "grl", "novel", [(STEPS, 0 * STEPS)], scratch)
-    assert never.efficiency is None and never.efficiency_text() == ">budget"
+def test_metrics_are_means_over_seeds_and_robots_with_bootstrap_intervals():
+    seeds = [run(2 * STEPS + 10, 2 * STEPS + 30), run(2 * STEPS - 30, 2 * STEPS - 10)]  # seed means +-20, robots +-10 around 2x
+    m = by_arm(task_metrics_from_curves("Escape", "train", {"divmorph": seeds}))["divmorph"]
+    assert (m.seeds, m.robots, m.budget) == (2, 2, 1000)
+    assert (m.zero_shot, m.zero_shot_sd) == pytest.approx((0.0, 20.0))
+    assert (m.final, m.final_sd) == pytest.approx((2000.0, 20.0))
+    assert m.auc == pytest.approx(1000.0)
+    for value, lo, hi in ((m.zero_shot, m.zero_shot_lo, m.zero_shot_hi), (m.final, m.final_lo, m.final_hi), (m.auc, m.auc_lo, m.auc_hi)):
+        # resampling 2 seeds and 2 robots: the mean of a draw lies within +-30 of the point, and the interval is not a point
+        assert value - 30 - 1e-9 <= lo < value < hi <= value + 30 + 1e-9
+    # identical robots and seeds: nothing to resample, the interval is the point
+    same = by_arm(task_metrics_from_curves("Escape", "train", {"x": [run(STEPS, STEPS), run(STEPS, STEPS)]}))["x"]
+    assert same.final_lo == same.final == same.final_hi == 1000.0
+    # the interval grows with the robots' spread
+    narrow = by_arm(task_metrics_from_curves("E", "train", {"x": [run(STEPS + d) for d in (-1, 1)]}))["x"]
+    wide = by_arm(task_metrics_from_curves("E", "train", {"x": [run(*(STEPS + d for d in (-50, -20, 20, 50)))]}))["x"]
+    assert wide.final_hi - wide.final_lo > 10 * (narrow.final_hi - narrow.final_lo) > 0
+
+
+def test_episodes_are_averaged_per_robot_and_seeds_share_steps_and_robots():
+    rows = [{"timesteps": t, "split": "train", "robot": r, "episode": e, "return": 10 * e + (100 if r == "b" else 0) + t}
+            for t in (0, 50, 100) for r in ("a", "b") for e in range(3)]
+    curves = RobotCurves.from_rows(rows + [{"timesteps": 0, "split": "novel", "robot": "c", "episode": 0, "return": -1}], "train")
+    assert curves.robots == ["a", "b"] and list(curves.steps) == [0, 50, 100]
+    np.testing.assert_allclose(curves.values, [[10, 60, 110], [110, 160, 210]])
+    # a step some robot lacks (a killed evaluation) is left out
+    partial = RobotCurves.from_rows(rows + [{"timesteps": 150, "split": "train", "robot": "a", "episode": 0, "return": 0}], "train")
+    assert list(partial.steps) == [0, 50, 100]
+    steps, mean, sd = mean_curve([curves.mean(), (curves.steps, curves.mean()[1] + 20)])
+    assert np.allclose(mean, curves.mean()[1] + 10) and np.allclose(sd, 10.0)

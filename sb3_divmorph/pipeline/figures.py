@@ -39,7 +39,7 @@ import numpy as np  # noqa: E402
 from sb3_divmorph.pipeline.arms import ABLATION_ARMS, ARMS, MAIN_ARMS  # noqa: E402
 from sb3_divmorph.pipeline.config import ConfigError, Profile  # noqa: E402
 from sb3_divmorph.pipeline.curves import EVAL_FILE, eval_curve, read_eval  # noqa: E402
-from sb3_divmorph.pipeline.metrics import ArmMetrics, arm_metrics, mean_curve  # noqa: E402
+from sb3_divmorph.pipeline.metrics import ArmMetrics, RobotCurves, mean_curve, task_metrics_from_curves  # noqa: E402
 from sb3_divmorph.pipeline.runs import atomic_save, atomic_write_text, profile_robots  # noqa: E402
 from sb3_divmorph.pipeline.distill import STUDENTS  # noqa: E402
 from sb3_divmorph.pipeline.export import export_reports  # noqa: E402
@@ -111,25 +111,41 @@ def seed_curves(out: Path, task: str, arm: str, split: str) -> dict[int, tuple[n
     return curves
 
 
+def seed_robot_curves(out: Path, task: str, arm: str, split: str) -> dict[int, RobotCurves]:
+    """``{seed: RobotCurves}`` (per robot and step, mean over episodes) of every seed of an arm with an evaluation curve."""
+    base = Path(out) / "transfer" / task / arm
+    folders = {int(folder.name.split("-")[1]): folder for folder in base.glob("seed-*")}
+    folders.setdefault(0, base)  # a run from before seeds existed is seed 0
+    curves = {}
+    for seed, folder in sorted(folders.items()):
+        found = RobotCurves.from_rows(read_eval(folder / EVAL_FILE), split)
+        if len(found.steps) and found.robots:
+            curves[seed] = found
+    return curves
+
+
 def task_metrics(profile: Profile, out: Path, task: str) -> list[ArmMetrics]:
     """Metrics of every arm with curves on ``task``, both splits (see :mod:`~sb3_divmorph.pipeline.metrics`)."""
     metrics = []
     for split in ("train", "novel"):
-        scratch = seed_curves(out, task, "scratch", split)
-        reference = mean_curve(list(scratch.values()))[:2] if scratch else None
-        for arm in ARMS:
-            curves = seed_curves(out, task, arm, split)
-            if curves:
-                metrics.append(arm_metrics(task, arm, split, list(curves.values()), reference))
+        runs = {arm: list(curves.values()) for arm in ARMS if (curves := seed_robot_curves(out, task, arm, split))}
+        if runs:
+            metrics += task_metrics_from_curves(task, split, runs)
     return metrics
 
 
-METRIC_COLUMNS = ["task", "arm", "split", "seeds", "zero_shot", "zero_shot_sd", "final", "final_sd", "auc", "auc_sd",
-                  "sample_efficiency", "budget"]
+METRIC_COLUMNS = ["task", "arm", "split", "seeds", "robots", "zero_shot", "zero_shot_sd", "zero_shot_lo", "zero_shot_hi",
+                  "final", "final_sd", "final_lo", "final_hi", "auc", "auc_sd", "auc_lo", "auc_hi", "level",
+                  "steps_to_level", "steps_lo", "steps_hi", "held", "sample_efficiency", "budget"]
 
 
 def write_metrics(profile: Profile, out: Path, task: str) -> list[ArmMetrics]:
-    """Write ``transfer/<task>/metrics.csv`` (when there are runs) and return its rows."""
+    """Write ``transfer/<task>/metrics.csv`` (when there are runs) and return its rows.
+
+    ``steps_to_level`` is empty where the arm does not hold the level, ``steps_hi`` ``inf`` where some
+    bootstrap draws never do; ``sample_efficiency`` is the speed-up vs scratch in words
+    (:meth:`~sb3_divmorph.pipeline.metrics.ArmMetrics.efficiency_text`).
+    """
     metrics = task_metrics(profile, out, task)
     if not metrics:
         return []  # no runs of this task: no file (a run folder without transfers stays without them)
@@ -139,12 +155,15 @@ def write_metrics(profile: Profile, out: Path, task: str) -> list[ArmMetrics]:
 
 
 def metrics_table(metrics: list[ArmMetrics]) -> list[str]:
-    """Markdown table of transfer metrics."""
-    lines = ["| task | arm | robots | seeds | zero-shot return | final return | AUC (mean return) | sample efficiency vs scratch |",
-             "|---|---|---|---|---|---|---|---|"]
+    """Markdown table of transfer metrics: means with their 95% bootstrap intervals."""
+    lines = ["| task | arm | robots | seeds x robots | zero-shot return | final return | AUC (mean return) | level | "
+             "steps to hold the level | speed-up vs scratch |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for m in metrics:
-        lines.append(f"| {m.task} | {ARMS[m.arm].label} | {m.split} | {m.seeds} | {m.zero_shot:.1f} ± {m.zero_shot_sd:.1f} | "
-                     f"{m.final:.1f} ± {m.final_sd:.1f} | {m.auc:.1f} ± {m.auc_sd:.1f} | {m.efficiency_text()} |")
+        level = "-" if m.level is None else f"{m.level:.1f}"
+        lines.append(f"| {m.task} | {ARMS[m.arm].label} | {m.split} | {m.seeds} x {m.robots} | "
+                     f"{m.zero_shot:.1f} [{m.zero_shot_lo:.1f}, {m.zero_shot_hi:.1f}] | {m.final:.1f} [{m.final_lo:.1f}, {m.final_hi:.1f}] | "
+                     f"{m.auc:.1f} [{m.auc_lo:.1f}, {m.auc_hi:.1f}] | {level} | {m.steps_text()} | {m.efficiency_text()} |")
     return lines
 
 

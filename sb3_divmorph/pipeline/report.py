@@ -28,6 +28,7 @@ from sb3_divmorph.pipeline.distill import STUDENTS  # noqa: E402
 from sb3_divmorph.pipeline.export import export_reports  # noqa: E402
 from sb3_divmorph.pipeline.provenance import RECORD, SUPERSEDED  # noqa: E402
 from sb3_divmorph.pipeline.figures import CAPTIONS, make_figures, metrics_table, save_png, write_metrics  # noqa: E402
+from sb3_divmorph.pipeline.metrics import EFFICIENCY_FRACTION  # noqa: E402
 from sb3_divmorph.pipeline.runs import atomic_write_text, read_progress  # noqa: E402
 from sb3_divmorph.pipeline.transfer import transfer_folder, transfer_seeds, transfer_tasks  # noqa: E402
 
@@ -310,9 +311,12 @@ def report(profile: Profile, out: Path, command: str = "") -> str:
         closest = [json.loads(p.read_text()) for p in sorted((out / "transfer").glob("*/closest-by-*.json"))]
         lines += ["## Transfer metrics", "",
                   f"Deterministic evaluations every {profile.transfer.eval_every} env steps on the training and the novel robots "
-                  f"({profile.transfer.eval_episodes} episode(s) per robot); mean ± sd over seeds. AUC: area under the curve / "
-                  "steps (the mean return over training). Sample efficiency: env steps scratch needs to reach its own final return "
-                  "(mean of its last 10% of training) / steps the arm needs to reach it (>budget: never).", "",
+                  f"({profile.transfer.eval_episodes} episode(s) per robot); mean over seeds and robots [95% bootstrap interval, "
+                  "seeds and robots resampled]. AUC: area under the curve / steps (the mean return over training). Level: "
+                  f"{EFFICIENCY_FRACTION:.0%} of the way from scratch's zero-shot return to the best arm's final return; steps to "
+                  "hold the level: the env step from which the arm's mean curve stays at or above it to the end (not held: its last "
+                  "evaluation is below; >budget: some bootstrap draws never hold it). Speed-up vs scratch: scratch's steps / the "
+                  "arm's, only where both hold the level (>=: scratch never does, a lower bound).", "",
                   *metrics_table(metrics), ""]
         lines += [f"- closest training task to {c['task']} by {c['criterion']}: {c['closest']} "
                   f"({', '.join(f'{t} {v:.3f}' for t, v in c['scores'].items())})" for c in closest]
