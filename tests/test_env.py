@@ -286,3 +286,25 @@ def test_render_rgb_array_and_video(train_files, tmp_path):
     gif = write_video(shades, tmp_path / "clip.gif", fps=50)  # 20 frames at 50 fps -> every 5th: 4 frames
     assert len(imageio.mimread(gif)) == 4 and imageio.mimread(gif)[0].shape[:2] == (64, 96)
     env.close()
+
+
+def test_height_above_the_ground_is_an_option_of_the_contract_and_world_height_stays_the_default(train_files):
+    """``height_reference="ground"``: body heights are measured from the ground under the torso, so a
+    robot standing on Incline's slope (spawned at z = -12 m) observes what it observes on flat ground;
+    nothing else in the observation changes, padded rows stay zero, and world height is the default."""
+    robot = train_files[:1]
+    flat = gym.make("Unimal-FT-v0", morphologies=robot).reset(seed=0)[0]["proprioceptive"]
+    world = gym.make("Unimal-Incline-v0", morphologies=robot).reset(seed=0)[0]
+    ground = gym.make("Unimal-Incline-v0", morphologies=robot, height_reference="ground").reset(seed=0)[0]
+    real = world["obs_padding_mask"] < 0.5
+    assert world["proprioceptive"][0, C.Z_COLUMN] < -10  # the default: MetaMorph's world height
+    assert abs(ground["proprioceptive"][0, C.Z_COLUMN] - flat[0, C.Z_COLUMN]) < 0.05
+    shift = world["proprioceptive"][real, C.Z_COLUMN] - ground["proprioceptive"][real, C.Z_COLUMN]
+    assert np.allclose(shift, shift[0]) and shift[0] < -10  # one ground height under the torso for every token
+    others = np.delete(np.arange(C.PROPRIO_DIM), C.Z_COLUMN)
+    assert np.array_equal(world["proprioceptive"][:, others], ground["proprioceptive"][:, others])
+    assert not ground["proprioceptive"][~real].any()
+    multitask = gym.make("Unimal-MultiTask-v0", morphologies=robot, height_reference="ground")
+    assert abs(multitask.reset(seed=0, options={"task": "Incline"})[0]["proprioceptive"][0, C.Z_COLUMN] - flat[0, C.Z_COLUMN]) < 0.05
+    with pytest.raises(ValueError, match="height_reference must be one of"):
+        gym.make("Unimal-FT-v0", morphologies=robot, height_reference="sea level")

@@ -47,6 +47,13 @@ TASK_NAMES = TRAIN_TASKS + NOVEL_TASKS
 
 # Column layout of one proprioceptive token (spec 3.1).
 XPOS = slice(0, 3)
+#: The height column (body z): world height by default, or height above the ground under the torso
+#: with ``gym.make(..., height_reference="ground")`` (see :data:`HEIGHT_REFERENCES`).
+Z_COLUMN = 2
+#: What the height column is measured from: ``"world"`` (z = 0 plane, MetaMorph's convention, the
+#: default) or ``"ground"`` (the terrain under the torso: the same quantity on every task's ground,
+#: flat, sloped or rugged; ``results/normalizer_drift.md``).
+HEIGHT_REFERENCES = ("world", "ground")
 XVELP = slice(3, 6)
 XVELR = slice(6, 9)
 XQUAT = slice(9, 13)

@@ -135,6 +135,11 @@ class UnimalEnv(gym.Env):
     :param height: rendered image height in pixels.
     :param world_cache_size: compiled worlds (one per morphology) kept in memory; terrain and props
         are re-randomised in place every episode, so a world is only compiled on a cache miss.
+    :param height_reference: what the height column of ``proprioceptive`` (z of every body) is measured from:
+        ``"world"`` (the z = 0 plane, MetaMorph's convention, default) or ``"ground"`` (the ground
+        under the torso, ``arena.ground_height(x, y)``, subtracted from every real token's z): on an
+        incline, a terrain or in a bowl the same posture then gives the same observation, so one set
+        of normalisation statistics fits every task (``results/normalizer_drift.md``).
     """
 
     metadata = {"render_modes": ["rgb_array", "human"], "render_fps": round(1.0 / CONTROL_DT)}
@@ -151,7 +156,12 @@ class UnimalEnv(gym.Env):
         width: int = 480,
         height: int = 480,
         world_cache_size: int = 16,
+        height_reference: str = "world",
     ):
+        if height_reference not in C.HEIGHT_REFERENCES:
+            raise ValueError(f"height_reference must be one of {C.HEIGHT_REFERENCES} (what body heights in "
+                             f"'proprioceptive' are measured from), got {height_reference!r}")
+        self.height_reference = height_reference
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
         if render_mode == "human":
@@ -305,8 +315,12 @@ class UnimalEnv(gym.Env):
         robot = self._world.robot
         morphology = robot.morphology
         # Eight small copies (~2 us) beat one packed copy handed out as views (~3 us, measured).
+        proprioception = robot.proprioception()
+        if self.height_reference == "ground":
+            x, y = robot.torso_qpos[:2]
+            proprioception[morphology.obs_padding_mask < 0.5, C.Z_COLUMN] -= self.arena.ground_height(float(x), float(y))
         obs = {
-            "proprioceptive": robot.proprioception(),
+            "proprioceptive": proprioception,
             "context": morphology.context.copy(),
             "obs_padding_mask": morphology.obs_padding_mask.copy(),
             "act_padding_mask": morphology.act_padding_mask.copy(),
