@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import platform
+from contextlib import nullcontext
 import sys
 import time
 from datetime import date
@@ -84,12 +85,16 @@ def batched_steps_per_second(env, seconds: float) -> tuple[float, float]:
         env.step_tensors(random())
     _synchronize(env)
     warmup = time.perf_counter() - start
+    before = torch.cat([block.readings for block in env.blocks]).clone()
     steps, start = 0, time.perf_counter()
     while time.perf_counter() - start < seconds:
         for _ in range(10):
             env.step_tensors(random())
         steps += 10
         _synchronize(env)
+    if torch.equal(before, torch.cat([block.readings for block in env.blocks])):
+        raise RuntimeError("the worlds did not move while timed: the physics graphs replayed nothing (a capture that "
+                           "recorded no kernel?); these steps/s would be meaningless")
     return n * steps / (time.perf_counter() - start), warmup
 
 
@@ -214,7 +219,7 @@ def launch_counts(task: str, files: list[Path], worlds: int, device: str) -> dic
     env.blocks[0].actions.copy_(random())
     captured, eager = [], []
     for group in env.blocks[0].groups:
-        with wp.ScopedDevice(group.device):
+        with wp.ScopedDevice(group.device), wp.ScopedStream(group.stream) if group.stream is not None else nullcontext():
             with _WarpCounter() as counter, wp.ScopedCapture(device=group.device, stream=group.stream):
                 group._step_physics()
             captured.append(counter.counts)

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import platform
+from contextlib import nullcontext
 import sys
 import time
 from datetime import date
@@ -84,8 +85,9 @@ def measure(models: list[mujoco.MjModel], worlds: int, device: str, repeats: int
             first += time.perf_counter() - start
             for _ in range(settle):  # the robots land: contacts, as in training
                 mjw.step(m, d)
-            with _WarpCounter() as counter, wp.ScopedCapture(device=device, stream=stream) as capture:
-                mjw.step(m, d)
+            with wp.ScopedStream(stream) if stream is not None else nullcontext():  # launches go to the current stream
+                with _WarpCounter() as counter, wp.ScopedCapture(device=device, stream=stream) as capture:
+                    mjw.step(m, d)
             graphs.append((capture.graph, stream, m, d))
             nodes.append(counter.counts)
         wp.synchronize()

@@ -285,8 +285,11 @@ class RobotWorlds:
                 self._warm.add(name)
                 return
             if graph is None:
-                with wp.ScopedCapture(device=self.device, stream=stream) as capture:
-                    fn()
+                # Warp launches on the device's current stream, not on the one being captured: make
+                # the robot's stream current, or a CUDA capture records nothing and replays nothing.
+                with wp.ScopedStream(stream) if stream is not None else contextlib.nullcontext():
+                    with wp.ScopedCapture(device=self.device, stream=stream) as capture:
+                        fn()
                 graph = self._graphs[name] = capture.graph
             wp.capture_launch(graph, stream=stream)
 
