@@ -74,10 +74,19 @@ def _batched_env_class() -> type | None:
     return BatchedUnimalEnv
 
 
+def _mirrored_statistics(rms: Any) -> bool:
+    """Statistics whose update :class:`TorchRunningMeanStd` reproduces: SB3's own, or frozen ones
+    (:class:`~sb3_divmorph.finetune.FrozenRunningMeanStd`, never updated)."""
+    from sb3_divmorph.finetune import FrozenRunningMeanStd
+
+    return type(rms) in (RunningMeanStd, FrozenRunningMeanStd)
+
+
 def device_env_chain(env: VecEnv | None) -> tuple[Any, VecNormalize | None] | None:
     """``(batched env, VecNormalize or None)`` when ``env`` is a :class:`BatchedUnimalEnv` wrapped
-    only in ``VecMonitor`` and/or one ``VecNormalize`` (the wrappers whose work :class:`DevicePPO`
-    does on the device); ``None`` otherwise (any other env or wrapper: SB3's own path).
+    only in ``VecMonitor`` and/or one ``VecNormalize`` (exactly those classes, with SB3's or frozen
+    statistics: the wrappers whose work :class:`DevicePPO` does on the device); ``None`` otherwise
+    (any other env, wrapper or statistics class: SB3's own path, whose semantics are then kept).
 
     :param env: the algorithm's env (``model.env``).
     """
@@ -85,9 +94,12 @@ def device_env_chain(env: VecEnv | None) -> tuple[Any, VecNormalize | None] | No
         return None
     normalizer = None
     while isinstance(env, VecEnvWrapper):
-        if isinstance(env, VecNormalize) and normalizer is None:
+        if type(env) is VecNormalize and normalizer is None:
+            statistics = list(env.obs_rms.values()) if isinstance(getattr(env, "obs_rms", None), dict) else []
+            if not all(_mirrored_statistics(rms) for rms in [*statistics, env.ret_rms]):
+                return None
             normalizer = env
-        elif not isinstance(env, VecMonitor):
+        elif type(env) is not VecMonitor:
             return None
         env = env.venv
     batched = _batched_env_class()
@@ -160,14 +172,19 @@ class DeviceNormalizer:
         if self.norm_obs and not isinstance(s.obs_rms, dict):
             raise TypeError("DevicePPO normalises dict observations; this VecNormalize has a single obs_rms")
         self.obs_rms = {k: TorchRunningMeanStd.from_numpy(s.obs_rms[k], self.device) for k in self.keys}
+        #: keys whose statistics are frozen (FrozenRunningMeanStd): used, never updated nor written back
+        self.frozen = {k for k in self.keys if type(s.obs_rms[k]) is not RunningMeanStd}
+        self.returns_frozen = type(s.ret_rms) is not RunningMeanStd
         self.ret_rms = TorchRunningMeanStd.from_numpy(s.ret_rms, self.device)
         self.returns = th.as_tensor(np.asarray(s.returns, dtype=np.float64), device=self.device).clone()
 
     def push(self) -> None:
         """Write the statistics back into ``source`` (so saving it saves them)."""
         for key, rms in self.obs_rms.items():
-            rms.write_to(self.source.obs_rms[key])
-        self.ret_rms.write_to(self.source.ret_rms)
+            if key not in self.frozen:
+                rms.write_to(self.source.obs_rms[key])
+        if not self.returns_frozen:
+            self.ret_rms.write_to(self.source.ret_rms)
         self.source.returns = self.returns.cpu().numpy()
 
     def normalize_obs(self, obs: Mapping[str, th.Tensor]) -> dict[str, th.Tensor]:
@@ -188,7 +205,8 @@ class DeviceNormalizer:
         """Update the observation statistics with ``obs`` (when training), then normalise it."""
         if self.training:
             for key in self.keys:
-                self.obs_rms[key].update(obs[key])
+                if key not in self.frozen:
+                    self.obs_rms[key].update(obs[key])
         return self.normalize_obs(obs)
 
     def reward(self, reward: th.Tensor, dones: th.Tensor) -> th.Tensor:
@@ -196,7 +214,8 @@ class DeviceNormalizer:
         returns of the worlds in ``dones``."""
         if self.training:
             self.returns = self.returns * self.gamma + reward.double()
-            self.ret_rms.update(self.returns)
+            if not self.returns_frozen:
+                self.ret_rms.update(self.returns)
         if self.norm_reward:
             reward = (reward.double() / th.sqrt(self.ret_rms.var + self.epsilon)).clamp(-self.clip_reward, self.clip_reward)
         self.returns = self.returns.masked_fill(dones, 0.0)

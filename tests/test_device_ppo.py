@@ -190,3 +190,28 @@ def test_with_any_other_env_it_is_sb3s_ppo(tmp_path):
     elsewhere = DevicePPO.load(tmp_path / "model", env=single())
     assert type(elsewhere.rollout_buffer) is DictRolloutBuffer
     elsewhere.learn(8)
+
+
+def test_frozen_observation_statistics_stay_frozen_on_the_device_and_unknown_wrappers_keep_sb3s_path():
+    from stable_baselines3.common.vec_env import VecEnvWrapper
+
+    from sb3_divmorph.device_ppo import device_env_chain
+    from sb3_divmorph.finetune import freeze_observation_statistics
+
+    venv = freeze_observation_statistics(batched())  # as transfer inherits a trained model's statistics
+    frozen = {k: (venv.obs_rms[k].mean.copy(), venv.obs_rms[k].var.copy()) for k in NORM_KEYS}
+    model = DevicePPO("MetaMorphPolicy", venv, n_steps=8, batch_size=32, n_epochs=1, seed=0, policy_kwargs=TINY)
+    assert isinstance(first_rollout(model), DeviceDictRolloutBuffer)
+    for key, (mean, var) in frozen.items():
+        np.testing.assert_array_equal(venv.obs_rms[key].mean, mean)
+        np.testing.assert_array_equal(venv.obs_rms[key].var, var)
+    assert venv.ret_rms.count > 1, "the reward statistics still learn"
+
+    class Custom(VecEnvWrapper):  # a wrapper DevicePPO does not know: SB3's VecEnv path, its semantics kept
+        def reset(self):
+            return self.venv.reset()
+
+        def step_wait(self):
+            return self.venv.step_wait()
+
+    assert device_env_chain(Custom(batched())) is None
