@@ -178,8 +178,10 @@ def record(args: argparse.Namespace) -> Path:
         from sb3_divmorph.pipeline.runs import trained_robots
 
         morphologies = trained_robots(saved.model) or "train"
+    from sb3_divmorph.pipeline.runs import trained_env_kwargs
+
     env = gym.make(env_id, morphologies=morphologies, render_mode="rgb_array",
-                   width=args.width, height=args.height, max_episode_steps=args.steps)
+                   width=args.width, height=args.height, max_episode_steps=args.steps, **trained_env_kwargs(saved.model))
     robots = [m.name for m in env.unwrapped.morphologies]
     unknown = sorted(set(args.robot or []) - set(robots))
     if unknown:

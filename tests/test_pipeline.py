@@ -801,3 +801,30 @@ def test_a_run_recorded_before_the_fair_race_rules_keeps_its_rules_and_a_branch_
     branch(out, tmp_path / "branch", command="test")
     new = recorded_profile(tmp_path / "branch" / "run.json").transfer
     assert (new.observation_statistics, new.adam_eps, new.undiverted_lr_scale) == ("frozen", 1e-10, 1.0)
+
+
+def test_a_profile_measuring_heights_from_the_ground_makes_every_env_of_the_run_that_way(tmp_path, monkeypatch):
+    """``height_reference: ground`` reaches every env of every stage (teachers, the multi-task
+    student's DAgger envs, transfer and its evaluation curves, export, evaluation, HyperDistill):
+    a model must always see the heights it was trained on. The student's statistics then hold one
+    height distribution for flat FT and the 10-degree Incline (world heights: -12 m apart)."""
+    from sb3_divmorph.distillation import load_normalizer
+    from unimal_envs.env import UnimalEnv
+
+    made = []
+    original = UnimalEnv.__init__
+
+    def recording(self, *args, **kwargs):
+        made.append(kwargs.get("height_reference", "world"))
+        original(self, *args, **kwargs)
+
+    monkeypatch.setattr(UnimalEnv, "__init__", recording)
+    profiles = write_profiles(tmp_path, height_reference="ground", teachers__tasks=["FT", "Incline"],
+                              transfer__arms=["divmorph", "scratch", "closest"], export__tasks=["Incline"])
+    out = tmp_path / "run"
+    assert cli(["pipeline", "--profile", "tiny", "--profiles", str(profiles), "--out", str(out), "--no-progress"]) == 0
+    assert len(made) > 20 and set(made) == {"ground"}
+    heights = load_normalizer(out / "student" / "vecnormalize.pkl").obs_rms["proprioceptive"]
+    assert 0 < heights.mean[0, 2] < 1.5 and heights.var[0, 2] ** 0.5 < 0.5  # torso above the ground, FT and Incline alike
+    with pytest.raises(ConfigError, match="height_reference 'ground' is not implemented by the batched backend"):
+        load_profile("tiny", profiles, overrides={"teachers.env_backend": "batched"})

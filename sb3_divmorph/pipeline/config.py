@@ -19,7 +19,7 @@ import yaml
 from stable_baselines3 import PPO
 from stable_baselines3.common.utils import LinearSchedule
 
-from unimal_envs.contract import NOVEL_TASKS, TASK_NAMES, TRAIN_TASKS
+from unimal_envs.contract import HEIGHT_REFERENCES, NOVEL_TASKS, TASK_NAMES, TRAIN_TASKS
 
 #: Where profiles and zoo files are looked up when a relative path is given.
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -280,6 +280,11 @@ class Profile:
     train_robots: int | None = None
     novel_robots: int | None = None
     max_episode_steps: int = 1000
+    #: what body heights in the robots' proprioception are measured from, in every env of the run
+    #: (``gym.make(..., height_reference=...)``): ``world`` (MetaMorph's convention, default) or
+    #: ``ground`` (above the ground under the torso: the same statistics on every task, the better
+    #: input for a multi-task student, ``results/normalizer_drift.md``); single env backend only
+    height_reference: str = "world"
     #: the HyperDistill baseline; the pipeline runs it only when the profile has this section
     hyperdistill: HyperDistillConfig | None = None
     #: GRL's evolution settings (the ``grl`` transfer arm); defaults apply when absent
@@ -313,8 +318,13 @@ class Profile:
                 raise ConfigError(f"profile {name!r}: unknown teacher policy {policy!r} in {where}; choose from {list(TEACHER_POLICIES)}")
         if profile.hyperdistill is not None and profile.hyperdistill.loss not in ("nll", "kl"):
             raise ConfigError(f"profile {name!r}: hyperdistill.loss must be 'nll' or 'kl', got {profile.hyperdistill.loss!r}")
+        if profile.height_reference not in HEIGHT_REFERENCES:
+            raise ConfigError(f"profile {name!r}: height_reference must be one of {list(HEIGHT_REFERENCES)}, got {profile.height_reference!r}")
         for section in ("teachers", "distill", "transfer"):
             cfg = getattr(profile, section)
+            if profile.height_reference != "world" and cfg.env_backend == "batched":
+                raise ConfigError(f"profile {name!r}: height_reference {profile.height_reference!r} is not implemented by the batched "
+                                  f"backend ({section}.env_backend); use env_backend: single or height_reference: world")
             if cfg.env_backend not in ENV_BACKENDS or cfg.worlds_per_robot < 1 or cfg.terrain_variants < 1:
                 raise ConfigError(f"profile {name!r}: {section}.env_backend must be one of {list(ENV_BACKENDS)}, "
                                   f"{section}.worlds_per_robot >= 1 and {section}.terrain_variants >= 1, got "

@@ -43,7 +43,7 @@ from stable_baselines3.common.vec_env import VecNormalize
 from sb3_divmorph.distillation import DAggerCallback, ImitationPPO, TeacherMixingVecEnv
 from sb3_divmorph.extractors import TASK_EMBEDDING
 from sb3_divmorph.pipeline.config import ConfigError, Profile, load_zoo_entry
-from sb3_divmorph.pipeline.runs import TrainingRun, is_done, make_vec_env, profile_robots, resolve_device
+from sb3_divmorph.pipeline.runs import TrainingRun, is_done, make_vec_env, profile_env_kwargs, profile_robots, resolve_device
 from sb3_divmorph.pipeline.teachers import load_teachers
 from sb3_divmorph.policies import DIVERSIONS, PRESETS, DivMorphPolicy, MetaMorphPolicy
 from unimal_envs.contract import TASK_NAMES
@@ -128,7 +128,7 @@ def distill_run(profile: Profile, out: Path, progress_bar: bool = True, name: st
     def make_env():
         venv = make_vec_env(
             "Unimal-MultiTask-v0", cfg.n_envs, seed, profile.max_episode_steps, cfg.env_backend, cfg.worlds_per_robot,
-            device, cfg.terrain_variants, tasks=list(profile.teachers.tasks), morphologies=robots,
+            device, cfg.terrain_variants, tasks=list(profile.teachers.tasks), morphologies=robots, **profile_env_kwargs(profile),
         )
         return TeacherMixingVecEnv(venv, teachers, beta=cfg.beta_start, seed=seed) if mixing else venv
 

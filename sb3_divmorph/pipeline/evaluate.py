@@ -33,6 +33,7 @@ from sb3_divmorph.pipeline.runs import (
     atomic_write_text,
     is_done,
     mark_done,
+    profile_env_kwargs,
     profile_robots,
     stage_normalizer,
     task_env_name,
@@ -48,12 +49,14 @@ COLUMNS = ["model", "task", "split", "morphology", "episode", "return", "length"
 
 
 def evaluate_model(folder: Path, task: str, robots: list[Path], episodes: int, max_steps: int, seed: int,
-                   instruction: str | None = None) -> list[dict[str, Any]]:
+                   instruction: str | None = None, env_kwargs: dict[str, Any] | None = None) -> list[dict[str, Any]]:
     """Deterministic returns of the model saved in ``folder`` on each robot doing ``task``.
 
     :param instruction: the task's instruction in other words (default: the built-in one).
+    :param env_kwargs: further env arguments (the run's :func:`~sb3_divmorph.pipeline.runs.profile_env_kwargs`).
     """
-    venv = robot_venv(task_env_name(task), robots, max_steps, seed, **({"instruction": instruction} if instruction else {}))
+    venv = robot_venv(task_env_name(task), robots, max_steps, seed, **({"instruction": instruction} if instruction else {}),
+                      **(env_kwargs or {}))
     statistics = stage_normalizer(folder)
     if statistics is not None:
         venv = VecNormalize.load(str(statistics), venv)
@@ -69,7 +72,7 @@ def evaluate_untrained_teacher(profile: Profile, out: Path, task: str, robots: l
     (same seed, hence the same initial weights, and its fresh observation normaliser)."""
     model = teacher_run(profile, out, task, progress_bar=False).make_model()
     normalizer = model.get_vec_normalize_env()
-    venv = robot_venv(task_env_name(task), robots, profile.max_episode_steps, seed)
+    venv = robot_venv(task_env_name(task), robots, profile.max_episode_steps, seed, **profile_env_kwargs(profile))
     rows = rollout_returns(model, venv, robots, episodes, normalizer.normalize_obs if normalizer is not None else None)
     venv.close()
     model.get_env().close()
@@ -113,12 +116,12 @@ def evaluation_plan(profile: Profile, out: Path) -> list[tuple[str, Path, str]]:
     return plan
 
 
-def student_gates(out: Path, robots: list[Path], seed: int) -> dict[str, np.ndarray]:
+def student_gates(out: Path, robots: list[Path], seed: int, **env_kwargs: Any) -> dict[str, np.ndarray]:
     """The student's task gates for every task instruction and morphology gates for ``robots``."""
     model = PPO.load(student_folder(out) / MODEL, device="cpu")
     statistics = stage_normalizer(student_folder(out))
     normalizer = None if statistics is None else load_normalizer(statistics)
-    obs = robot_observations(task_env_name("FT"), robots, seed)
+    obs = robot_observations(task_env_name("FT"), robots, seed, **env_kwargs)
     if normalizer is not None:
         obs = normalizer.normalize_obs(obs)
     morphology = model.policy.get_gates(obs).morphology.cpu().numpy()
@@ -164,7 +167,8 @@ def evaluate(profile: Profile, out: Path, progress_bar: bool = True) -> Path:
         else:
             found = final_evaluation(model, split, splits[split], episodes) if label.startswith("transfer-") else None
             if found is None:
-                found = evaluate_model(model, task, splits[split], episodes, profile.max_episode_steps, profile.seed)
+                found = evaluate_model(model, task, splits[split], episodes, profile.max_episode_steps, profile.seed,
+                                       env_kwargs=profile_env_kwargs(profile))
         rows += [{"model": label, "task": task, "split": split, **row} for row in found]
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=COLUMNS)
@@ -172,7 +176,7 @@ def evaluate(profile: Profile, out: Path, progress_bar: bool = True) -> Path:
     writer.writerows(rows)
     atomic_write_text(folder / "returns.csv", buffer.getvalue())
     if is_done(student_folder(out)):
-        gates = student_gates(out, splits["train"] + splits["novel"], profile.seed)
+        gates = student_gates(out, splits["train"] + splits["novel"], profile.seed, **profile_env_kwargs(profile))
         atomic_save(folder / "gates.npz", lambda p: np.savez(p, **gates))
     mark_done(folder, rows=len(rows))
     return folder

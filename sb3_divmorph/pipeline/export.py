@@ -52,6 +52,7 @@ from sb3_divmorph.pipeline.runs import (
     atomic_write_text,
     is_done,
     mark_done,
+    profile_env_kwargs,
     profile_robots,
     read_done,
     stage_normalizer,
@@ -162,7 +163,8 @@ def export_actor(
     statistics = stage_normalizer(source)
     normalizer: VecNormalize | None = None if statistics is None else load_normalizer(statistics)
 
-    env = gym.make(task_env_name(task), morphologies=[robot_file], max_episode_steps=profile.max_episode_steps)
+    env = gym.make(task_env_name(task), morphologies=[robot_file], max_episode_steps=profile.max_episode_steps,
+                   **profile_env_kwargs(profile))
     try:
         first, _ = env.reset(seed=profile.seed)
         actor = CompactActor.from_policy(policy, first, TASKS[task].observation_keys, normalizer)

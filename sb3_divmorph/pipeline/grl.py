@@ -55,6 +55,7 @@ from sb3_divmorph.pipeline.runs import (
     make_vec_env,
     mark_done,
     normalizer_for,
+    profile_env_kwargs,
     profile_robots,
     read_progress,
     resolve_device,
@@ -226,7 +227,7 @@ def agent_run(profile: Profile, out: Path, generation: int, index: int, progress
     kwargs = grl_policy_kwargs(profile)
 
     def make_env():
-        return make_vec_env(env_name, entry.n_envs, seed, profile.max_episode_steps, morphologies=robots)
+        return make_vec_env(env_name, entry.n_envs, seed, profile.max_episode_steps, morphologies=robots, **profile_env_kwargs(profile))
 
     def make_model():
         if plan.parent is None:

@@ -39,6 +39,7 @@ from sb3_divmorph.pipeline.runs import (
     is_done,
     make_vec_env,
     mark_done,
+    profile_env_kwargs,
     profile_robots,
     resolve_device,
     task_env_name,
@@ -83,7 +84,7 @@ def train_student(profile: Profile, out: Path, progress_bar: bool = True) -> Pat
     robots = profile_robots(profile, "train")
     seed = profile.seed + 7
     venv = make_vec_env("Unimal-MultiTask-v0", cfg.n_envs, seed, profile.max_episode_steps,
-                        tasks=list(profile.teachers.tasks), morphologies=robots)
+                        tasks=list(profile.teachers.tasks), morphologies=robots, **profile_env_kwargs(profile))
     venv = VecNormalize(venv, norm_obs_keys=NORM_OBS_KEYS, norm_reward=False)
     th.manual_seed(seed)
     model = ImitationPPO(HyperDistillPolicy, venv, policy_kwargs=dict(cfg.policy_kwargs), n_steps=cfg.n_steps,
@@ -124,7 +125,7 @@ def export_mlp(profile: Profile, out: Path, robot_file: Path, task: str, steps: 
         raise FileNotFoundError(f"no HyperDistill student in {source}; run `divmorph hyperdistill --out {out}` first")
     policy = load_student(source / MODEL, observation_space())
     normalizer = load_normalizer(source / NORMALIZER)
-    env = gym.make(task_env_name(task), morphologies=[robot_file], max_episode_steps=profile.max_episode_steps)
+    env = gym.make(task_env_name(task), morphologies=[robot_file], max_episode_steps=profile.max_episode_steps, **profile_env_kwargs(profile))
     rng = np.random.default_rng(profile.seed)
     try:
         first, _ = env.reset(seed=profile.seed)

@@ -153,6 +153,23 @@ def trained_robot_set(folder: str | Path) -> str | None:
     return None if record is None else json.loads(record.read_text())["train"]["set"]
 
 
+def trained_env_kwargs(folder: str | Path) -> dict[str, Any]:
+    """The env arguments the run a pipeline model belongs to made its envs with
+    (:func:`profile_env_kwargs` of the profile in the nearest ``run.json`` in ``folder`` or above it;
+    empty for an rl-zoo run or a run at the defaults).
+
+    :param folder: a model folder or a ``model.zip`` inside one.
+    """
+    folder = Path(folder).resolve()
+    if folder.suffix == ".zip":
+        folder = folder.parent
+    record = next((d / "run.json" for d in (folder, *folder.parents) if (d / "run.json").is_file()), None)
+    if record is None:
+        return {}
+    height = json.loads(record.read_text()).get("configuration", {}).get("height_reference", "world")
+    return {} if height == "world" else {"height_reference": height}
+
+
 def _robot_sets_record(folder: str | Path) -> Path | None:
     """The nearest ``robot_sets.json`` in ``folder`` (a model folder or a ``model.zip``) or above it."""
     folder = Path(folder).resolve()
@@ -216,6 +233,12 @@ def make_vec_env(
     venv = VecMonitor(DummyVecEnv([factory(i) for i in range(n_envs)]))
     venv.seed(seed)
     return venv
+
+
+def profile_env_kwargs(profile: Profile) -> dict[str, Any]:
+    """The env arguments every env of a run takes from its profile (``height_reference``); empty at
+    the defaults, so envs and backends that predate them are made exactly as before."""
+    return {} if profile.height_reference == "world" else {"height_reference": profile.height_reference}
 
 
 def task_env_name(task: str) -> str:

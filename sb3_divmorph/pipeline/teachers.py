@@ -20,6 +20,7 @@ from sb3_divmorph.pipeline.runs import (
     is_done,
     make_vec_env,
     normalizer_for,
+    profile_env_kwargs,
     profile_robots,
     resolve_device,
     stage_normalizer,
@@ -63,7 +64,7 @@ def teacher_run(
 
     def make_env():
         return make_vec_env(env_name, entry.n_envs, seed, profile.max_episode_steps, cfg.env_backend, cfg.worlds_per_robot,
-                            device, cfg.terrain_variants, morphologies=robots)
+                            device, cfg.terrain_variants, morphologies=robots, **profile_env_kwargs(profile))
 
     # On the batched backend, rollouts stay on the device (DevicePPO; the same PPO otherwise). The
     # balanced robot sampler reads per-world infos, which only SB3's VecEnv path builds.

@@ -56,6 +56,7 @@ from sb3_divmorph.pipeline.runs import (
     is_done,
     make_vec_env,
     normalizer_for,
+    profile_env_kwargs,
     profile_robots,
     resolve_device,
     task_env_name,
@@ -90,11 +91,15 @@ def transfer_seeds(profile: Profile, out: Path, task: str, arm: str) -> list[int
     return list(dict.fromkeys([*profile.transfer.seeds, *found]))
 
 
-def robot_observations(env_name: str, robots: list[Path], seed: int = 0, instruction: str | None = None) -> dict[str, np.ndarray]:
-    """One reset observation per robot, batched (for gates and selections)."""
+def robot_observations(env_name: str, robots: list[Path], seed: int = 0, instruction: str | None = None,
+                       **env_kwargs: Any) -> dict[str, np.ndarray]:
+    """One reset observation per robot, batched (for gates and selections).
+
+    :param env_kwargs: further env arguments (e.g. the run's ``height_reference``).
+    """
     import gymnasium as gym
 
-    env = gym.make(env_name, morphologies=robots, **({"instruction": instruction} if instruction else {}))
+    env = gym.make(env_name, morphologies=robots, **({"instruction": instruction} if instruction else {}), **env_kwargs)
     try:
         observations = [env.reset(seed=seed, options={"morphology": i})[0] for i in range(len(robots))]
     finally:
@@ -169,7 +174,7 @@ def closest_task(profile: Profile, out: Path, task: str, by: str | None = None) 
         scores = {}
         for t in teachers:
             rows = evaluate_model(teacher_folder(out, t), task, robots, profile.transfer.eval_episodes, profile.max_episode_steps,
-                                  profile.seed, instruction=profile.transfer.instructions.get(task))
+                                  profile.seed, instruction=profile.transfer.instructions.get(task), env_kwargs=profile_env_kwargs(profile))
             scores[t] = float(np.mean([r["return"] for r in rows]))
         what = "zero-shot return of the teacher on the novel task"
     else:
@@ -368,7 +373,7 @@ def transfer_run(profile: Profile, out: Path, task: str, arm: str, seed: int = 0
     device = resolve_device(profile.device)
     run_seed = transfer_seed(profile, task, seed)
     gamma = entry.ppo_kwargs.get("gamma", 0.99)
-    env_kwargs = {"morphologies": robots}
+    env_kwargs = {"morphologies": robots, **profile_env_kwargs(profile)}
     if task in cfg.instructions:
         env_kwargs["instruction"] = cfg.instructions[task]
 
@@ -382,7 +387,7 @@ def transfer_run(profile: Profile, out: Path, task: str, arm: str, seed: int = 0
     if cfg.eval_every > 0:
         splits = {"train": robots, "novel": profile_robots(profile, "novel")}
         callbacks.append(EvalCurveCallback(folder / EVAL_FILE, env_name, splits, cfg.eval_every, cfg.eval_episodes,
-                                           profile.max_episode_steps, profile.seed,
+                                           profile.max_episode_steps, profile.seed, **profile_env_kwargs(profile),
                                            **({"instruction": cfg.instructions[task]} if task in cfg.instructions else {})))
     if source is None:
         # scratch and modumorph: the policy from random init, sized like the teachers
@@ -415,7 +420,7 @@ def transfer_run(profile: Profile, out: Path, task: str, arm: str, seed: int = 0
             return finetuned_model(saved, venv, task, task_policy_kwargs, run_seed, device, entry.ppo_kwargs)
 
     if spec.divmorph_transfer:
-        selection_obs = robot_observations(env_name, robots, run_seed, env_kwargs.get("instruction"))
+        selection_obs = robot_observations(env_name, robots, run_seed, env_kwargs.get("instruction"), **profile_env_kwargs(profile))
         installed: dict[str, UnitLearningRates] = {}
 
         def prepare(model):
