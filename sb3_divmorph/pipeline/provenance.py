@@ -30,7 +30,7 @@ RECORD = "run.json"
 #: where ``--redo`` / ``--force`` move the folders of the stages they retrain
 SUPERSEDED = "superseded"
 
-_BASE = ("seed", "train_set", "train_robots", "max_episode_steps")
+_BASE = ("seed", "train_set", "train_robots", "max_episode_steps", "height_reference")
 _NOVEL = ("novel_set", "novel_robots")
 #: The profile keys each stage's outputs depend on: its own section and those of what it is built on.
 STAGE_KEYS: dict[str, tuple[str, ...]] = {
