@@ -208,6 +208,16 @@ def _overrides(args: argparse.Namespace) -> dict:
 _READS_A_RUN = ("evaluate", "report", "export", "figure")
 
 
+def _put_back(out: Path, record: dict, previous_record: str | None) -> None:
+    """After a failed command, the stage folders its --redo/--force had moved aside go back."""
+    from sb3_divmorph.pipeline.provenance import restore_superseded
+
+    failed = restore_superseded(out, record, previous_record)
+    if record["history"][-1].get("superseded"):
+        print(f"divmorph: the previous {', '.join(record['history'][-1]['retrained'])} folders are back in {out}"
+              + (f" (the failed attempt's output: {failed})" if failed else ""), file=sys.stderr)
+
+
 def _remove_if_untouched(out: Path) -> None:
     """Remove a run folder this command created when nothing but its records were written:
     a command that fails on its arguments leaves no empty run behind (and never deletes results)."""
@@ -259,10 +269,12 @@ def main(argv: list[str] | None = None) -> int:
     progress = not args.no_progress
     command_line = "divmorph " + shlex.join(argv if argv is not None else sys.argv[1:])
     start = time.perf_counter()
+    record = previous_record = None
     try:
         # out/run.json: the configuration, robots, versions, commit and device of this run; a run
         # is only continued with the settings it was started with (unless --force)
-        check_and_record(out, profile, command_line, args.force, args.redo)
+        previous_record = (out / "run.json").read_text() if (out / "run.json").is_file() else None
+        record = check_and_record(out, profile, command_line, args.force, args.redo)
         record_robot_sets(profile, out)  # out/robot_sets.json: which robots this run uses
         backend = None
         if getattr(args, "backend", None) is not None:
@@ -313,12 +325,20 @@ def main(argv: list[str] | None = None) -> int:
             print(P.report(profile, out, command_line))
     except (P.ConfigError, FileNotFoundError, ValueError, KeyError, TypeError) as error:
         print(f"divmorph {args.command}: {error}", file=sys.stderr)
+        if record is not None:
+            _put_back(out, record, previous_record)
         if created:
             _remove_if_untouched(out)
         return 2
     except P.GridError as error:
         print(f"divmorph {args.command}: {error}", file=sys.stderr)
+        if record is not None:
+            _put_back(out, record, previous_record)
         return 1
+    except BaseException:  # anything else (a corrupted model file, Ctrl-C): put the good results back, then fail loudly
+        if record is not None:
+            _put_back(out, record, previous_record)
+        raise
     print(f"[divmorph] {args.command} finished in {time.perf_counter() - start:.0f} s (threads: {th.get_num_threads()}); outputs in {out}")
     return 0
 

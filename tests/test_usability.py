@@ -338,3 +338,29 @@ def test_the_report_says_which_robots_are_novel():
 
     assert "novel: robots 11-20 of `unimals100-train`" in _robots_sentence(load_profile("cpu"))
     assert "novel: the first 4 of `novel`" in _robots_sentence(load_profile("demo"))
+
+
+def test_a_failed_redo_puts_the_good_results_back(tmp_path, monkeypatch, capsys):
+    """``divmorph evaluate --redo evaluate`` moves the old evaluation aside first; when the new one
+    fails (here: a model file that does not load), the old one is back where it was."""
+    import zipfile
+
+    from sb3_divmorph import pipeline as P
+    from sb3_divmorph.cli import main as cli
+
+    run = tmp_path / "run"
+    (run / "evaluate").mkdir(parents=True)
+    (run / "evaluate" / "returns.csv").write_text("model,task,return\nteacher,FT,1863.0\n")
+    common = ["--profile", "demo", "--out", str(run), "--no-progress", "--set", "train_robots=1", "--set", "novel_robots=1"]
+
+    def broken(*args, **kwargs):
+        raise zipfile.BadZipFile("File is not a zip file: model.zip")
+
+    monkeypatch.setattr(P, "evaluate", broken)
+    with pytest.raises(zipfile.BadZipFile):
+        cli(["evaluate", *common, "--redo", "evaluate"])
+    assert (run / "evaluate" / "returns.csv").read_text().endswith("1863.0\n"), "the good evaluation is back"
+    assert "the previous evaluate folders are back" in capsys.readouterr().err
+    monkeypatch.setattr(P, "evaluate", lambda *a, **k: (_ for _ in ()).throw(FileNotFoundError("no model.zip in teachers/FT")))
+    assert cli(["evaluate", *common, "--redo", "evaluate"]) == 2
+    assert (run / "evaluate" / "returns.csv").is_file()

@@ -169,6 +169,31 @@ def supersede(out: Path, stages: list[str]) -> Path | None:
     return target
 
 
+def restore_superseded(out: Path, record: dict[str, Any], previous_record: str | None) -> Path | None:
+    """Undo :func:`check_and_record`'s retraining after the command failed: move the stage folders it
+    superseded back into ``out`` (what the failed attempt wrote goes to ``superseded/<time>-failed/``)
+    and put the previous ``run.json`` back, so a failure never leaves a run without its good results.
+
+    :param record: what :func:`check_and_record` returned.
+    :param previous_record: the text of ``run.json`` before it (``None``: there was none).
+    :returns: the folder the failed attempt's outputs went to, or ``None`` when nothing was superseded.
+    """
+    out = Path(out)
+    moved = record["history"][-1].get("superseded")
+    if not moved or not Path(moved).is_dir():
+        return None
+    failed = out / SUPERSEDED / (time.strftime("%Y%m%d-%H%M%S") + "-failed")
+    for folder in sorted(Path(moved).iterdir()):
+        if (out / folder.name).exists():
+            failed.mkdir(parents=True, exist_ok=True)
+            shutil.move(str(out / folder.name), str(failed / folder.name))
+        shutil.move(str(folder), str(out / folder.name))
+    Path(moved).rmdir()
+    if previous_record is not None:
+        (out / RECORD).write_text(previous_record)
+    return failed if failed.exists() else None
+
+
 def check_and_record(out: Path, profile: Profile, command: str, force: bool = False, redo: tuple[str, ...] | list[str] = ()) -> dict[str, Any]:
     """Compare ``profile`` with the configuration recorded in ``out/run.json``, retrain what must be
     retrained, and (re)write the record.
