@@ -8,6 +8,7 @@
     divmorph transfer --profile demo --task Escape --arms divmorph,scratch,closest --seeds 0 1 2
     divmorph export   --profile demo --morphology train-000 --task FT
     divmorph evaluate --profile demo
+    divmorph evaluate --run results/cpu --model teacher --task FT --split train --episodes 3 --into my-eval
     divmorph report   --profile demo                 # summary.md + every figure with data
     divmorph figure transfer-train --profile demo    # one figure (PNG + CSV) in report/figures/
     divmorph record   runs/demo/teachers/FT              # MP4 of a pipeline or rl-zoo model, headless
@@ -101,7 +102,15 @@ def _parser() -> argparse.ArgumentParser:
                    help="onnx (runs with onnxruntime + numpy), torchscript (torch alone), or all (default)")
     p.add_argument("--student", action="append",
                    help="distilled DivMorph student to deploy (repeatable; default: divmorph and every finished deploy-* student)")
-    command("evaluate", "per-morphology returns on train and novel robots")
+    p = command("evaluate", "per-morphology returns on train and novel robots")
+    p.add_argument("--model", action="append", dest="models",
+                   help="only this model label (repeatable): teacher, teacher-untrained, student, student-<name>, hyperdistill, transfer-<arm>")
+    p.add_argument("--task", action="append", dest="eval_tasks", help="only this task (repeatable)")
+    p.add_argument("--split", action="append", dest="splits", choices=("train", "novel"), help="only these robots (repeatable)")
+    p.add_argument("--episodes", type=int, default=None, help="episodes per robot (default: the profile's evaluate.episodes)")
+    p.add_argument("--into", type=Path, default=None,
+                   help="folder for the selection's returns.csv (default: evaluations/<run>-<time>/ here); a selection never "
+                        "writes into the run's evaluate/")
     command("report", "plots, the paper's figures and a markdown summary of the run")
     p = command("figure", "one of the paper's figures (PNG + CSV in report/figures/)")
     p.add_argument("name", help="transfer-train, transfer-novel, deployment, ablation or gates")
@@ -273,9 +282,13 @@ def main(argv: list[str] | None = None) -> int:
     try:
         # out/run.json: the configuration, robots, versions, commit and device of this run; a run
         # is only continued with the settings it was started with (unless --force)
-        previous_record = (out / "run.json").read_text() if (out / "run.json").is_file() else None
-        record = check_and_record(out, profile, command_line, args.force, args.redo)
-        record_robot_sets(profile, out)  # out/robot_sets.json: which robots this run uses
+        # An evaluation of a selection only reads the run: its records stay as they are.
+        reads_only = args.command == "evaluate" and any(
+            getattr(args, k) is not None for k in ("models", "eval_tasks", "splits", "episodes", "into"))
+        if not reads_only:
+            previous_record = (out / "run.json").read_text() if (out / "run.json").is_file() else None
+            record = check_and_record(out, profile, command_line, args.force, args.redo)
+            record_robot_sets(profile, out)  # out/robot_sets.json: which robots this run uses
         backend = None
         if getattr(args, "backend", None) is not None:
             if args.backend == "local" and (args.cpus_per_run != 1 or args.gpus_per_run != 0 or args.ray_cpus is not None):
@@ -320,7 +333,8 @@ def main(argv: list[str] | None = None) -> int:
                       f"latency {r['latency_compact_ms']:.3f} ms vs {r['latency_student_ms']:.3f} ms, "
                       f"return {r['compact_return']:.1f} (student {r['student_return']:.1f})")
         elif args.command == "evaluate":
-            print(f"returns -> {P.evaluate(profile, out, progress) / 'returns.csv'}")
+            folder = P.evaluate(profile, out, progress, args.models, args.eval_tasks, args.splits, args.episodes, args.into)
+            print(f"returns -> {folder / 'returns.csv'}")
         elif args.command == "report":
             print(P.report(profile, out, command_line))
     except (P.ConfigError, FileNotFoundError, ValueError, KeyError, TypeError) as error:

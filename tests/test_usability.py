@@ -364,3 +364,23 @@ def test_a_failed_redo_puts_the_good_results_back(tmp_path, monkeypatch, capsys)
     monkeypatch.setattr(P, "evaluate", lambda *a, **k: (_ for _ in ()).throw(FileNotFoundError("no model.zip in teachers/FT")))
     assert cli(["evaluate", *common, "--redo", "evaluate"]) == 2
     assert (run / "evaluate" / "returns.csv").is_file()
+
+
+def test_evaluate_a_selection_of_a_shipped_run_into_a_folder_of_ones_own(official_train, tmp_path, capsys):
+    import csv
+
+    from sb3_divmorph.cli import main as cli
+
+    run = Path(__file__).resolve().parents[1] / "results" / "cpu"
+    record = (run / "run.json").read_text()
+    shipped = (run / "evaluate" / "returns.csv").read_text()
+    into = tmp_path / "mine"
+    assert cli(["evaluate", "--run", str(run), "--model", "teacher", "--task", "FT", "--split", "train", "--episodes", "1",
+                "--into", str(into), "--no-progress"]) == 0
+    rows = list(csv.DictReader(open(into / "returns.csv")))
+    assert len(rows) == 10 and {(r["model"], r["task"], r["split"]) for r in rows} == {("teacher", "FT", "train")}
+    assert (run / "run.json").read_text() == record and (run / "evaluate" / "returns.csv").read_text() == shipped
+    assert cli(["evaluate", "--run", str(run), "--model", "teachr", "--into", str(into), "--no-progress"]) == 2
+    assert "no finished model matches models=['teachr']" in capsys.readouterr().err
+    assert cli(["evaluate", "--run", str(run), "--model", "teacher", "--into", str(run / "evaluate"), "--no-progress"]) == 2
+    assert "the run's own evaluation" in capsys.readouterr().err

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import csv
 import io
+import time
 from pathlib import Path
 from typing import Any
 
@@ -133,23 +134,52 @@ def student_gates(out: Path, robots: list[Path], seed: int, **env_kwargs: Any) -
             "robots": np.array([r.stem for r in robots])}
 
 
-def evaluate(profile: Profile, out: Path, progress_bar: bool = True) -> Path:
+def evaluate(profile: Profile, out: Path, progress_bar: bool = True, models: list[str] | None = None,
+             tasks: list[str] | None = None, splits: list[str] | None = None, episodes: int | None = None,
+             into: Path | None = None) -> Path:
     """Evaluate every finished model of the run; writes ``evaluate/returns.csv`` and ``gates.npz``.
 
+    With a selection, only what is selected is evaluated, into a folder of its own (never the run's
+    ``evaluate/``, so a recorded run's results stay as they are):
+
     :param progress_bar: show a bar over the (model, task, split) jobs.
+    :param models: model labels to evaluate (``teacher``, ``teacher-untrained``, ``student``,
+        ``student-<name>``, ``hyperdistill``, ``transfer-<arm>``); default all.
+    :param tasks: tasks to evaluate on; default all.
+    :param splits: ``train`` and/or ``novel`` robots; default both.
+    :param episodes: episodes per robot (default: the profile's ``evaluate.episodes``).
+    :param into: the folder for ``returns.csv`` of a selection (default ``evaluations/<run>-<time>/``
+        in the working folder).
+    :raises ValueError: a selection that matches nothing (the message lists what there is).
     """
     out = Path(out)
+    selected = any(x is not None for x in (models, tasks, splits, episodes, into))
     folder = out / "evaluate"
-    if is_done(folder) and not (folder / "returns.csv").is_file():
+    if selected:
+        folder = Path(into) if into is not None else Path("evaluations") / f"{out.resolve().name}-{time.strftime('%Y%m%d-%H%M%S')}"
+        if folder.resolve() == (out / "evaluate").resolve():
+            raise ValueError(f"{folder} is the run's own evaluation; choose another --into for a selection")
+    elif is_done(folder) and not (folder / "returns.csv").is_file():
         print(f"[evaluate] skipped, already evaluated in {folder}")
         return folder
-    splits = {split: profile_robots(profile, split) for split in ("train", "novel")}
+    unknown_splits = sorted(set(splits or ()) - {"train", "novel"})
+    if unknown_splits:
+        raise ValueError(f"unknown robot split(s) {unknown_splits}; choose train and/or novel")
+    if episodes is not None and episodes < 1:
+        raise ValueError(f"episodes must be at least 1, got {episodes}")
+    splits_robots = {split: profile_robots(profile, split) for split in (splits or ("train", "novel"))}
     plan = evaluation_plan(profile, out)
     if not plan:
         raise FileNotFoundError(f"nothing to evaluate in {out}: run the teachers/distill/transfer stages first")
+    if models is not None or tasks is not None:
+        chosen = [job for job in plan if (models is None or job[0] in models) and (tasks is None or job[2] in tasks)]
+        if not chosen:
+            raise ValueError(f"no finished model matches models={models}, tasks={tasks} in {out}; there are "
+                             f"models {sorted({j[0] for j in plan})} on tasks {sorted({j[2] for j in plan})}")
+        plan = chosen
     rows: list[dict] = []
-    jobs = [(label, model, task, split) for label, model, task in plan for split in splits]
-    if is_done(folder):
+    jobs = [(label, model, task, split) for label, model, task in plan for split in splits_robots]
+    if is_done(folder) and not selected:
         # A finished evaluation grows with the models finished after it (e.g. a student distilled
         # later); what it has already evaluated is kept as it is.
         with open(folder / "returns.csv", newline="") as f:
@@ -160,7 +190,8 @@ def evaluate(profile: Profile, out: Path, progress_bar: bool = True) -> Path:
             print(f"[evaluate] skipped, already evaluated in {folder}")
             return folder
         print(f"[evaluate] {len(jobs)} model x task x split evaluation(s) of models finished since {folder} was written")
-    episodes = profile.evaluate.episodes
+    episodes = profile.evaluate.episodes if episodes is None else episodes
+    splits = splits_robots
     for label, model, task, split in tqdm(jobs, desc="[evaluate]", unit="model x task x split", disable=not progress_bar):
         if label == "teacher-untrained":
             found = evaluate_untrained_teacher(profile, out, task, splits[split], episodes, profile.seed)
@@ -175,6 +206,9 @@ def evaluate(profile: Profile, out: Path, progress_bar: bool = True) -> Path:
     writer.writeheader()
     writer.writerows(rows)
     atomic_write_text(folder / "returns.csv", buffer.getvalue())
+    if selected:
+        print(f"[evaluate] {len(jobs)} model x task x split evaluation(s), {episodes} episode(s) per robot -> {folder}")
+        return folder
     if is_done(student_folder(out)):
         gates = student_gates(out, splits["train"] + splits["novel"], profile.seed, **profile_env_kwargs(profile))
         atomic_save(folder / "gates.npz", lambda p: np.savez(p, **gates))
