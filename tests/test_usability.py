@@ -384,3 +384,35 @@ def test_evaluate_a_selection_of_a_shipped_run_into_a_folder_of_ones_own(officia
     assert "no finished model matches models=['teachr']" in capsys.readouterr().err
     assert cli(["evaluate", "--run", str(run), "--model", "teacher", "--into", str(run / "evaluate"), "--no-progress"]) == 2
     assert "the run's own evaluation" in capsys.readouterr().err
+
+
+def test_no_ablation_figure_without_an_ablation_and_legends_stay_off_the_curves(tmp_path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from sb3_divmorph.pipeline.config import load_profile
+    from sb3_divmorph.pipeline.curves import write_eval
+    from sb3_divmorph.pipeline.figures import make_figure, outside_legend
+
+    profile = load_profile("demo")
+    task = profile.transfer.tasks[0]
+
+    def curve(arm: str) -> None:
+        rows = [{"timesteps": t, "split": split, "robot": "train-000", "episode": 0, "return": float(t), "length": 10}
+                for t in (0, 100, 200) for split in ("train", "novel")]
+        write_eval(tmp_path / "transfer" / task / arm / "seed-0" / "eval.csv", rows)
+
+    curve("divmorph")
+    assert make_figure(profile, tmp_path, "ablation") is None, "DivMorph alone is no ablation figure"
+    assert make_figure(profile, tmp_path, "transfer-train") is not None
+    curve("no-orthogonality")
+    assert make_figure(profile, tmp_path, "ablation") is not None
+    fig, ax = plt.subplots()
+    ax.plot([0, 1], [0, 1], label="a")
+    outside_legend(ax)
+    fig.canvas.draw()
+    legend, axes = ax.get_legend().get_window_extent(), ax.get_window_extent()
+    assert legend.y1 <= axes.y0, "the legend sits below the axes"
+    plt.close(fig)

@@ -83,13 +83,18 @@ def save_png(fig, path: Path) -> None:
         from PIL import Image
 
         buffer = io.BytesIO()
-        fig.savefig(buffer, dpi=DPI, format="png")
+        fig.savefig(buffer, dpi=DPI, format="png", bbox_inches="tight")  # legends placed outside the axes stay in
         buffer.seek(0)
         with Image.open(buffer) as image:
             image.convert("RGB").quantize(256, dither=Image.Dither.NONE).save(target, format="PNG", optimize=True)
 
     atomic_save(path, write)
     plt.close(fig)
+
+
+def outside_legend(ax) -> None:
+    """The axes' legend below the axes, where it can never cover a curve."""
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=2, frameon=False)
 
 
 def _save(fig, path: Path, rect: tuple[float, float, float, float] = (0, 0, 1, 1)) -> None:
@@ -191,7 +196,7 @@ def _curves_figure(profile: Profile, out: Path, name: str, arms: tuple[str, ...]
             ax.set_ylabel(f"episode return (deterministic, mean of {n_robots} robots)")
             ax.set_title(f"{task}: {n_robots} {SPLIT_WORDS[split]}, seeds {sorted(seeds) or '-'}", fontsize=9)
             if ax.lines:
-                ax.legend(fontsize=7)
+                outside_legend(ax)
     if not rows:
         plt.close(fig)
         return None
@@ -314,6 +319,10 @@ def make_figure(profile: Profile, out: Path, name: str) -> Path | None:
     if name == "transfer-novel":
         return _curves_figure(profile, out, name, MAIN_ARMS, ("novel",), f"Transfer to novel tasks on novel robots (seeds {seeds})")
     if name == "ablation":
+        ablations = [arm for arm in ABLATION_ARMS if arm != "divmorph"]
+        if not any(seed_curves(out, task, arm, split) for task in transfer_tasks(profile, out) for arm in ablations
+                   for split in ("train", "novel")):
+            return None  # DivMorph alone is no ablation figure
         return _curves_figure(profile, out, name, ABLATION_ARMS, ("train", "novel"), f"Ablations of DivMorph (seeds {seeds})")
     if name == "deployment":
         return deployment_figure(profile, out)

@@ -27,7 +27,7 @@ from sb3_divmorph.pipeline.config import Profile  # noqa: E402
 from sb3_divmorph.pipeline.distill import STUDENTS  # noqa: E402
 from sb3_divmorph.pipeline.export import export_reports  # noqa: E402
 from sb3_divmorph.pipeline.provenance import RECORD, SUPERSEDED  # noqa: E402
-from sb3_divmorph.pipeline.figures import CAPTIONS, make_figures, metrics_table, save_png, write_metrics  # noqa: E402
+from sb3_divmorph.pipeline.figures import CAPTIONS, make_figures, metrics_table, outside_legend, save_png, write_metrics  # noqa: E402
 from sb3_divmorph.pipeline.metrics import EFFICIENCY_FRACTION  # noqa: E402
 from sb3_divmorph.pipeline.runs import atomic_write_text, read_progress  # noqa: E402
 from sb3_divmorph.pipeline.transfer import transfer_folder, transfer_seeds, transfer_tasks  # noqa: E402
@@ -76,7 +76,7 @@ def plot_curves(profile: Profile, out: Path, target: Path) -> None:
     for ax in axes[:n]:
         ax.set_xlabel("env steps")
         if ax.lines:
-            ax.legend(fontsize=7)
+            outside_legend(ax)
     for ax in axes[n:]:
         ax.axis("off")
     fig.suptitle(f"profile {profile.name}: learning curves on {_robots_phrase(profile)}, seed {profile.seed} "
