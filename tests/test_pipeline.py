@@ -418,17 +418,24 @@ def test_missing_stages_and_bad_arguments_give_clear_errors(tmp_path, capsys):
     assert "no distilled student" in capsys.readouterr().err
     assert cli(["transfer", *base, "--task", "FT"]) == 2
     assert "not one of" in capsys.readouterr().err
+    # commands that read a run name a missing folder as such (not "run the stages first")
     assert cli(["export", *base, "--morphology", "nobody"]) == 2
-    assert "unknown morphology 'nobody'" in capsys.readouterr().err
+    assert f"no such run folder: {out}" in capsys.readouterr().err
     assert cli(["teachers", *base, "--task", "Walk"]) == 2
     assert "no teacher" in capsys.readouterr().err
     assert cli(["report", "--profile", "missing", "--profiles", str(profiles)]) == 2
     assert "unknown profile" in capsys.readouterr().err
-    # a report of a run where nothing has finished would describe models that do not exist
     assert cli(["report", *base]) == 2
-    assert "nothing to report" in capsys.readouterr().err
+    assert f"no such run folder: {out}" in capsys.readouterr().err
     # none of these failures left a run folder behind
     assert not out.exists()
+    # in a run folder that exists: a bad robot is named, and a report of a run where nothing has
+    # finished (it would describe models that do not exist) is refused
+    out.mkdir()
+    assert cli(["export", *base, "--morphology", "nobody"]) == 2
+    assert "unknown morphology 'nobody'" in capsys.readouterr().err
+    assert cli(["report", *base]) == 2
+    assert "nothing to report" in capsys.readouterr().err
 
 
 def test_command_line_overrides_reach_the_profile_and_are_validated(tmp_path, capsys):
