@@ -416,3 +416,12 @@ def test_no_ablation_figure_without_an_ablation_and_legends_stay_off_the_curves(
     legend, axes = ax.get_legend().get_window_extent(), ax.get_window_extent()
     assert legend.y1 <= axes.y0, "the legend sits below the axes"
     plt.close(fig)
+
+
+def test_robot_set_records_name_no_machine_paths():
+    from sb3_divmorph.pipeline.config import load_profile
+    from sb3_divmorph.pipeline.runs import robot_set_record
+
+    record = robot_set_record(load_profile("demo"))
+    assert record["train"]["folder"] == "unimal_envs/data/morphologies/train"
+    assert not any(entry["folder"].startswith(("/", str(Path.home()))) for entry in record.values())

@@ -437,9 +437,13 @@ def read_progress(folder: Path) -> dict[str, np.ndarray]:
 
 
 def _portable(path: Path) -> str:
-    """``path`` with the user's home folder written as ``~``."""
-    home = Path.home()
-    try:
-        return str(Path("~") / path.resolve().relative_to(home))
-    except ValueError:
-        return str(path)
+    """``path`` as another machine can read it: relative to the repository when inside it (the
+    shipped sets), else with the user's home folder written as ``~`` (the fetched official sets)."""
+    path = path.resolve()
+    for base, shown in ((Path(__file__).resolve().parents[2], None), (Path.home(), Path("~"))):
+        try:
+            relative = path.relative_to(base)
+        except ValueError:
+            continue
+        return str(relative if shown is None else shown / relative)
+    return str(path)
