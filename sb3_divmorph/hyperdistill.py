@@ -10,7 +10,21 @@ The student maps a robot's ``context`` to the weights of an MLP:
 * **output layer**: per limb generated weights (hidden -> 2 action slots) and bias.
 
 Three context encoders (input, hidden, output layer), each ``Linear(C -> e)`` plus one pre-LN
-Transformer layer over the limbs with the padding mask. Every generator starts with a zero weight
+Transformer layer over the limbs with the padding mask.
+
+**Task input** (``task_input``): the paper trains one hypernetwork per task. With
+``task_input="index"`` one student stands for them all: the one-hot of the ``task_index``
+observation is appended to every limb's context, so the hypernetwork writes one MLP per
+(robot, task) and can tell tasks whose observations are alike (FT and Incline share their
+observation keys) apart. ``task_input="none"`` (the constructor's default, so students saved
+before the option load and act as they did) gives no task to the student: it must guess the task
+from the observations. The pipeline's default for new runs is ``"index"``
+(``hyperdistill.task_input``).
+
+**Observation normalisation**: the student has one ``VecNormalize`` of its own (``proprioceptive``
+only, statistics gathered over the states of all the training tasks), not the per-task teachers'
+statistics of the paper: one multi-task student reads every task's states through one normaliser,
+and its statistics are those of the states it is trained on (baked into the exported MLPs). Every generator starts with a zero weight
 matrix; the generated weights start ~N(0, 1/fan_in) (the generator's bias), generated biases at 0.
 
 Training is distillation from a teacher (ModuMorph by default, any teacher of the pipeline), with
@@ -67,6 +81,9 @@ HYPERDISTILL_PRESETS: dict[str, dict[str, Any]] = {
                   exteroception=dict(hfield=[64, 64], goal=[32], object=[32])),
 }
 LOSSES = ("nll", "kl")
+#: What the student is told of the task: nothing, or the one-hot of ``task_index``.
+TASK_INPUTS = ("none", "index")
+TASK_INDEX = "task_index"
 
 
 class LimbContextEncoder(nn.Module):
@@ -119,6 +136,8 @@ class HyperDistillNetwork(nn.Module):
     :param n_heads: heads of their Transformer layer.
     :param encoder_ff_dim: FFN width of their Transformer layer.
     :param exteroception: ``{obs key: MLP widths}`` of the fused global encoders.
+    :param task_input: ``"none"`` (no task input) or ``"index"`` (the one-hot of ``task_index``
+        appended to every limb's context: the generated MLP depends on the robot and the task).
     """
 
     def __init__(
@@ -131,12 +150,20 @@ class HyperDistillNetwork(nn.Module):
         n_heads: int,
         encoder_ff_dim: int,
         exteroception: Mapping[str, Sequence[int]] | None,
+        task_input: str = "none",
     ):
         super().__init__()
         if n_layers < 1:
             raise ValueError(f"n_layers must be >= 1, got {n_layers}")
+        if task_input not in TASK_INPUTS:
+            raise ValueError(f"task_input must be one of {list(TASK_INPUTS)}, got {task_input!r}")
         self.n_tokens, self.proprio_dim = observation_space[PROPRIOCEPTIVE].shape
-        self.context_dim = observation_space[CONTEXT].shape[1]
+        self.task_input, self.n_tasks = task_input, 0
+        if task_input == "index":
+            if TASK_INDEX not in observation_space.spaces:
+                raise ValueError(f"task_input='index' needs a {TASK_INDEX!r} observation; the observation space has {sorted(observation_space.spaces)}")
+            self.n_tasks = int(observation_space[TASK_INDEX].high.max()) + 1
+        self.context_dim = observation_space[CONTEXT].shape[1] + self.n_tasks
         self.slots, self.hidden_dim, self.embed_dim = slots_per_token, hidden_dim, embed_dim
         extero = {k: list(v) for k, v in sorted((exteroception or {}).items()) if k in observation_space.spaces and len(v) > 0}
         self.exteroception = nn.ModuleDict(
@@ -162,6 +189,18 @@ class HyperDistillNetwork(nn.Module):
             )
         if tokens != self.n_tokens:
             raise ValueError(f"{what} has {tokens} token rows; pad it to the student's {self.n_tokens} (obs_padding_mask)")
+
+    def context_input(self, observations: Mapping[str, th.Tensor], padding: th.Tensor) -> th.Tensor:
+        """(B, L, C [+ n_tasks]) what the context encoders read: the context (padded rows zeroed),
+        with the task's one-hot on every real limb when ``task_input == "index"``."""
+        context = observations[CONTEXT]
+        if self.n_tasks:
+            index = observations[TASK_INDEX].reshape(len(context)).round().long()
+            if bool(((index < 0) | (index >= self.n_tasks)).any()):
+                raise ValueError(f"task_index {index.tolist()} outside the student's {self.n_tasks} tasks")
+            one_hot = nn.functional.one_hot(index, self.n_tasks).to(context.dtype)
+            context = th.cat([context, one_hot[:, None].expand(-1, context.shape[1], -1)], dim=-1)
+        return th.where(padding[..., None], th.zeros((), dtype=context.dtype, device=context.device), context)
 
     def _encode(self, context: th.Tensor, padding: th.Tensor) -> th.Tensor:
         # one tensor per robot for RobotBatch: the three encodings and the real-limb mask
@@ -219,7 +258,7 @@ class HyperDistillNetwork(nn.Module):
         padding = token_padding(observations)
         zero = th.zeros((), dtype=proprio.dtype, device=proprio.device)
         proprio = th.where(padding[..., None], zero, proprio).flatten(1)  # NaN-safe: padded rows never read
-        context = th.where(padding[..., None], zero, observations[CONTEXT])
+        context = self.context_input(observations, padding)  # one group per (robot, task) with a task input
         robots = RobotBatch.from_context(context, self._encode, padding)
         weights = self.generate(robots.embedding)
         extero = self.encode_extero(observations)
@@ -254,6 +293,8 @@ class HyperDistillPolicy(ActorCriticPolicy):
     :param encoder_ff_dim: context-encoder FFN width.
     :param exteroception: ``{obs key: MLP widths}``.
     :param action_std: std of the Gaussian (MetaMorph's teachers: 0.9).
+    :param task_input: ``"none"`` (default: no task input, the students saved before this option) or
+        ``"index"`` (the ``task_index`` one-hot conditions the hypernetwork, see :class:`HyperDistillNetwork`).
     :param kwargs: other ``ActorCriticPolicy`` arguments (optimizer).
     """
 
@@ -270,8 +311,12 @@ class HyperDistillPolicy(ActorCriticPolicy):
         encoder_ff_dim: int | None = None,
         exteroception: Mapping[str, Sequence[int]] | None = None,
         action_std: float = 0.9,
+        task_input: str = "none",
         **kwargs: Any,
     ):
+        if task_input not in TASK_INPUTS:
+            raise ValueError(f"task_input must be one of {list(TASK_INPUTS)}, got {task_input!r}")
+        self.task_input = task_input
         if preset not in HYPERDISTILL_PRESETS:
             raise ValueError(f"Unknown preset {preset!r}; choose from {sorted(HYPERDISTILL_PRESETS)}")
         explicit = dict(hidden_dim=hidden_dim, n_layers=n_layers, embed_dim=embed_dim, n_heads=n_heads,
@@ -295,11 +340,13 @@ class HyperDistillPolicy(ActorCriticPolicy):
                     "log_std_init", "squash_output", "full_std", "use_expln", "ortho_init", "activation_fn"):
             data.pop(key, None)
         data.update(self.config, preset=self.preset, action_std=self.action_std)
+        if self.task_input != "none":  # a student without a task input saves what it saved before
+            data["task_input"] = self.task_input
         return data
 
     def _build(self, lr_schedule: Schedule) -> None:
         self.action_dist = MaskedDiagGaussianDistribution(int(np.prod(self.action_space.shape)))
-        self.network = HyperDistillNetwork(self.observation_space, self.slots_per_token, **self.config)
+        self.network = HyperDistillNetwork(self.observation_space, self.slots_per_token, **self.config, task_input=self.task_input)
         self.value_constant = nn.Parameter(th.zeros(1))
         self.register_buffer("log_std", th.full((self.action_dist.action_dim,), math.log(self.action_std)))
         self.optimizer = self.optimizer_class(self.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs)  # type: ignore[call-arg]
@@ -505,7 +552,8 @@ class HyperDistillMLP(DeployedActor):
     ) -> HyperDistillMLP:
         """
         :param policy: the trained student.
-        :param observation: one raw (unbatched) observation of the robot doing the task.
+        :param observation: one raw (unbatched) observation of the robot doing the task (with a task input,
+            its ``task_index`` picks the task the MLP is written for).
         :param observation_keys: the task's observations; encoders of the others are folded away.
         :param normalizer: the student's ``VecNormalize`` (statistics baked in), or ``None``.
         :raises ValueError: the robot has more tokens than the student supports.
@@ -526,7 +574,7 @@ class HyperDistillMLP(DeployedActor):
         self.used_extero = [k for k in net.exteroception.keys() if k in observation_keys]
         self.bake_normalization(normalizer, real, self.used_extero)
 
-        context = th.where(padding[..., None], th.zeros(()), obs[CONTEXT])
+        context = net.context_input(obs, padding)  # with a task input: the MLP of this robot doing this task
         weights = net.generate(net._encode(context, padding))
         S = net.slots
         rows, cols = net.real_indices(real)
@@ -584,6 +632,7 @@ def _frozen_copy(module: nn.Module) -> nn.Module:
 
 __all__ = [
     "HYPERDISTILL_PRESETS",
+    "TASK_INPUTS",
     "HyperDistillMLP",
     "HyperDistillNetwork",
     "HyperDistillPolicy",

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -33,6 +34,7 @@ from unimal_envs.tasks import TASKS
 
 th.set_num_threads(1)
 ROBOTS = morphology_files("train")[:3]
+SHIPPED = Path(__file__).resolve().parents[1] / "results" / "cpu"
 STUDENT = dict(hidden_dim=32, n_layers=2, embed_dim=16, encoder_ff_dim=32, exteroception=dict(hfield=[8], goal=[4], object=[4]))
 TEACHER = dict(d_model=16, n_layers=1, ff_dim=32, hypernet_dim=8, net_arch=dict(pi=[16], vf=[16]), exteroception={})
 
@@ -230,6 +232,7 @@ def test_pipeline_trains_modumorph_teachers_distils_and_exports(tmp_path):
     reports = [json.loads(p.read_text()) for p in (out / "hyperdistill" / "export").glob("*/report.json")]
     assert len(reports) == 2 and all(r["max_abs_diff"] <= 1e-5 and r["mlp_weights"] > 0 for r in reports)
     assert all((p / "mlp.pt").is_file() and (p / "mlp.onnx").is_file() for p in (out / "hyperdistill" / "export").iterdir())
+    assert load_student(out / "hyperdistill" / "student" / "model.zip").task_input == "index"  # the profile's default
     # teachers.policy picks the run's teachers' policy; unknown names are refused, naming the choices
     profile["teachers"]["policy"] = "ModuMorphPolicy"
     path.write_text(yaml.safe_dump({"tiny": profile}))
@@ -244,3 +247,91 @@ def test_pipeline_trains_modumorph_teachers_distils_and_exports(tmp_path):
         with pytest.raises(ConfigError, match="unknown teacher policy 'TransformerPolicy'.*ModuMorphPolicy"):
             load_profile("tiny", path)
     del write_profiles
+
+
+def _random_modumorph(seed: int):
+    th.manual_seed(seed)
+    policy = sb3_divmorph.ModuMorphPolicy(contract.observation_space(), contract.action_space(), lambda _: 0.0, **TEACHER)
+    g = th.Generator().manual_seed(seed)
+    with th.no_grad():
+        for p in policy.parameters():
+            p.add_(th.randn(p.shape, generator=g) * 0.12)
+    policy.set_training_mode(False)
+    return policy
+
+
+def test_task_input_lets_one_student_tell_ft_from_incline(teacher):
+    """FT and Incline share their observation keys: on the same states, labelled by two teachers
+    that act differently, the student with the task index as input imitates both, the one without
+    it can only average them."""
+    from sb3_divmorph.distillation import teacher_labels
+    from sb3_divmorph.hyperdistill import TeacherRollouts
+
+    ft = next(iter(teacher.values()))
+    incline = TASK_NAMES.index("Incline")
+    teachers = {TASK_NAMES.index("FT"): ft, incline: Teacher(_random_modumorph(11), ft.normalizer, "Incline")}
+    venv = multitask_venv()
+    states = collect_teacher_rollouts(teacher, venv, 300, seed=0).obs
+    dataset = TeacherRollouts(600)
+    for task in ("FT", "Incline"):
+        obs = {**states, "task_index": np.full_like(states["task_index"], TASK_NAMES.index(task))}
+        mean, std, tasks = teacher_labels(teachers, obs, 24)
+        dataset.add_with_actions(obs, mean, std, tasks, mean)
+    errors, students = {}, {}
+    for task_input in ("none", "index"):
+        th.manual_seed(0)
+        student = HyperDistillPolicy(venv.observation_space, venv.action_space, lambda _: 0.0, task_input=task_input, **STUDENT)
+        fit_offline(student, dataset, venv, loss="kl", epochs=60, batch_size=150, learning_rate=3e-3)
+        errors[task_input], students[task_input] = imitation_error(student, dataset, venv), student
+    assert errors["index"] < 0.6 * errors["none"], errors
+    # one state read as FT and as Incline: the task-conditioned student acts as each task's teacher
+    as_task = {t: {k: v[300:301] if t == "Incline" else v[:1] for k, v in dataset.obs.items()} for t in ("FT", "Incline")}
+    real = as_task["FT"]["act_padding_mask"][0] < 0.5
+
+    def means(policy, obs):
+        with th.no_grad():
+            return policy.get_distribution(policy.obs_to_tensor(venv.normalize_obs(obs))[0]).distribution.mean[0].numpy()[real]
+
+    teacher_gap = np.abs(dataset.mean[300][real] - dataset.mean[0][real]).mean()
+    student_gap = np.abs(means(students["index"], as_task["Incline"]) - means(students["index"], as_task["FT"])).mean()
+    assert teacher_gap > 0.2 and student_gap > 0.5 * teacher_gap, (teacher_gap, student_gap)
+    assert np.array_equal(means(students["none"], as_task["Incline"]), means(students["none"], as_task["FT"]))
+    # the exported MLP is the one of the robot doing that task
+    first = {k: v[0] for k, v in as_task["Incline"].items()}
+    mlp = HyperDistillMLP.from_policy(students["index"], first, TASKS["Incline"].observation_keys, venv)
+    with th.no_grad():
+        assert np.abs(mlp(*actor_inputs(first))[0].numpy()[real] - means(students["index"], as_task["Incline"])).max() <= 1e-5
+    with pytest.raises(ValueError, match="task_input must be one of"):
+        HyperDistillPolicy(venv.observation_space, venv.action_space, lambda _: 0.0, task_input="embedding", **STUDENT)
+
+
+def test_profile_key_task_input_new_runs_index_recorded_runs_none(tmp_path):
+    """``hyperdistill.task_input``: ``index`` for new profiles, checked; a run recorded before the key
+    (results/cpu) reads ``none``, so its student stays what it was and a new profile is a change of its
+    hyperdistill stage; the shipped student has no task input and loads as before."""
+    from test_pipeline import TINY
+
+    from sb3_divmorph.pipeline.config import ConfigError, load_profile
+    from sb3_divmorph.pipeline.provenance import _with_defaults, configuration, recorded_profile, stage_changes, with_current_values
+
+    profile = json.loads(json.dumps(TINY))
+    profile["hyperdistill"] = {"policy_kwargs": STUDENT}
+    path = tmp_path / "profiles.yml"
+    path.write_text(yaml.safe_dump({"tiny": profile}))
+    new = load_profile("tiny", path)
+    assert new.hyperdistill.task_input == "index"
+    for bad, message in (({"task_input": "embedding"}, "hyperdistill.task_input must be 'index' or 'none', got 'embedding'"),
+                         ({"policy_kwargs": dict(STUDENT, task_input="none")}, "not hyperdistill.policy_kwargs.task_input")):
+        path.write_text(yaml.safe_dump({"tiny": {**profile, "hyperdistill": {**profile["hyperdistill"], **bad}}}))
+        with pytest.raises(ConfigError, match=message):
+            load_profile("tiny", path)
+    # a record without the key
+    record = configuration(new)
+    del record["hyperdistill"]["task_input"]
+    (tmp_path / "run.json").write_text(json.dumps({"configuration": record}))
+    assert recorded_profile(tmp_path / "run.json").hyperdistill.task_input == "none"
+    assert stage_changes(_with_defaults(record), configuration(new), "hyperdistill") == ["hyperdistill.task_input: 'none' -> 'index'"]
+    assert "task_input" not in with_current_values(record)["hyperdistill"]  # a branch links the recorded student
+    assert recorded_profile(SHIPPED / "run.json").hyperdistill.task_input == "none"
+    shipped = load_student(SHIPPED / "hyperdistill" / "student" / "model.zip")
+    assert shipped.task_input == "none" and shipped.network.context_dim == contract.observation_space()["context"].shape[1]

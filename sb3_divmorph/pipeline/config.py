@@ -226,6 +226,11 @@ class HyperDistillConfig:
     n_envs: int = 4
     n_steps: int = 256
     buffer_size: int = 50_000
+    #: what the one student is told of the task (the paper: one hypernetwork per task): ``index``
+    #: (default: the one-hot of ``task_index`` conditions the hypernetwork, one MLP per robot and
+    #: task) or ``none`` (no task input: the student guesses the task from its observations, so FT
+    #: and Incline, which share their observation keys, look alike; runs recorded before this key)
+    task_input: str = "index"
 
 
 @dataclass
@@ -318,6 +323,10 @@ class Profile:
                 raise ConfigError(f"profile {name!r}: unknown teacher policy {policy!r} in {where}; choose from {list(TEACHER_POLICIES)}")
         if profile.hyperdistill is not None and profile.hyperdistill.loss not in ("nll", "kl"):
             raise ConfigError(f"profile {name!r}: hyperdistill.loss must be 'nll' or 'kl', got {profile.hyperdistill.loss!r}")
+        if profile.hyperdistill is not None and profile.hyperdistill.task_input not in ("none", "index"):
+            raise ConfigError(f"profile {name!r}: hyperdistill.task_input must be 'index' or 'none', got {profile.hyperdistill.task_input!r}")
+        if profile.hyperdistill is not None and "task_input" in profile.hyperdistill.policy_kwargs:
+            raise ConfigError(f"profile {name!r}: set the task input with hyperdistill.task_input, not hyperdistill.policy_kwargs.task_input")
         if profile.height_reference not in HEIGHT_REFERENCES:
             raise ConfigError(f"profile {name!r}: height_reference must be one of {list(HEIGHT_REFERENCES)}, got {profile.height_reference!r}")
         for section in ("teachers", "distill", "transfer"):

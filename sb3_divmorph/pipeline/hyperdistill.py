@@ -6,7 +6,12 @@ Runs when the profile has a ``hyperdistill`` section (``divmorph hyperdistill`` 
    they are of that policy, else trained with the ``teachers`` settings into ``hyperdistill/teachers/``;
 2. the student (``hyperdistill/student/``): offline from ``rollout_samples`` teacher-rollout states on
    ``Unimal-MultiTask-v0`` over the training robots (loss ``nll`` or ``kl``), then optionally
-   ``dagger_timesteps`` of DAgger on the states the student visits; ``model.zip`` + ``vecnormalize.pkl``;
+   ``dagger_timesteps`` of DAgger on the states the student visits; ``model.zip`` + ``vecnormalize.pkl``.
+   One student for all the training tasks: ``task_input: index`` (default) conditions its
+   hypernetwork on the task (the paper's one hypernetwork per task, in one network), ``none`` is the
+   student of runs recorded before the key. Its observation normaliser is its own (``proprioceptive``,
+   statistics over the states of all the training tasks), not the teachers' (see
+   :mod:`sb3_divmorph.hyperdistill`);
 3. per (robot, task) of the ``export`` section: the MLP generated once for that robot, written as
    TorchScript (``mlp.pt``) and ONNX (``mlp.onnx``), checked against the student (max |diff| <= 1e-5)
    and reported with its size against the teacher's actor (``hyperdistill/export/<robot>-<task>/``).
@@ -87,10 +92,10 @@ def train_student(profile: Profile, out: Path, progress_bar: bool = True) -> Pat
                         tasks=list(profile.teachers.tasks), morphologies=robots, **profile_env_kwargs(profile))
     venv = VecNormalize(venv, norm_obs_keys=NORM_OBS_KEYS, norm_reward=False)
     th.manual_seed(seed)
-    model = ImitationPPO(HyperDistillPolicy, venv, policy_kwargs=dict(cfg.policy_kwargs), n_steps=cfg.n_steps,
+    model = ImitationPPO(HyperDistillPolicy, venv, policy_kwargs=dict(cfg.policy_kwargs, task_input=cfg.task_input), n_steps=cfg.n_steps,
                          batch_size=min(cfg.batch_size, cfg.n_steps * cfg.n_envs), seed=seed, device=resolve_device(profile.device))
     model.set_logger(configure(str(folder / "logs"), ["csv", "tensorboard"]))
-    info: dict[str, Any] = {"teacher_policy": cfg.teacher_policy, "loss": cfg.loss}
+    info: dict[str, Any] = {"teacher_policy": cfg.teacher_policy, "loss": cfg.loss, "task_input": cfg.task_input}
     if cfg.rollout_samples > 0:
         print(f"[hyperdistill] {cfg.rollout_samples} teacher-rollout states, {cfg.epochs} epochs of {cfg.loss} -> {folder}")
         dataset = collect_teacher_rollouts(teachers, venv, cfg.rollout_samples, seed=seed)

@@ -87,6 +87,8 @@ def _versions() -> dict[str, str | None]:
 #: under its own rules and a profile with the new ones counts as a change of its transfer stage.
 LEGACY_VALUES: dict[str, dict[str, Any]] = {
     "transfer": {"observation_statistics": "learning", "adam_eps": None, "undiverted_lr_scale": None},
+    # HyperDistill students recorded before the task input had none (issue 26 item 5)
+    "hyperdistill": {"task_input": "none"},
 }
 
 
@@ -104,6 +106,7 @@ def with_current_values(recorded: dict[str, Any]) -> dict[str, Any]:
     it lacks: what a branch records for its own (not reused) stages, so they run under today's rules."""
     from sb3_divmorph.pipeline.config import TransferConfig
 
+    # transfer only: hyperdistill is a stage a branch reuses (links), and its linked student is the recorded one
     current = {"transfer": {f.name: f.default for f in dataclasses.fields(TransferConfig) if f.name in LEGACY_VALUES["transfer"]}}
     values = dict(recorded)
     for section, defaults in current.items():
