@@ -21,10 +21,15 @@ before the option load and act as they did) gives no task to the student: it mus
 from the observations. The pipeline's default for new runs is ``"index"``
 (``hyperdistill.task_input``).
 
-**Observation normalisation**: the student has one ``VecNormalize`` of its own (``proprioceptive``
-only, statistics gathered over the states of all the training tasks), not the per-task teachers'
-statistics of the paper: one multi-task student reads every task's states through one normaliser,
-and its statistics are those of the states it is trained on (baked into the exported MLPs). Every generator starts with a zero weight
+**Observation normalisation** (``observation_statistics``): with ``"teachers"`` the student
+normalises every state with the statistics of the teacher of that state's task (the paper: each
+task's hypernetwork on its teacher's normaliser), held in the policy (per task index, set by
+:meth:`HyperDistillPolicy.set_teacher_statistics`, saved in ``model.zip``); it then reads raw
+observations (no ``VecNormalize`` of its own), sees for each task exactly the inputs its teacher
+saw, and an exported MLP bakes its task's teacher's statistics in. With ``"own"`` (the
+constructor's default: students saved before the option) the policy reads observations normalised
+outside it, in the pipeline by one ``VecNormalize`` of the student's own (``proprioceptive``,
+statistics over the states of all the training tasks, ``vecnormalize.pkl``). Every generator starts with a zero weight
 matrix; the generated weights start ~N(0, 1/fan_in) (the generator's bias), generated biases at 0.
 
 Training is distillation from a teacher (ModuMorph by default, any teacher of the pipeline), with
@@ -84,6 +89,8 @@ LOSSES = ("nll", "kl")
 #: What the student is told of the task: nothing, or the one-hot of ``task_index``.
 TASK_INPUTS = ("none", "index")
 TASK_INDEX = "task_index"
+#: Whose observation statistics the student uses: its own (normalised outside it) or its teachers'.
+OBSERVATION_STATISTICS = ("own", "teachers")
 
 
 class LimbContextEncoder(nn.Module):
@@ -295,6 +302,10 @@ class HyperDistillPolicy(ActorCriticPolicy):
     :param action_std: std of the Gaussian (MetaMorph's teachers: 0.9).
     :param task_input: ``"none"`` (default: no task input, the students saved before this option) or
         ``"index"`` (the ``task_index`` one-hot conditions the hypernetwork, see :class:`HyperDistillNetwork`).
+    :param observation_statistics: ``"own"`` (default: observations come normalised, e.g. by the
+        student's ``VecNormalize``) or ``"teachers"`` (raw observations in; each normalised with the
+        statistics of its task's teacher, see :meth:`set_teacher_statistics`).
+    :param normalized_keys: the observations the teachers' statistics cover (``"teachers"`` only).
     :param kwargs: other ``ActorCriticPolicy`` arguments (optimizer).
     """
 
@@ -312,11 +323,15 @@ class HyperDistillPolicy(ActorCriticPolicy):
         exteroception: Mapping[str, Sequence[int]] | None = None,
         action_std: float = 0.9,
         task_input: str = "none",
+        observation_statistics: str = "own",
+        normalized_keys: Sequence[str] = ("proprioceptive",),
         **kwargs: Any,
     ):
         if task_input not in TASK_INPUTS:
             raise ValueError(f"task_input must be one of {list(TASK_INPUTS)}, got {task_input!r}")
-        self.task_input = task_input
+        if observation_statistics not in OBSERVATION_STATISTICS:
+            raise ValueError(f"observation_statistics must be one of {list(OBSERVATION_STATISTICS)}, got {observation_statistics!r}")
+        self.task_input, self.observation_statistics, self.normalized_keys = task_input, observation_statistics, tuple(normalized_keys)
         if preset not in HYPERDISTILL_PRESETS:
             raise ValueError(f"Unknown preset {preset!r}; choose from {sorted(HYPERDISTILL_PRESETS)}")
         explicit = dict(hidden_dim=hidden_dim, n_layers=n_layers, embed_dim=embed_dim, n_heads=n_heads,
@@ -342,6 +357,8 @@ class HyperDistillPolicy(ActorCriticPolicy):
         data.update(self.config, preset=self.preset, action_std=self.action_std)
         if self.task_input != "none":  # a student without a task input saves what it saved before
             data["task_input"] = self.task_input
+        if self.observation_statistics != "own":
+            data.update(observation_statistics=self.observation_statistics, normalized_keys=list(self.normalized_keys))
         return data
 
     def _build(self, lr_schedule: Schedule) -> None:
@@ -349,10 +366,75 @@ class HyperDistillPolicy(ActorCriticPolicy):
         self.network = HyperDistillNetwork(self.observation_space, self.slots_per_token, **self.config, task_input=self.task_input)
         self.value_constant = nn.Parameter(th.zeros(1))
         self.register_buffer("log_std", th.full((self.action_dist.action_dim,), math.log(self.action_std)))
+        if self.observation_statistics == "teachers":
+            if TASK_INDEX not in self.observation_space.spaces:
+                raise ValueError(f"observation_statistics='teachers' needs a {TASK_INDEX!r} observation")
+            n_tasks = int(self.observation_space[TASK_INDEX].high.max()) + 1
+            for key in self.normalized_keys:
+                shape = self.observation_space[key].shape
+                self.register_buffer(f"teacher_mean_{key}", th.zeros((n_tasks, *shape), dtype=th.float64))
+                self.register_buffer(f"teacher_var_{key}", th.ones((n_tasks, *shape), dtype=th.float64))
+            self.register_buffer("teacher_epsilon", th.zeros(n_tasks, dtype=th.float64))
+            self.register_buffer("teacher_clip", th.full((n_tasks,), math.inf, dtype=th.float64))
+            self.register_buffer("teacher_set", th.zeros(n_tasks, dtype=th.bool))
         self.optimizer = self.optimizer_class(self.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs)  # type: ignore[call-arg]
 
+    def set_teacher_statistics(self, task_index: int, normalizer: VecNormalize | None) -> None:
+        """Normalise the states of task ``task_index`` as its teacher does (``observation_statistics="teachers"``).
+
+        :param task_index: the task (``task_index`` observation).
+        :param normalizer: the teacher's ``VecNormalize`` (its ``obs_rms``, ``epsilon``, ``clip_obs``),
+            or ``None`` for a teacher trained on raw observations.
+        :raises ValueError: the student does not use teachers' statistics, or the teacher normalises
+            other observations than ``normalized_keys``.
+        """
+        if self.observation_statistics != "teachers":
+            raise ValueError("set_teacher_statistics needs a student built with observation_statistics='teachers'")
+        task_index = int(task_index)
+        if normalizer is None:
+            for key in self.normalized_keys:
+                getattr(self, f"teacher_mean_{key}")[task_index] = 0.0
+                getattr(self, f"teacher_var_{key}")[task_index] = 1.0
+            self.teacher_epsilon[task_index], self.teacher_clip[task_index] = 0.0, math.inf
+        else:
+            teacher_keys = tuple(getattr(normalizer, "norm_obs_keys", None) or ()) if normalizer.norm_obs else ()
+            if set(teacher_keys) != set(self.normalized_keys):
+                raise ValueError(f"the teacher of task {task_index} normalises {sorted(teacher_keys)}; this student "
+                                 f"holds statistics of {sorted(self.normalized_keys)} (normalized_keys)")
+            for key in self.normalized_keys:
+                getattr(self, f"teacher_mean_{key}")[task_index] = th.as_tensor(normalizer.obs_rms[key].mean, dtype=th.float64)
+                getattr(self, f"teacher_var_{key}")[task_index] = th.as_tensor(normalizer.obs_rms[key].var, dtype=th.float64)
+            self.teacher_epsilon[task_index], self.teacher_clip[task_index] = float(normalizer.epsilon), float(normalizer.clip_obs)
+        self.teacher_set[task_index] = True
+
+    def normalize_with_teachers(self, obs: Mapping[str, th.Tensor]) -> dict[str, th.Tensor]:
+        """Raw observations normalised with each state's task's teacher statistics (as ``VecNormalize``:
+        float64 arithmetic, clipped, then float32)."""
+        index = obs[TASK_INDEX].reshape(-1).round().long()
+        missing = sorted({int(i) for i in index[~self.teacher_set[index]]})
+        if missing:
+            raise ValueError(f"no teacher statistics for task index(es) {missing}; this student holds them for "
+                             f"{th.nonzero(self.teacher_set).flatten().tolist()}")
+        out = dict(obs)
+        clip = self.teacher_clip[index]
+        for key in self.normalized_keys:
+            mean, var = getattr(self, f"teacher_mean_{key}")[index], getattr(self, f"teacher_var_{key}")[index]
+            eps = self.teacher_epsilon[index].view(-1, *[1] * (mean.dim() - 1))
+            x = (obs[key].double() - mean) / th.sqrt(var + eps)
+            c = clip.view_as(eps)
+            out[key] = th.minimum(th.maximum(x, -c), c).to(obs[key].dtype)
+        return out
+
+    def task_normalizer(self, task_index: int) -> _TaskStatistics:
+        """The teacher statistics of one task as a ``VecNormalize``-like object (for :class:`HyperDistillMLP`)."""
+        task_index = int(task_index)
+        if not bool(self.teacher_set[task_index]):
+            raise ValueError(f"no teacher statistics for task index {task_index}")
+        return _TaskStatistics(self, task_index)
+
     def _preprocess(self, obs: PyTorchObs) -> dict[str, th.Tensor]:
-        return preprocess_obs(obs, self.observation_space, normalize_images=False)  # type: ignore[return-value]
+        obs = preprocess_obs(obs, self.observation_space, normalize_images=False)
+        return self.normalize_with_teachers(obs) if self.observation_statistics == "teachers" else obs  # type: ignore[return-value,arg-type]
 
     def _distribution(self, obs: Mapping[str, th.Tensor]) -> MaskedDiagGaussianDistribution:
         return self.action_dist.proba_distribution(self.network(obs), self.log_std, obs[ACT_PADDING_MASK])
@@ -394,6 +476,30 @@ class HyperDistillPolicy(ActorCriticPolicy):
             "exteroception": count(n.exteroception),
             "total": count(self),
         }
+
+
+class _RunningStats(NamedTuple):
+    mean: np.ndarray
+    var: np.ndarray
+
+
+class _TaskStatistics:
+    """One task's teacher statistics of a student, read like a ``VecNormalize`` (``norm_obs_keys``,
+    ``obs_rms``, ``epsilon``, ``clip_obs``, ``normalize_obs``)."""
+
+    def __init__(self, policy: HyperDistillPolicy, task_index: int):
+        self.norm_obs_keys = list(policy.normalized_keys)
+        self.obs_rms = {k: _RunningStats(getattr(policy, f"teacher_mean_{k}")[task_index].cpu().numpy(),
+                                         getattr(policy, f"teacher_var_{k}")[task_index].cpu().numpy()) for k in self.norm_obs_keys}
+        self.epsilon = float(policy.teacher_epsilon[task_index])
+        self.clip_obs = float(policy.teacher_clip[task_index])
+
+    def normalize_obs(self, obs: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        out = {k: np.array(v) for k, v in obs.items()}
+        for k in self.norm_obs_keys:
+            x = (obs[k] - self.obs_rms[k].mean) / np.sqrt(self.obs_rms[k].var + self.epsilon)
+            out[k] = np.clip(x, -self.clip_obs, self.clip_obs).astype(np.float32)
+        return out
 
 
 def load_student(path: str | Path, observation_space: spaces.Space | None = None, device: str = "cpu") -> HyperDistillPolicy:
@@ -555,7 +661,8 @@ class HyperDistillMLP(DeployedActor):
         :param observation: one raw (unbatched) observation of the robot doing the task (with a task input,
             its ``task_index`` picks the task the MLP is written for).
         :param observation_keys: the task's observations; encoders of the others are folded away.
-        :param normalizer: the student's ``VecNormalize`` (statistics baked in), or ``None``.
+        :param normalizer: the student's ``VecNormalize`` (statistics baked in), or ``None`` (raw
+            observations; a student with its teachers' statistics bakes in those of the observation's task).
         :raises ValueError: the robot has more tokens than the student supports.
         """
         if not isinstance(policy, HyperDistillPolicy):
@@ -565,6 +672,10 @@ class HyperDistillMLP(DeployedActor):
             net.check_tokens(np.shape(observation[key])[0], f"the robot's {key}")
         self = cls()
         policy = policy.cpu().eval()
+        if policy.observation_statistics == "teachers":  # the statistics of the teacher of this task
+            if normalizer is not None:
+                raise ValueError("this student normalises with its teachers' statistics; pass normalizer=None")
+            normalizer = policy.task_normalizer(int(np.round(np.asarray(observation[TASK_INDEX]).reshape(-1)[0])))
         raw = {k: np.asarray(v, dtype=np.float32)[None] for k, v in observation.items()}
         obs = {k: th.as_tensor(v) for k, v in (raw if normalizer is None else normalizer.normalize_obs(raw)).items()}
         padding = token_padding(obs)
@@ -632,6 +743,7 @@ def _frozen_copy(module: nn.Module) -> nn.Module:
 
 __all__ = [
     "HYPERDISTILL_PRESETS",
+    "OBSERVATION_STATISTICS",
     "TASK_INPUTS",
     "HyperDistillMLP",
     "HyperDistillNetwork",

@@ -232,7 +232,16 @@ def test_pipeline_trains_modumorph_teachers_distils_and_exports(tmp_path):
     reports = [json.loads(p.read_text()) for p in (out / "hyperdistill" / "export").glob("*/report.json")]
     assert len(reports) == 2 and all(r["max_abs_diff"] <= 1e-5 and r["mlp_weights"] > 0 for r in reports)
     assert all((p / "mlp.pt").is_file() and (p / "mlp.onnx").is_file() for p in (out / "hyperdistill" / "export").iterdir())
-    assert load_student(out / "hyperdistill" / "student" / "model.zip").task_input == "index"  # the profile's default
+    student = load_student(out / "hyperdistill" / "student" / "model.zip")
+    assert student.task_input == "index" and student.observation_statistics == "teachers"  # the profile's defaults
+    # the student normalises FT's states with the FT teacher's statistics (no normaliser of its own)
+    from sb3_divmorph.distillation import load_normalizer
+
+    assert not (out / "hyperdistill" / "student" / "vecnormalize.pkl").exists()
+    teacher_stats = load_normalizer(out / "hyperdistill" / "teachers" / "FT" / "vecnormalize.pkl")
+    raw = {k: v[None] for k, v in _robot_obs("FT", 0).items()}
+    ours = student.normalize_with_teachers(student.obs_to_tensor(raw)[0])["proprioceptive"].numpy()
+    assert np.abs(ours - teacher_stats.normalize_obs(raw)["proprioceptive"]).max() <= 1e-6
     # teachers.policy picks the run's teachers' policy; unknown names are refused, naming the choices
     profile["teachers"]["policy"] = "ModuMorphPolicy"
     path.write_text(yaml.safe_dump({"tiny": profile}))
@@ -319,19 +328,58 @@ def test_profile_key_task_input_new_runs_index_recorded_runs_none(tmp_path):
     path = tmp_path / "profiles.yml"
     path.write_text(yaml.safe_dump({"tiny": profile}))
     new = load_profile("tiny", path)
-    assert new.hyperdistill.task_input == "index"
+    assert (new.hyperdistill.task_input, new.hyperdistill.observation_statistics) == ("index", "teachers")
     for bad, message in (({"task_input": "embedding"}, "hyperdistill.task_input must be 'index' or 'none', got 'embedding'"),
-                         ({"policy_kwargs": dict(STUDENT, task_input="none")}, "not hyperdistill.policy_kwargs.task_input")):
+                         ({"policy_kwargs": dict(STUDENT, task_input="none")}, "policy_kwargs.task_input is set by the pipeline"),
+                         ({"observation_statistics": "student"}, "observation_statistics must be 'teachers' or 'own', got 'student'")):
         path.write_text(yaml.safe_dump({"tiny": {**profile, "hyperdistill": {**profile["hyperdistill"], **bad}}}))
         with pytest.raises(ConfigError, match=message):
             load_profile("tiny", path)
     # a record without the key
     record = configuration(new)
-    del record["hyperdistill"]["task_input"]
+    del record["hyperdistill"]["task_input"], record["hyperdistill"]["observation_statistics"]
     (tmp_path / "run.json").write_text(json.dumps({"configuration": record}))
-    assert recorded_profile(tmp_path / "run.json").hyperdistill.task_input == "none"
-    assert stage_changes(_with_defaults(record), configuration(new), "hyperdistill") == ["hyperdistill.task_input: 'none' -> 'index'"]
+    legacy = recorded_profile(tmp_path / "run.json").hyperdistill
+    assert (legacy.task_input, legacy.observation_statistics) == ("none", "own")
+    assert stage_changes(_with_defaults(record), configuration(new), "hyperdistill") == [
+        "hyperdistill.observation_statistics: 'own' -> 'teachers'", "hyperdistill.task_input: 'none' -> 'index'"]
     assert "task_input" not in with_current_values(record)["hyperdistill"]  # a branch links the recorded student
-    assert recorded_profile(SHIPPED / "run.json").hyperdistill.task_input == "none"
+    shipped_profile = recorded_profile(SHIPPED / "run.json").hyperdistill
+    assert (shipped_profile.task_input, shipped_profile.observation_statistics) == ("none", "own")
     shipped = load_student(SHIPPED / "hyperdistill" / "student" / "model.zip")
-    assert shipped.task_input == "none" and shipped.network.context_dim == contract.observation_space()["context"].shape[1]
+    assert (shipped.task_input, shipped.observation_statistics) == ("none", "own")
+    assert shipped.network.context_dim == contract.observation_space()["context"].shape[1]
+
+
+def test_student_on_its_teachers_statistics_sees_what_each_teacher_sees(teacher, tmp_path):
+    """``observation_statistics="teachers"``: raw observations in, each state normalised with the
+    statistics of its own task's teacher (as the teacher does), kept through save / load and baked
+    into the exported MLP; a state of a task without a teacher is refused."""
+    ft = next(iter(teacher.values()))
+    venv = multitask_venv(n_envs=1)
+    model = ImitationPPO("HyperDistillPolicy", venv, n_steps=16, batch_size=16,
+                         policy_kwargs=dict(STUDENT, task_input="index", observation_statistics="teachers"))
+    model.policy.set_teacher_statistics(TASK_NAMES.index("FT"), ft.normalizer)
+    th.manual_seed(0)
+    with th.no_grad():
+        for p in model.policy.parameters():
+            p.add_(th.randn_like(p) * 0.02)
+    model.save(tmp_path / "student.zip")
+    student = load_student(tmp_path / "student.zip")
+    raw = {k: v[None] for k, v in _robot_obs("FT", 1).items()}
+    obs = student.obs_to_tensor(raw)[0]
+    ours = student.normalize_with_teachers(obs)["proprioceptive"].numpy()
+    theirs = ft.normalizer.normalize_obs(raw)["proprioceptive"]
+    assert np.abs(ours - theirs).max() <= 1e-6 and np.abs(theirs - raw["proprioceptive"]).max() > 0.5  # not the identity
+    # the same weights fed the teacher-normalised state acts the same
+    own = HyperDistillPolicy(venv.observation_space, venv.action_space, lambda _: 0.0, task_input="index", **STUDENT)
+    own.load_state_dict({k: v for k, v in student.state_dict().items() if not k.startswith("teacher_")})
+    with th.no_grad():
+        mean = student.get_distribution(obs).distribution.mean
+        assert th.allclose(mean, own.get_distribution(own.obs_to_tensor(ft.normalizer.normalize_obs(raw))[0]).distribution.mean, atol=1e-5)
+        mlp = HyperDistillMLP.from_policy(student, {k: v[0] for k, v in raw.items()}, TASKS["FT"].observation_keys)
+        assert (mlp(*actor_inputs({k: v[0] for k, v in raw.items()})) - mean).abs().max() <= 1e-5
+    with pytest.raises(ValueError, match=r"no teacher statistics for task index\(es\) \[2\]"):
+        student.get_distribution({**obs, "task_index": th.full_like(obs["task_index"], TASK_NAMES.index("Incline"))})
+    with pytest.raises(ValueError, match="observation_statistics must be one of"):
+        HyperDistillPolicy(venv.observation_space, venv.action_space, lambda _: 0.0, observation_statistics="student", **STUDENT)

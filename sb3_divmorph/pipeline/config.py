@@ -231,6 +231,10 @@ class HyperDistillConfig:
     #: task) or ``none`` (no task input: the student guesses the task from its observations, so FT
     #: and Incline, which share their observation keys, look alike; runs recorded before this key)
     task_input: str = "index"
+    #: whose observation statistics the student normalises with: ``teachers`` (default, the paper's:
+    #: each state with the statistics of its task's teacher, kept in the student's ``model.zip``) or
+    #: ``own`` (one ``VecNormalize`` of the student's over all the tasks' states; runs recorded before this key)
+    observation_statistics: str = "teachers"
 
 
 @dataclass
@@ -325,8 +329,13 @@ class Profile:
             raise ConfigError(f"profile {name!r}: hyperdistill.loss must be 'nll' or 'kl', got {profile.hyperdistill.loss!r}")
         if profile.hyperdistill is not None and profile.hyperdistill.task_input not in ("none", "index"):
             raise ConfigError(f"profile {name!r}: hyperdistill.task_input must be 'index' or 'none', got {profile.hyperdistill.task_input!r}")
-        if profile.hyperdistill is not None and "task_input" in profile.hyperdistill.policy_kwargs:
-            raise ConfigError(f"profile {name!r}: set the task input with hyperdistill.task_input, not hyperdistill.policy_kwargs.task_input")
+        if profile.hyperdistill is not None and profile.hyperdistill.observation_statistics not in ("teachers", "own"):
+            raise ConfigError(f"profile {name!r}: hyperdistill.observation_statistics must be 'teachers' or 'own', "
+                              f"got {profile.hyperdistill.observation_statistics!r}")
+        for key in ("task_input", "observation_statistics", "normalized_keys"):
+            if profile.hyperdistill is not None and key in profile.hyperdistill.policy_kwargs:
+                raise ConfigError(f"profile {name!r}: hyperdistill.policy_kwargs.{key} is set by the pipeline; "
+                                  f"use hyperdistill.{key if key != 'normalized_keys' else 'observation_statistics'}")
         if profile.height_reference not in HEIGHT_REFERENCES:
             raise ConfigError(f"profile {name!r}: height_reference must be one of {list(HEIGHT_REFERENCES)}, got {profile.height_reference!r}")
         for section in ("teachers", "distill", "transfer"):

@@ -9,9 +9,10 @@ Runs when the profile has a ``hyperdistill`` section (``divmorph hyperdistill`` 
    ``dagger_timesteps`` of DAgger on the states the student visits; ``model.zip`` + ``vecnormalize.pkl``.
    One student for all the training tasks: ``task_input: index`` (default) conditions its
    hypernetwork on the task (the paper's one hypernetwork per task, in one network), ``none`` is the
-   student of runs recorded before the key. Its observation normaliser is its own (``proprioceptive``,
-   statistics over the states of all the training tasks), not the teachers' (see
-   :mod:`sb3_divmorph.hyperdistill`);
+   student of runs recorded before the key. ``observation_statistics: teachers`` (default): each
+   state is normalised with the statistics of its task's teacher, held in ``model.zip`` (no
+   ``vecnormalize.pkl``); ``own`` (runs recorded before the key): one ``VecNormalize`` of the
+   student's own over all the tasks' states (see :mod:`sb3_divmorph.hyperdistill`);
 3. per (robot, task) of the ``export`` section: the MLP generated once for that robot, written as
    TorchScript (``mlp.pt``) and ONNX (``mlp.onnx``), checked against the student (max |diff| <= 1e-5)
    and reported with its size against the teacher's actor (``hyperdistill/export/<robot>-<task>/``).
@@ -47,6 +48,7 @@ from sb3_divmorph.pipeline.runs import (
     profile_env_kwargs,
     profile_robots,
     resolve_device,
+    stage_normalizer,
     task_env_name,
 )
 from sb3_divmorph.pipeline.teachers import load_teachers, teacher_policy, train_teachers
@@ -66,6 +68,11 @@ def _config(profile: Profile):
     if profile.hyperdistill is None:
         raise ConfigError(f"profile {profile.name!r} has no 'hyperdistill' section")
     return profile.hyperdistill
+
+
+def _any_task(cfg) -> bool:
+    """Whether the student can be written for a task without a teacher (no task input, own statistics)."""
+    return cfg.task_input == "none" and cfg.observation_statistics == "own"
 
 
 def hyperdistill_teachers(profile: Profile, out: Path, progress_bar: bool = True) -> dict[int, Teacher]:
@@ -90,16 +97,29 @@ def train_student(profile: Profile, out: Path, progress_bar: bool = True) -> Pat
     seed = profile.seed + 7
     venv = make_vec_env("Unimal-MultiTask-v0", cfg.n_envs, seed, profile.max_episode_steps,
                         tasks=list(profile.teachers.tasks), morphologies=robots, **profile_env_kwargs(profile))
-    venv = VecNormalize(venv, norm_obs_keys=NORM_OBS_KEYS, norm_reward=False)
+    own_statistics = cfg.observation_statistics == "own"
+    if own_statistics:
+        venv = VecNormalize(venv, norm_obs_keys=NORM_OBS_KEYS, norm_reward=False)
+        statistics: dict[str, Any] = {}
+    else:  # raw observations in; the policy normalises each state with its task's teacher's statistics
+        keys = {tuple(sorted(t.normalizer.norm_obs_keys or ())) for t in teachers.values() if t.normalizer is not None}
+        if len(keys) > 1:
+            raise ConfigError(f"the teachers normalise different observations {sorted(keys)}; "
+                              "hyperdistill.observation_statistics: teachers needs them alike (or use 'own')")
+        statistics = dict(observation_statistics="teachers", normalized_keys=list(next(iter(keys), NORM_OBS_KEYS)))
     th.manual_seed(seed)
-    model = ImitationPPO(HyperDistillPolicy, venv, policy_kwargs=dict(cfg.policy_kwargs, task_input=cfg.task_input), n_steps=cfg.n_steps,
+    model = ImitationPPO(HyperDistillPolicy, venv, policy_kwargs=dict(cfg.policy_kwargs, task_input=cfg.task_input, **statistics), n_steps=cfg.n_steps,
                          batch_size=min(cfg.batch_size, cfg.n_steps * cfg.n_envs), seed=seed, device=resolve_device(profile.device))
     model.set_logger(configure(str(folder / "logs"), ["csv", "tensorboard"]))
-    info: dict[str, Any] = {"teacher_policy": cfg.teacher_policy, "loss": cfg.loss, "task_input": cfg.task_input}
+    if not own_statistics:
+        for index, teacher in teachers.items():
+            model.policy.set_teacher_statistics(index, teacher.normalizer)
+    info: dict[str, Any] = {"teacher_policy": cfg.teacher_policy, "loss": cfg.loss, "task_input": cfg.task_input,
+                            "observation_statistics": cfg.observation_statistics}
     if cfg.rollout_samples > 0:
         print(f"[hyperdistill] {cfg.rollout_samples} teacher-rollout states, {cfg.epochs} epochs of {cfg.loss} -> {folder}")
         dataset = collect_teacher_rollouts(teachers, venv, cfg.rollout_samples, seed=seed)
-        history = fit_offline(model.policy, dataset, venv, cfg.loss, cfg.epochs, cfg.batch_size, cfg.learning_rate, seed=seed)
+        history = fit_offline(model.policy, dataset, venv if own_statistics else None, cfg.loss, cfg.epochs, cfg.batch_size, cfg.learning_rate, seed=seed)
         info.update(offline_loss_first=history[0], offline_loss_last=history[-1], offline_samples=dataset.size)
         for epoch, value in enumerate(history):
             model.logger.record("hyperdistill/offline_loss", value)
@@ -109,9 +129,11 @@ def train_student(profile: Profile, out: Path, progress_bar: bool = True) -> Pat
         callback = DAggerCallback(teachers, TASK_NAMES, learning_rate=cfg.learning_rate, epochs=cfg.dagger_epochs,
                                   batch_size=cfg.batch_size, buffer_size=cfg.buffer_size, seed=seed)
         model.learn(cfg.dagger_timesteps, callback=callback, progress_bar=progress_bar)
-    venv.training = False
     atomic_save(folder / MODEL, model.save)
-    atomic_save(folder / NORMALIZER, lambda p: venv.save(str(p)))
+    if own_statistics:
+        venv.training = False
+        atomic_save(folder / NORMALIZER, lambda p: venv.save(str(p)))
+        info["normalizer"] = True
     mark_done(folder, **info)
     return folder
 
@@ -120,6 +142,9 @@ def export_mlp(profile: Profile, out: Path, robot_file: Path, task: str, steps: 
     """Generate, export and check the MLP of one robot x task; returns (and writes) its report."""
     if task not in TASK_NAMES:
         raise ConfigError(f"unknown task {task!r}; choose from {list(TASK_NAMES)}")
+    if not _any_task(_config(profile)) and task not in profile.teachers.tasks:
+        raise ConfigError(f"the HyperDistill student has no teacher for {task!r} (task input / teachers' statistics: it "
+                          f"is written for its teachers' tasks {list(profile.teachers.tasks)})")
     robot_file = Path(robot_file)
     folder = hyperdistill_folder(out) / "export" / f"{robot_file.stem}-{task}"
     if is_done(folder):
@@ -129,7 +154,8 @@ def export_mlp(profile: Profile, out: Path, robot_file: Path, task: str, steps: 
     if not is_done(source):
         raise FileNotFoundError(f"no HyperDistill student in {source}; run `divmorph hyperdistill --out {out}` first")
     policy = load_student(source / MODEL, observation_space())
-    normalizer = load_normalizer(source / NORMALIZER)
+    statistics = stage_normalizer(source)  # none when the student holds its teachers' statistics
+    normalizer = None if statistics is None else load_normalizer(statistics)
     env = gym.make(task_env_name(task), morphologies=[robot_file], max_episode_steps=profile.max_episode_steps, **profile_env_kwargs(profile))
     rng = np.random.default_rng(profile.seed)
     try:
@@ -156,7 +182,7 @@ def export_mlp(profile: Profile, out: Path, robot_file: Path, task: str, steps: 
     except ImportError:  # the optional "deploy" extra (onnx) is not installed
         onnx_path = None
     with th.no_grad():
-        reference = policy.get_distribution(policy.obs_to_tensor(normalizer.normalize_obs(batch))[0]).distribution.mean
+        reference = policy.get_distribution(policy.obs_to_tensor(batch if normalizer is None else normalizer.normalize_obs(batch))[0]).distribution.mean
         exported = th.jit.load(str(path))(*actor_inputs(batch, batch=True))
     max_diff = float((reference - exported).abs().max())
     if not max_diff <= TOLERANCE:
@@ -196,7 +222,14 @@ def hyperdistill(profile: Profile, out: Path, progress_bar: bool = True) -> list
     n = profile.export.robots_per_split
     robots = profile_robots(profile, "train")[:n] + profile_robots(profile, "novel")[:n]
     reports = []
-    for task in profile.export.tasks:
+    tasks = list(profile.export.tasks)
+    if not _any_task(_config(profile)):
+        untaught = [t for t in tasks if t not in profile.teachers.tasks]
+        if untaught:
+            print(f"[hyperdistill] no MLP for {', '.join(untaught)}: the student is written per task from its teachers "
+                  f"(task input / teachers' statistics) and has no teacher for them")
+        tasks = [t for t in tasks if t in profile.teachers.tasks]
+    for task in tasks:
         for robot in robots:
             reports.append(export_mlp(profile, out, robot, task))
     mark_done(hyperdistill_folder(out), exported=len(reports))

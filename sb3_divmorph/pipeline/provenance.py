@@ -87,8 +87,8 @@ def _versions() -> dict[str, str | None]:
 #: under its own rules and a profile with the new ones counts as a change of its transfer stage.
 LEGACY_VALUES: dict[str, dict[str, Any]] = {
     "transfer": {"observation_statistics": "learning", "adam_eps": None, "undiverted_lr_scale": None},
-    # HyperDistill students recorded before the task input had none (issue 26 item 5)
-    "hyperdistill": {"task_input": "none"},
+    # HyperDistill students recorded before these keys: no task input, their own statistics (issue 26 item 5)
+    "hyperdistill": {"task_input": "none", "observation_statistics": "own"},
 }
 
 
