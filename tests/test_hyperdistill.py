@@ -242,6 +242,11 @@ def test_pipeline_trains_modumorph_teachers_distils_and_exports(tmp_path):
     raw = {k: v[None] for k, v in _robot_obs("FT", 0).items()}
     ours = student.normalize_with_teachers(student.obs_to_tensor(raw)[0])["proprioceptive"].numpy()
     assert np.abs(ours - teacher_stats.normalize_obs(raw)["proprioceptive"]).max() <= 1e-6
+    # written per task from its teachers: no MLP for a task without a teacher
+    from sb3_divmorph.pipeline.hyperdistill import export_mlp
+
+    with pytest.raises(ConfigError, match="no teacher for 'Escape'"):
+        export_mlp(load_profile("tiny", path), out, ROBOTS[0], "Escape")
     # teachers.policy picks the run's teachers' policy; unknown names are refused, naming the choices
     profile["teachers"]["policy"] = "ModuMorphPolicy"
     path.write_text(yaml.safe_dump({"tiny": profile}))
