@@ -268,6 +268,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"divmorph: {error}", file=sys.stderr)
         return 2
     out = Path(args.out or f"runs/{profile.name}")
+    if args.command == "figure" and args.name not in P.FIGURES:  # a typo in the name, before anything about the run
+        print(f"divmorph figure: unknown figure {args.name!r}; figures: {list(P.FIGURES)}", file=sys.stderr)
+        return 2
     if args.command in _READS_A_RUN and args.out and not out.is_dir():
         print(f"divmorph {args.command}: no such run folder: {out} (train its stages with --out {out} first, or check the path)",
               file=sys.stderr)

@@ -49,6 +49,9 @@ def test_bad_arms_seeds_and_missing_stages_give_clear_errors(tmp_path, capsys):
     assert cli(["figure", "fig9", *base]) == 2
     assert "unknown figure 'fig9'; figures: ['transfer-train'" in capsys.readouterr().err
     assert cli(["figure", "ablation", *base]) == 2
+    assert "no such run folder" in capsys.readouterr().err
+    (tmp_path / "empty").mkdir(exist_ok=True)
+    assert cli(["figure", "ablation", *base]) == 2
     assert "no data for figure 'ablation'" in capsys.readouterr().err
 
 
