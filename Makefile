@@ -10,7 +10,7 @@ export MUJOCO_GL ?= egl
 export HF_HUB_OFFLINE ?= 1
 export TRANSFORMERS_OFFLINE ?= 1
 
-.PHONY: demo tour test install benchmarks clean
+.PHONY: demo tour test lint install benchmarks clean
 
 $(STAMP): pyproject.toml setup.py
 	$(PYTHON) -m venv $(VENV)
@@ -36,6 +36,12 @@ tour: $(STAMP)
 # tests compile MuJoCo Warp's kernels on a machine's first run (~2 min, then cached in ~/.cache/warp).
 test: $(STAMP)
 	$(PY) -m pytest -q
+
+# Lint and types: ruff's rules and formatting over the repository, mypy over the packages (both configured in pyproject.toml).
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/mypy
 
 benchmarks: $(STAMP)
 	$(PY) benchmarks/env_throughput.py

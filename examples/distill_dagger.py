@@ -78,7 +78,7 @@ def main(argv: list[str] | None = None) -> None:
     venv.save(str(folder / "vecnormalize.pkl"))
     print(f"student: {student.num_timesteps} steps of DAgger, {dagger.dataset.size} labelled states, tailors in use "
           f"after the last round: {dagger.tailor_usage['morphology'][-1]} morphology, {dagger.tailor_usage['task'][-1]} task -> {folder}")
-    print(f"(TensorBoard: pass tensorboard_log= to ImitationPPO for distill/loss, distill/kl/<task>, gates/*)")
+    print("(TensorBoard: pass tensorboard_log= to ImitationPPO for distill/loss, distill/kl/<task>, gates/*)")
 
 
 if __name__ == "__main__":

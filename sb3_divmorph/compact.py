@@ -33,7 +33,7 @@ from torch.nn import functional as F
 
 from sb3_divmorph.deployment import ACTOR_INPUTS, DeployedActor, actor_inputs, export_onnx
 from sb3_divmorph.extractors import ACT_PADDING_MASK, CONTEXT, OBS_PADDING_MASK, PROPRIOCEPTIVE
-from sb3_divmorph.layers import DenseLinear, FactorizedLinear
+from sb3_divmorph.layers import FactorizedLinear
 
 __all__ = ["ACTOR_INPUTS", "CompactActor", "actor_inputs", "export_onnx", "export_torchscript", "size_comparison"]
 

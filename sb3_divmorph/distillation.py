@@ -427,11 +427,11 @@ class DAggerCallback(BaseCallback):
     def _current_raw_obs(self, fresh: ObsDict | None = None) -> ObsDict:
         if self._normalizer is not None:
             return self._normalizer.get_original_obs()
-        source = fresh if fresh is not None else self.model._last_obs  # type: ignore[attr-defined]
+        source = fresh if fresh is not None else self.model._last_obs
         return {key: np.array(value, copy=True) for key, value in source.items()}
 
     def _on_rollout_start(self) -> None:
-        beta = float(self.beta(self.model._current_progress_remaining))  # type: ignore[attr-defined]
+        beta = float(self.beta(self.model._current_progress_remaining))
         if beta > 0:
             if self._mixer is None:
                 raise ValueError("beta > 0 needs the training env wrapped in TeacherMixingVecEnv (below VecNormalize)")

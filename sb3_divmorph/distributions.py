@@ -25,7 +25,7 @@ class MaskedDiagGaussianDistribution(DiagGaussianDistribution):
         super().__init__(action_dim)
         self.real: th.Tensor | None = None
 
-    def proba_distribution(  # type: ignore[override]
+    def proba_distribution(
         self: SelfMaskedDiagGaussian,
         mean_actions: th.Tensor,
         log_std: th.Tensor,
@@ -58,7 +58,7 @@ class MaskedDiagGaussianDistribution(DiagGaussianDistribution):
     def entropy(self) -> th.Tensor:
         return self._masked_sum(self.distribution.entropy())
 
-    def actions_from_params(  # type: ignore[override]
+    def actions_from_params(
         self,
         mean_actions: th.Tensor,
         log_std: th.Tensor,
@@ -68,7 +68,7 @@ class MaskedDiagGaussianDistribution(DiagGaussianDistribution):
         self.proba_distribution(mean_actions, log_std, action_padding_mask)
         return self.get_actions(deterministic=deterministic)
 
-    def log_prob_from_params(  # type: ignore[override]
+    def log_prob_from_params(
         self, mean_actions: th.Tensor, log_std: th.Tensor, action_padding_mask: th.Tensor | None = None
     ) -> tuple[th.Tensor, th.Tensor]:
         actions = self.actions_from_params(mean_actions, log_std, action_padding_mask=action_padding_mask)

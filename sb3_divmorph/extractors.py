@@ -53,7 +53,7 @@ class ExteroceptionEncoder(nn.Sequential):
         super().__init__(*layers)
         self.out_dim = in_dim
 
-    def forward(self, x: th.Tensor, tailor_gates: th.Tensor | None = None) -> th.Tensor:  # type: ignore[override]
+    def forward(self, x: th.Tensor, tailor_gates: th.Tensor | None = None) -> th.Tensor:
         """
         :param x: (B, in_dim).
         :param tailor_gates: (B, G_m + G_t) gates for diverted layers, or ``None``.

@@ -441,7 +441,7 @@ class ModuMorphPolicy(MorphologyTransformerPolicy):
     def _value(self, latent_vf: th.Tensor, obs: Mapping[str, th.Tensor], gates: th.Tensor | None) -> th.Tensor:
         return masked_mean(latent_vf, token_padding(obs))
 
-    def extract_features(self, obs: PyTorchObs, features_extractor: nn.Module | None = None):  # type: ignore[override]
+    def extract_features(self, obs: PyTorchObs, features_extractor: nn.Module | None = None):
         """:class:`ModuMorphFeatures`; a (pi, vf) tuple when the extractor is not shared (SB3's API)."""
         obs = self._preprocess(obs)
         if self.share_features_extractor or features_extractor is not None:

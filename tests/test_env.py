@@ -116,7 +116,7 @@ def test_a_fallen_torso_terminates(write_robot):
 def test_episodes_truncate_after_1000_steps(write_robot):
     env = make_ft([write_robot(unimal_xml(legs=4, hinges="xy"))])
     env.reset(seed=0)
-    for step in range(1000):
+    for _ in range(1000):
         _, _, terminated, truncated, _ = env.step(np.zeros(C.ACTION_DIM, np.float32))
         assert not terminated, "a standing four-legged robot should not fall under zero torque"
     assert truncated

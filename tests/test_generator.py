@@ -118,7 +118,7 @@ def assert_valid(robot: G.GeneratedUnimal) -> None:
 
 
 def limb_table(genome: G.UnimalGenome) -> dict[int, tuple]:
-    return {k: (l.parent, l.site, l.h, l.theta, l.phi, l.hinges) for k, l in genome.limbs.items()}
+    return {k: (limb.parent, limb.site, limb.h, limb.theta, limb.phi, limb.hinges) for k, limb in genome.limbs.items()}
 
 
 # ------------------------------------------------------------------------------- determinism

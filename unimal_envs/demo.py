@@ -19,13 +19,17 @@ import math
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING, cast
 
 import gymnasium as gym
 import numpy as np
 
-import unimal_envs
+import unimal_envs  # noqa: F401  (registers the Unimal-* environments with gymnasium)
 from unimal_envs import contract as C
 from unimal_envs.rendering import record_episode, write_video
+
+if TYPE_CHECKING:
+    from unimal_envs.env import UnimalEnv
 
 
 class SineGait:
@@ -49,17 +53,18 @@ class SineGait:
 def run_episode(env: gym.Env, policy, seed: int, morphology: str) -> tuple[float, float, int, bool]:
     """Return, forward distance, length and whether the robot fell, for one episode."""
     obs, _ = env.reset(seed=seed, options={"morphology": morphology})
-    start_x = env.unwrapped.robot.torso_x
+    unimal = cast("UnimalEnv", env.unwrapped)
+    start_x = unimal.robot.torso_x
     total, steps, fell = 0.0, 0, False
     while True:
         action = env.action_space.sample() if policy is None else policy(obs)
         obs, reward, terminated, truncated, info = env.step(action)
-        total += reward
+        total += float(reward)
         steps += 1
         if terminated or truncated:
             fell = info.get("termination") == "fall"
             break
-    return total, env.unwrapped.robot.torso_x - start_x, steps, fell
+    return total, unimal.robot.torso_x - start_x, steps, fell
 
 
 def robot_figure(pictures: list[np.ndarray], labels: list[str], title: str, columns: int = 3):
@@ -111,7 +116,8 @@ def main(argv: list[str] | None = None) -> None:
     start = time.time()
     env = gym.make("Unimal-FT-v0", morphologies=args.morphologies)
     rng = np.random.default_rng(args.seed)
-    robots = [env.unwrapped.morphologies[i] for i in sorted(rng.choice(len(env.unwrapped.morphologies), args.count, replace=False))]
+    every = cast("UnimalEnv", env.unwrapped).morphologies
+    robots = [every[i] for i in sorted(rng.choice(len(every), args.count, replace=False))]
     env.action_space.seed(args.seed)
 
     rows, best_gaits = [], {}
@@ -123,6 +129,7 @@ def main(argv: list[str] | None = None) -> None:
             result = run_episode(env, gait, args.seed, robot.name)
             if best is None or result[0] > best[0][0]:
                 best = (result, gait)
+        assert best is not None, "--gaits must be at least 1"
         best_gaits[robot.name] = best[1]
         (gait_return, gait_dist, gait_len, gait_fell) = best[0]
         rows.append((robot, random_return, random_dist, random_len, random_fell, gait_return, gait_dist, gait_len, gait_fell))
@@ -144,7 +151,7 @@ def main(argv: list[str] | None = None) -> None:
     pictures, labels, frames = [], [], []
     for robot in tqdm(robots, desc="rendering", unit="robot", disable=args.no_progress):
         render_env.reset(seed=args.seed, options={"morphology": robot.name})
-        pictures.append(render_env.render())
+        pictures.append(cast(np.ndarray, render_env.render()))  # an rgb_array env's frame
         labels.append(f"{robot.name}: {robot.num_limbs} limbs, {robot.dof} dof")
         gait = best_gaits[robot.name]
         gait.t = 0

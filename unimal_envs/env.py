@@ -147,7 +147,7 @@ class UnimalEnv(gym.Env):
     def __init__(
         self,
         task: str | Task = "FT",
-        morphologies: str | Path | Iterable[str | Path] = "train",
+        morphologies: str | Path | Iterable[str | Path | Morphology] = "train",
         instruction: str | None = None,
         text_encoder: str = DEFAULT_ENCODER,
         ctrl_cost_weight: float = 0.0,
@@ -183,7 +183,7 @@ class UnimalEnv(gym.Env):
         #: Per-morphology draw probabilities (``None``: uniform), set by a robot sampler.
         self._morphology_probabilities: np.ndarray | None = None
         self._world: _World | None = None
-        self._viewer = None
+        self._viewer: Any = None  # mujoco.viewer's passive Handle, opened by the first human render
         #: Tracking camera: distance to the torso (``None`` = from the robot's size), azimuth, elevation.
         self.camera_distance: float | None = None
         self.camera_angles = (135.0, -20.0)
@@ -223,22 +223,29 @@ class UnimalEnv(gym.Env):
         return world
 
     @property
+    def _current(self) -> _World:
+        """The world of the current episode (an AttributeError, as before, until :meth:`reset` made one)."""
+        if self._world is None:
+            raise AttributeError("no episode yet: call reset() first")
+        return self._world
+
+    @property
     def robot(self) -> Robot:
         """The robot of the current episode."""
-        return self._world.robot
+        return self._current.robot
 
     @property
     def morphology(self) -> Morphology:
         """The morphology of the current episode."""
-        return self._world.robot.morphology
+        return self._current.robot.morphology
 
     @property
     def model(self) -> mujoco.MjModel:
-        return self._world.model
+        return self._current.model
 
     @property
     def data(self) -> mujoco.MjData:
-        return self._world.data
+        return self._current.data
 
     # ------------------------------------------------------------------ gym API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
@@ -312,7 +319,7 @@ class UnimalEnv(gym.Env):
         return self._observation(), reward, reason is not None, False, info
 
     def _observation(self) -> dict[str, np.ndarray]:
-        robot = self._world.robot
+        robot = self._current.robot
         morphology = robot.morphology
         # Eight small copies (~2 us) beat one packed copy handed out as views (~3 us, measured).
         proprioception = robot.proprioception()
@@ -342,7 +349,7 @@ class UnimalEnv(gym.Env):
             )
         # One dot product is the cheapest finiteness test on the hot path; inspect only on failure.
         if not math.isfinite(action @ action):
-            real = self._world.robot.real_slots
+            real = self._current.robot.real_slots
             bad = real[~np.isfinite(action[real])]
             if bad.size:
                 raise ValueError(
@@ -392,11 +399,11 @@ class UnimalEnv(gym.Env):
         return names.index(choice)
 
     def _fault_count(self) -> int:
-        warnings = self._world.data.warning
+        warnings = self._current.data.warning
         return sum(int(warnings[w].number) for w in _FAULT_WARNINGS)
 
     def _fault_warnings(self) -> dict[str, int]:
-        warnings = self._world.data.warning
+        warnings = self._current.data.warning
         return {mujoco.mjtWarning(w).name: int(warnings[w].number) for w in _FAULT_WARNINGS if warnings[w].number}
 
     # ------------------------------------------------------------------ rendering
@@ -405,9 +412,10 @@ class UnimalEnv(gym.Env):
         if self.render_mode is None:
             gym.logger.warn("render() called without a render_mode; pass render_mode='rgb_array' to gym.make")
             return None
-        world = self._world
+        world = self._current
         if self.render_mode == "human":
-            return self._render_human(world)
+            self._render_human(world)
+            return None
         if world.renderer is None:
             world.renderer = mujoco.Renderer(world.model, self.height, self.width)
         if world.stale_heightfields and world.model.nhfield:

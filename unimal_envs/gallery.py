@@ -8,12 +8,14 @@ from __future__ import annotations
 import argparse
 import math
 from pathlib import Path
+from typing import cast
 
 import gymnasium as gym
 import mujoco
 import numpy as np
 
 import unimal_envs
+import unimal_envs.morphology
 from unimal_envs.tasks import TASKS
 
 def _place(env, x: float, y: float, heading: float) -> None:
@@ -91,7 +93,7 @@ def render_tasks(morphology: str, width: int = 400, height: int = 300, seed: int
         env = gym.make(unimal_envs.env_id(task), morphologies=files, render_mode="rgb_array", width=width, height=height)
         env.reset(seed=seed)
         stage(env, task)
-        frames.append((task, env.render()))
+        frames.append((task, cast(np.ndarray, env.render())))  # an rgb_array frame
         env.close()
     return frames
 

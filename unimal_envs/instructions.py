@@ -99,7 +99,7 @@ class HashEncoder:
 ENCODERS: dict[str, type] = {"minilm": MiniLMEncoder, "hash": HashEncoder}
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def get_encoder(name: str = DEFAULT_ENCODER) -> TextEncoder:
     """The text encoder called ``name`` (loaded once per process)."""
     try:

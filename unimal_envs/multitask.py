@@ -63,6 +63,8 @@ class MultiTaskEnv(gym.Env):
     @property
     def task(self) -> str:
         """Name of the current episode's task."""
+        if self.current is None:
+            raise AttributeError("no episode yet: call reset() first")
         return self.current.task.name
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):

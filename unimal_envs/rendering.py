@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
+from typing import cast
 
 import gymnasium as gym
 import numpy as np
@@ -79,13 +80,13 @@ def episode_frames(
     outcome = {} if outcome is None else outcome
     obs, _ = env.reset(seed=seed, options=options)
     total, taken = 0.0, 0
-    yield env.render()
+    yield cast(np.ndarray, env.render())  # rgb_array mode (checked above): a frame
     for _ in range(steps):
         action = env.action_space.sample() if policy is None else policy(obs)
         obs, reward, terminated, truncated, _ = env.step(action)
         total += float(reward)
         taken += 1
-        yield env.render()
+        yield cast(np.ndarray, env.render())
         if terminated or truncated:
             break
     outcome.update({"return": total, "steps": taken})

@@ -118,8 +118,10 @@ class Robot:
                     hinge_names.append(name)
         self._slot_of_hinge = dict(zip(hinge_names, slots))
         self.real_slots = np.array(sorted(slots), dtype=np.intp)
-        self.model: mujoco.MjModel | None = None
-        self.data: mujoco.MjData | None = None
+        # None until bind(); typed as bound, since every method but the builders' needs a bound robot
+        # (an unbound one fails as before, on None).
+        self.model: mujoco.MjModel = None
+        self.data: mujoco.MjData = None
 
     # ------------------------------------------------------------------ building
     def build_spec(self, pos: tuple[float, float, float] | None = None, quat: tuple[float, ...] | None = None) -> mujoco.MjSpec:

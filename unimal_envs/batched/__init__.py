@@ -20,7 +20,7 @@ try:
     import warp as _wp
 
     # No start-up banner and no line per compiled kernel (hundreds on first use); warnings stay.
-    _wp.config.quiet = True
+    # (log_level does both: the config.quiet this also set is gone from Warp, so setting it did nothing.)
     _wp.config.log_level = max(_wp.config.log_level, _wp.LOG_WARNING)
     import mujoco_warp as _mjw  # noqa: F401
 except ImportError as _error:  # pragma: no cover - exercised by a test that hides the package

@@ -84,6 +84,8 @@ class TerrainPool:
     def hfield_ids(self, model: mujoco.MjModel) -> tuple[int, np.ndarray]:
         """The terrain geom of a compiled world and the height-field id of every variant, after
         writing the variants' data into the model."""
+        if self.hfield is None:
+            raise ValueError("this terrain pool has no height fields")
         geom = int(np.flatnonzero(model.geom_type == mujoco.mjtGeom.mjGEOM_HFIELD)[0])
         ids = [int(model.geom_dataid[geom])] + [model.hfield(f"terrain-variant/{k}").id for k in range(1, self.variants)]
         for k, hfield in enumerate(ids):

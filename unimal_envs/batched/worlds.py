@@ -46,8 +46,8 @@ OVERFLOW_MASK = sum(OVERFLOWS.values())
 
 
 #: Columns of the per-world readings buffer the kernel fills (see :class:`~unimal_envs.batched.tasks.Readings`).
-READINGS = {"torso": slice(0, 3), "torso_velocity": slice(3, 6), "torso_xmat": slice(6, 15), "fault": 15,
-            "box": slice(16, 19), "box_velocity": slice(19, 22), "box_angular": slice(22, 25), "reach": 25}
+READINGS: dict[str, slice | int] = {"torso": slice(0, 3), "torso_velocity": slice(3, 6), "torso_xmat": slice(6, 15), "fault": 15,
+                               "box": slice(16, 19), "box_velocity": slice(19, 22), "box_angular": slice(22, 25), "reach": 25}
 N_READINGS = 26
 _PROPRIO = C.MAX_TOKENS * C.PROPRIO_DIM
 
@@ -55,7 +55,7 @@ _PROPRIO = C.MAX_TOKENS * C.PROPRIO_DIM
 @wp.kernel(enable_backward=False)
 def _apply_actions(actions: wp.array2d(dtype=float), actuators: wp.array(dtype=int), slots: wp.array(dtype=int),
                    ctrl: wp.array2d(dtype=float)):
-    world, k = wp.tid()
+    world, k = wp.tid()  # type: ignore[misc]  # a 2-D launch; Warp types tid() as any of 1 to 4 indices
     ctrl[world, actuators[k]] = actions[world, slots[k]]
 
 
@@ -102,7 +102,7 @@ def _read_worlds(
         readings[world, 3 + i] = qvel[world, qvel_root + i]
         for j in range(3):
             readings[world, 6 + 3 * i + j] = rotation[i, j]
-    fault = float(0.0)
+    fault = float(0.0)  # noqa: UP018  (Warp: float() declares a variable the loops below may assign; a bare literal is a constant)
     for i in range(qpos.shape[1]):
         if not wp.isfinite(qpos[world, i]) or wp.abs(qpos[world, i]) > 1.0e10:
             fault = 1.0
@@ -116,7 +116,7 @@ def _read_worlds(
         box_angular = wp.vec3(box_velocity[0], box_velocity[1], box_velocity[2])
         box_linear = wp.vec3(box_velocity[3], box_velocity[4], box_velocity[5]) + wp.cross(
             box_angular, box_position - subtree_com[world, box])
-        nearest = float(1.0e30)
+        nearest = float(1.0e30)  # noqa: UP018  (Warp: a variable the loop below assigns, as for fault above)
         for p in range(points.shape[0]):
             point = xpos[world, points[p]]
             if points_are_sites != 0:

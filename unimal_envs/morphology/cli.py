@@ -122,9 +122,9 @@ def _print_table(rows: list[list[str]]) -> None:
         from rich.console import Console
         from rich.table import Table
     except ImportError:  # plain aligned text without rich
-        table = [S.STATS_HEADER, *rows]
-        widths = [max(len(r[i]) for r in table) for i in range(len(S.STATS_HEADER))]
-        for r in table:
+        lines = [S.STATS_HEADER, *rows]
+        widths = [max(len(r[i]) for r in lines) for i in range(len(S.STATS_HEADER))]
+        for r in lines:
             print("  ".join(cell.ljust(w) for cell, w in zip(r, widths)).rstrip())
         return
     table = Table(title="UNIMAL morphology statistics")

@@ -81,6 +81,7 @@ from collections.abc import Set as AbstractSet
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from pathlib import Path
+from typing import Any
 
 import mujoco
 import numpy as np
@@ -300,7 +301,7 @@ class UnimalGenome:
             sites += [GrowthSite(limb.idx, "mid", limb.mirrored), GrowthSite(limb.idx, "btm", limb.mirrored)]
         return sites
 
-    def partner(self, idx: int) -> int | None:
+    def partner(self, idx: int | None) -> int | None:
         """The mirror partner of a limb, if it belongs to a pair."""
         for group in self.groups:
             if idx in group and len(group) == 2:
@@ -396,7 +397,7 @@ def _physics_template() -> str:
             root.remove(elem)
     for elem in root.iter():
         elem.attrib.pop("material", None)
-    root.find("default/geom").set("margin", repr(CONTACT_MARGIN))
+    _find(root, "default/geom").set("margin", repr(CONTACT_MARGIN))
     return ET.tostring(root, encoding="unicode")
 
 
@@ -433,7 +434,7 @@ def build_spec(genome: UnimalGenome, axes: dict[str, Vec3] | None = None, torso_
     torso.add_site(
         defaults["torso_growth_site"], name=f"torso/{genome.torso_mode}/0", pos=list(_unused_torso_site(genome))
     )
-    bodies = {None: torso}
+    bodies: dict[int | None, Any] = {None: torso}  # by limb index, the torso's None
     for limb in genome.walk():
         lay = limb_layout(genome, limb)
         body = bodies[limb.parent].add_body(name=limb.name, pos=list(lay.pos))
@@ -732,6 +733,14 @@ def _vec(values: Sequence[float], decimals: int = 2) -> str:
     return " ".join(_fmt(v, decimals) for v in values)
 
 
+def _find(root: ET.Element, path: str) -> ET.Element:
+    """``root.find(path)``, an element the bundled template has."""
+    found = root.find(path)
+    if found is None:
+        raise ValueError(f"the morphology template has no <{path}>")
+    return found
+
+
 def _elem(parent: ET.Element, tag: str, **attrs: str) -> ET.Element:
     return ET.SubElement(parent, tag, {key.rstrip("_"): value for key, value in attrs.items()})
 
@@ -754,7 +763,8 @@ def _measure(genome: UnimalGenome) -> _Finish:
         frame = data.geom_xmat[model.geom(limb.name).id].reshape(3, 3)
         for hinge in limb.hinges:
             column = frame[:, 0 if hinge.axis == "x" else 1]
-            axes[f"limb{hinge.axis}/{limb.idx}"] = tuple(_clean(float(v), 4) for v in column)
+            x, y, z = (_clean(float(v), 4) for v in column)
+            axes[f"limb{hinge.axis}/{limb.idx}"] = (x, y, z)
     lowest = min(
         float(data.site_xpos[s, 2]) for s in range(model.nsite) if "/btm_pos/" in model.site(s).name
     )
@@ -776,7 +786,7 @@ def write_xml(genome: UnimalGenome, finish: _Finish, comment: str) -> str:
     """
     root = ET.fromstring(_template_text(), parser=ET.XMLParser(target=ET.TreeBuilder(insert_comments=True)))
     root.insert(0, ET.Comment(f" {comment} "))
-    torso = _elem(root.find("worldbody"), "body", name=TORSO, pos=_vec((0, 0, finish.torso_z)))
+    torso = _elem(_find(root, "worldbody"), "body", name=TORSO, pos=_vec((0, 0, finish.torso_z)))
     _elem(torso, "joint", name="root", type="free", class_="free")
     _elem(torso, "site", name="root", class_="imu_vel")
     _elem(
@@ -790,7 +800,7 @@ def write_xml(genome: UnimalGenome, finish: _Finish, comment: str) -> str:
     _elem(torso, "site", name="torso/touch/0", class_="touch_site", size=_fmt(TORSO_RADIUS + 0.01, 2))
     unused = _unused_torso_site(genome)
     _elem(torso, "site", name=f"torso/{genome.torso_mode}/0", class_="torso_growth_site", pos=_vec(unused))
-    bodies = {None: torso}
+    bodies: dict[int | None, ET.Element] = {None: torso}  # by limb index, the torso's None
     for limb in genome.walk():
         lay = limb_layout(genome, limb)
         body = _elem(bodies[limb.parent], "body", name=limb.name, pos=_vec(lay.pos))
@@ -815,12 +825,12 @@ def write_xml(genome: UnimalGenome, finish: _Finish, comment: str) -> str:
         )  # fmt: skip
         bodies[limb.idx] = body
     # Motors follow the joints' document order, so actuator k drives hinge k (MetaMorph relies on it).
-    actuator = root.find("actuator")
+    actuator = _find(root, "actuator")
     for limb in genome.walk():
         for hinge in limb.hinges:
             name = f"limb{hinge.axis}/{limb.idx}"
             _elem(actuator, "motor", name=name, joint=name, gear=str(hinge.gear))
-    sensor = root.find("sensor")
+    sensor = _find(root, "sensor")
     _elem(sensor, "accelerometer", name="torso_accel", site="root")
     _elem(sensor, "gyro", name="torso_gyro", site="root")
     _elem(sensor, "velocimeter", name="torso_vel", site="root")
@@ -828,7 +838,7 @@ def write_xml(genome: UnimalGenome, finish: _Finish, comment: str) -> str:
     _elem(sensor, "touch", name=TORSO, site="torso/touch/0")
     for limb in genome.walk():
         _elem(sensor, "touch", name=limb.name, site=f"limb/touch/{limb.idx}")
-    contact = root.find("contact")
+    contact = _find(root, "contact")
     for a, b in finish.excludes:
         _elem(contact, "exclude", name=f"{a}:{b}", body1=a, body2=b)
     ET.indent(root, space="  ")

@@ -41,7 +41,7 @@ import math
 import re
 import xml.etree.ElementTree as ET
 from collections import Counter
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Generator, Iterable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -186,7 +186,7 @@ def _evaluate(seed: int, spec: SetSpec) -> _Candidate:
     return _Candidate(seed, robot, spec.admits(robot))
 
 
-def _candidates(spec: SetSpec, jobs: int) -> Iterator[_Candidate]:
+def _candidates(spec: SetSpec, jobs: int) -> Generator[_Candidate, None, None]:
     """Candidates of a set in seed order, evaluated by ``jobs`` processes ahead of consumption."""
     seeds = itertools.count(spec.first_seed)
     if jobs <= 1:

@@ -87,4 +87,7 @@ def height_map(task: Task, robot: Robot) -> np.ndarray:
     from unimal_envs.arenas.heightfield import torso_yaw
 
     x, y, _ = robot.torso_qpos.tolist()
-    return task.arena.height_map(x, y, torso_yaw(robot.torso_xmat))
+    heights = task.arena.height_map(x, y, torso_yaw(robot.torso_xmat))
+    if heights is None:  # a task that observes "hfield" on an arena without one: a bug, not an observation
+        raise TypeError(f"{type(task.arena).__name__} has no height map (task {task.name})")
+    return heights

@@ -125,6 +125,7 @@ class InclineTask(_Corridor):
     """
 
     name = "Incline"
+    arena: Incline  # make_arena's (spawn_pose reads its quat)
     fall_height_ratio = 0.2
     angle_deg = 10.0
     start_along_slope = -73.0

@@ -142,6 +142,7 @@ class PushBoxIncline(_BoxTask):
     """
 
     name = "PushBoxIncline"
+    arena: Incline  # make_arena's (spawn_pose and reset read its quat)
     fall_height_ratio = 0.2
     box_mass = 2.0
     angle_deg = 10.0
@@ -204,7 +205,8 @@ class ManipulateBox(_BoxTask):
         box_x = min(float(rng.integers(15, 25)), self.box_x_cap)
         goal_x = min(box_x + float(rng.integers(15, 25)), self.goal_x_cap)
         # Rows of DERL's 0.1 m placement grid, uniform inside the width buffer.
-        box_y = int(rng.integers(-10 * self.box_y_half, 10 * self.box_y_half)) / 10
-        goal_y = int(rng.integers(-10 * self.goal_y_half, 10 * self.goal_y_half)) / 10
+        # integers() takes int bounds; round() gives the ones the float products stood for (-98..98, -95..95).
+        box_y = int(rng.integers(round(-10 * self.box_y_half), round(10 * self.box_y_half))) / 10
+        goal_y = int(rng.integers(round(-10 * self.goal_y_half), round(10 * self.goal_y_half))) / 10
         self.place((box_x, box_y, self.box_half_side + 0.005), (goal_x, goal_y, 0.1))
         super().reset(robot, rng)

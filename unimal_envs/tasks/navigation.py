@@ -30,6 +30,7 @@ class _ReachGoal(Task):
     """Shared by goal-reaching tasks: DERL's reach reward and the ``goal`` observation."""
 
     observation_keys = ("goal",)
+    _distance: float  # to the goal at the last step (set by the subclasses' reset)
 
     def build(self, spec: mujoco.MjSpec) -> None:
         add_goal_marker(spec)
