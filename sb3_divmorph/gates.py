@@ -42,7 +42,7 @@ class TopKSoftGate(nn.Module):
         self.n_units = n_units
         self.k = k
         if hidden_dim:
-            self.score = nn.Sequential(nn.Linear(in_dim, hidden_dim), nn.ReLU(), nn.Linear(hidden_dim, n_units))
+            self.score: nn.Module = nn.Sequential(nn.Linear(in_dim, hidden_dim), nn.ReLU(), nn.Linear(hidden_dim, n_units))
         else:
             self.score = nn.Linear(in_dim, n_units)
 

@@ -109,6 +109,11 @@ class FactorizedLinear(nn.Module):
         so TopK still selects at most ``k`` of its tailors per gate. Default: one slot per tailor.
     """
 
+    # Buffers (register_buffer), declared for the type checker: Q0 when orthogonal; the gate pooling
+    # when gate_slots differ from the tailor counts, else None.
+    square_base: th.Tensor
+    gate_pool: th.Tensor | None
+
     def __init__(
         self,
         in_features: int,

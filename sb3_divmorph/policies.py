@@ -140,7 +140,7 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
     preset_table: dict[str, dict[str, Any]] = PRESETS
     #: observation keys the policy reads besides the per-token ones
     required_keys: tuple[str, ...] = ()
-    _config_keys = (
+    _config_keys: tuple[str, ...] = (
         "d_model",
         "n_layers",
         "n_heads",

@@ -12,6 +12,7 @@ outputs of their own, identical in train and eval mode; every consumer must mask
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch as th
 from torch import nn
@@ -21,7 +22,7 @@ from sb3_divmorph.layers import LinearBuilder, project_many
 
 #: FFN activations. Not in place: the FFN output is a view (``F.linear`` on tokens), and autograd
 #: turns an in-place op on a view into extra copies of the whole (tokens x ff_dim) tensor.
-ACTIVATIONS = {"relu": F.relu, "gelu": F.gelu}
+ACTIVATIONS: dict[str, Callable[[th.Tensor], th.Tensor]] = {"relu": F.relu, "gelu": F.gelu}
 
 
 def xavier_init(layer: nn.Linear) -> None:
