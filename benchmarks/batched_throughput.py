@@ -93,8 +93,10 @@ def batched_steps_per_second(env, seconds: float) -> tuple[float, float]:
         steps += 10
         _synchronize(env)
     if torch.equal(before, torch.cat([block.readings for block in env.blocks])):
-        raise RuntimeError("the worlds did not move while timed: the physics graphs replayed nothing (a capture that "
-                           "recorded no kernel?); these steps/s would be meaningless")
+        raise RuntimeError(
+            "the worlds did not move while timed: the physics graphs replayed nothing (a capture that "
+            "recorded no kernel?); these steps/s would be meaningless"
+        )
     return n * steps / (time.perf_counter() - start), warmup
 
 
@@ -103,8 +105,9 @@ def _synchronize(env) -> None:
         torch.cuda.synchronize(env.torch_device)
 
 
-def ppo_steps_per_second(make_env, preset: str, device: str, n_steps: int, rollouts: int,
-                         algo: str = "sb3") -> tuple[float, int, float, float]:
+def ppo_steps_per_second(
+    make_env, preset: str, device: str, n_steps: int, rollouts: int, algo: str = "sb3"
+) -> tuple[float, int, float, float]:
     """End-to-end PPO samples/s (rollouts + updates) after one warm-up rollout.
 
     :param make_env: builds the (monitored) VecEnv.
@@ -124,8 +127,16 @@ def ppo_steps_per_second(make_env, preset: str, device: str, n_steps: int, rollo
     venv = VecNormalize(make_env(), norm_obs_keys=["proprioceptive", "hfield"], norm_reward=True)
     rollout = venv.num_envs * n_steps
     cls = DevicePPO if algo == "device" else PPO
-    model = cls("MetaMorphPolicy", venv, n_steps=n_steps, batch_size=min(rollout, 4096), n_epochs=2,
-                policy_kwargs={"preset": preset}, device=device, seed=0)
+    model = cls(
+        "MetaMorphPolicy",
+        venv,
+        n_steps=n_steps,
+        batch_size=min(rollout, 4096),
+        n_epochs=2,
+        policy_kwargs={"preset": preset},
+        device=device,
+        seed=0,
+    )
     split = {"rollout": 0.0, "update": 0.0}
 
     def timed(name, method):
@@ -137,6 +148,7 @@ def ppo_steps_per_second(make_env, preset: str, device: str, n_steps: int, rollo
                 if torch.cuda.is_available() and model.device.type == "cuda":
                     torch.cuda.synchronize(model.device)
                 split[name] += time.perf_counter() - start
+
         return run
 
     model.collect_rollouts = timed("rollout", model.collect_rollouts)
@@ -249,8 +261,14 @@ def launch_counts(task: str, files: list[Path], worlds: int, device: str) -> dic
     finally:
         wp.capture_launch = original
     env.close()
-    return {"captured": captured, "eager": eager, "graph_launches": launches[0] / 10, "torch_calls": TorchCalls.calls / 10,
-            "robots": len(files), "envs": env.num_envs}
+    return {
+        "captured": captured,
+        "eager": eager,
+        "graph_launches": launches[0] / 10,
+        "torch_calls": TorchCalls.calls / 10,
+        "robots": len(files),
+        "envs": env.num_envs,
+    }
 
 
 def transfer_counts(files: list[Path], worlds: int, device: str, n_steps: int = 8, max_episode_steps: int = 1000) -> dict:
@@ -268,11 +286,20 @@ def transfer_counts(files: list[Path], worlds: int, device: str, n_steps: int = 
     tiny = dict(d_model=16, n_layers=1, ff_dim=32)
     rows = {}
     for name, cls in (("VecEnv (SB3 PPO)", PPO), ("device (DevicePPO)", DevicePPO)):
-        env = make_batched_env("FT", morphologies=files, worlds_per_robot=worlds, device=device, seed=0,
-                               max_episode_steps=max_episode_steps)
+        env = make_batched_env(
+            "FT", morphologies=files, worlds_per_robot=worlds, device=device, seed=0, max_episode_steps=max_episode_steps
+        )
         venv = VecNormalize(VecMonitor(env), norm_obs_keys=["proprioceptive", "hfield"])
-        model = cls("MetaMorphPolicy", venv, n_steps=2 * n_steps, batch_size=2 * n_steps * env.num_envs, n_epochs=1,
-                    seed=0, policy_kwargs=tiny, device=device)
+        model = cls(
+            "MetaMorphPolicy",
+            venv,
+            n_steps=2 * n_steps,
+            batch_size=2 * n_steps * env.num_envs,
+            n_epochs=1,
+            seed=0,
+            policy_kwargs=tiny,
+            device=device,
+        )
         _, callback = model._setup_learn(10 * n_steps * env.num_envs, None)
         model.collect_rollouts(model.env, callback, model.rollout_buffer, n_steps)  # warm-up
         infos, ended = [0, 0], []
@@ -297,15 +324,21 @@ def transfer_counts(files: list[Path], worlds: int, device: str, n_steps: int = 
                 infos[:], ended[:] = [0, 0], []
                 with HostTransferCounter() as counter:
                     model.collect_rollouts(model.env, callback, model.rollout_buffer, steps)
-                counted[steps] = dict(counter.counts, info_dicts=infos[0], terminal_dicts=infos[1],
-                                      episodes=int(sum(int(e.sum()) for e in ended)))
+                counted[steps] = dict(
+                    counter.counts, info_dicts=infos[0], terminal_dicts=infos[1], episodes=int(sum(int(e.sum()) for e in ended))
+                )
         finally:
             BatchedUnimalEnv.step_wait, BatchedUnimalEnv.step_tensors = original_wait, original_step
         longer = counted[2 * n_steps]
         per_step = {k: v / (2 * n_steps) for k, v in longer.items()}  # averaged, per-rollout work included
         per_rollout = {k: longer[k] - 2 * (longer[k] - counted[n_steps][k]) for k in longer}
-        rows[name] = {"per_step": per_step, "per_rollout": per_rollout, "envs": env.num_envs, "episodes": longer["episodes"],
-                      "steps": 2 * n_steps}
+        rows[name] = {
+            "per_step": per_step,
+            "per_rollout": per_rollout,
+            "envs": env.num_envs,
+            "episodes": longer["episodes"],
+            "steps": 2 * n_steps,
+        }
     return rows
 
 
@@ -321,8 +354,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--ppo-robots", type=int, default=10)
     parser.add_argument("--ppo-worlds", nargs="*", type=int, default=[8], help="worlds per robot of the PPO rows (cpu, cuda)")
     parser.add_argument("--ppo-presets", nargs="*", default=["small", "paper"])
-    parser.add_argument("--ppo-algos", nargs="*", default=["sb3", "device"],
-                        help="batched PPO paths: sb3 (SB3's PPO through the VecEnv interface), device (DevicePPO)")
+    parser.add_argument(
+        "--ppo-algos",
+        nargs="*",
+        default=["sb3", "device"],
+        help="batched PPO paths: sb3 (SB3's PPO through the VecEnv interface), device (DevicePPO)",
+    )
     parser.add_argument("--count-robots", type=int, default=10, help="robots of the launch and copy counts (0: skip them)")
     parser.add_argument("--count-worlds", type=int, default=8, help="worlds per robot of the launch and copy counts")
     parser.add_argument("--out", type=Path, default=RESULTS)
@@ -349,8 +386,11 @@ def main(argv: list[str] | None = None) -> None:
                     overflow = ", ".join(f"{kind} {n}" for kind, n in env.overflow_report().items()) or "none"
                     env.close()
                     env_rows.append((task, len(files), f"batched ({device})", worlds, env.num_envs, rate, warmup, overflow))
-                    print(f"{task} {len(files)} robots batched {device} W={worlds}: {rate:.0f} steps/s "
-                          f"({rate / single:.1f}x single; warm-up {warmup:.1f} s)", flush=True)
+                    print(
+                        f"{task} {len(files)} robots batched {device} W={worlds}: {rate:.0f} steps/s "
+                        f"({rate / single:.1f}x single; warm-up {warmup:.1f} s)",
+                        flush=True,
+                    )
 
     ppo_rows: list[tuple] = []
     files = morphology_files(args.morphologies)[: args.ppo_robots]
@@ -359,7 +399,12 @@ def main(argv: list[str] | None = None) -> None:
     for preset in args.ppo_presets:
         single_envs = 8
         rate, rollout, collect, update = ppo_steps_per_second(
-            lambda: make_vec_env("Unimal-FT-v0", single_envs, 0, 1000, morphologies=files), preset, "cpu", 64, 2)  # noqa: B023 (called here)
+            lambda: make_vec_env("Unimal-FT-v0", single_envs, 0, 1000, morphologies=files),  # noqa: B023 (called here)
+            preset,
+            "cpu",
+            64,
+            2,
+        )
         ppo_rows.append((preset, f"single x {single_envs} (cpu)", single_envs, rollout, rate, collect, update))
         print(f"PPO {preset} single x{single_envs}: {rate:.0f} steps/s", flush=True)
         for device in devices:
@@ -368,10 +413,14 @@ def main(argv: list[str] | None = None) -> None:
                 for algo in args.ppo_algos:
                     rate, rollout, collect, update = ppo_steps_per_second(make, preset, device, 16, 2, algo)
                     path = "VecEnv, SB3 PPO" if algo == "sb3" else "device, DevicePPO"
-                    ppo_rows.append((preset, f"batched ({device}, {path}), {worlds} worlds/robot", len(files) * worlds,
-                                     rollout, rate, collect, update))
-                    print(f"PPO {preset} batched {device} {algo} W={worlds}: {rate:.0f} steps/s "
-                          f"(rollout {collect:.2f} s, update {update:.2f} s)", flush=True)
+                    ppo_rows.append(
+                        (preset, f"batched ({device}, {path}), {worlds} worlds/robot", len(files) * worlds, rollout, rate, collect, update)
+                    )
+                    print(
+                        f"PPO {preset} batched {device} {algo} W={worlds}: {rate:.0f} steps/s "
+                        f"(rollout {collect:.2f} s, update {update:.2f} s)",
+                        flush=True,
+                    )
 
     counts: dict[str, dict] = {}
     if args.count_robots:
@@ -399,8 +448,10 @@ def main(argv: list[str] | None = None) -> None:
     if skipped:
         lines.append(f"No {', '.join(skipped)} device on this machine: those rows are missing; run the same command on a GPU machine.")
     if devices == ["cpu"]:
-        lines.append("**Every batched row and count here is CPU Warp** (MuJoCo Warp's kernels compiled for the CPU, one core): "
-                     "a correctness backend, not a measurement of the GPU.")
+        lines.append(
+            "**Every batched row and count here is CPU Warp** (MuJoCo Warp's kernels compiled for the CPU, one core): "
+            "a correctness backend, not a measurement of the GPU."
+        )
     lines += [
         "",
         "## Env steps/s",
@@ -413,8 +464,10 @@ def main(argv: list[str] | None = None) -> None:
     ]
     singles = {(t, r): rate for t, r, backend, _, _, rate, _, _ in env_rows if backend.startswith("single")}
     for task, robots, backend, worlds, envs, rate, warmup, overflow in env_rows:
-        lines.append(f"| {task} | {robots} | {backend} | {worlds} | {envs} | {rate:,.0f} | {rate / singles[task, robots]:.2f}x "
-                     f"| {warmup:.1f} | {overflow} |")
+        lines.append(
+            f"| {task} | {robots} | {backend} | {worlds} | {envs} | {rate:,.0f} | {rate / singles[task, robots]:.2f}x "
+            f"| {warmup:.1f} | {overflow} |"
+        )
     lines += [
         "",
         f"## PPO end to end (FT, {len(files)} robots, MetaMorph policy)",
@@ -429,8 +482,10 @@ def main(argv: list[str] | None = None) -> None:
         "|---|---|---|---|---|---|---|---|",
     ]
     for preset, backend, envs, rollout, rate, collect, update in ppo_rows:
-        lines.append(f"| {preset} | {backend} | {envs} | {rollout} | {rate:,.0f} | {collect:.2f} | {update:.2f} "
-                     f"| {collect / max(collect + update, 1e-9):.0%} |")
+        lines.append(
+            f"| {preset} | {backend} | {envs} | {rollout} | {rate:,.0f} | {collect:.2f} | {update:.2f} "
+            f"| {collect / max(collect + update, 1e-9):.0%} |"
+        )
     lines += _count_lines(counts, args)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text("\n".join(lines) + "\n")
@@ -462,9 +517,11 @@ def _count_lines(counts: dict[str, dict], args) -> list[str]:
         _, task, device = name.split()
         cap, eager = c["captured"], c["eager"]
         eager_mem = [{"n": r["memsets"] + r["copies"]} for r in eager]
-        lines.append(f"| {task} | {device} | {span(cap, 'kernels')} | {span(cap, 'memsets')} | {span(cap, 'copies')} "
-                     f"| {span(cap, 'conditionals')} | {span(cap, 'empty')} | {span(eager, 'kernels')} | {span(eager_mem, 'n')} "
-                     f"| {c['graph_launches']:.0f} ({c['robots']} robots) | {c['torch_calls']:.0f} |")
+        lines.append(
+            f"| {task} | {device} | {span(cap, 'kernels')} | {span(cap, 'memsets')} | {span(cap, 'copies')} "
+            f"| {span(cap, 'conditionals')} | {span(cap, 'empty')} | {span(eager, 'kernels')} | {span(eager_mem, 'n')} "
+            f"| {c['graph_launches']:.0f} ({c['robots']} robots) | {c['torch_calls']:.0f} |"
+        )
     lines += [
         "",
         "Graph launches: one captured physics graph per robot per step (plus one `sync` graph per robot on steps where a "
@@ -487,12 +544,16 @@ def _count_lines(counts: dict[str, dict], args) -> list[str]:
         device = name.split()[1]
         for path, row in c.items():
             s, r = row["per_step"], row["per_rollout"]
-            fixed = (f"{r['to_host'] + r['to_device']:.0f} / {(r['to_host_bytes'] + r['to_device_bytes']) / 1024:.0f}, "
-                     f"{r['syncs']:.0f}") if path.startswith("device") else "-"
+            fixed = (
+                (f"{r['to_host'] + r['to_device']:.0f} / {(r['to_host_bytes'] + r['to_device_bytes']) / 1024:.0f}, {r['syncs']:.0f}")
+                if path.startswith("device")
+                else "-"
+            )
             lines.append(
                 f"| {path} ({device}) | {row['envs']} | {row['episodes']} | {s['to_host']:.1f} / {s['to_host_bytes'] / 1024:.0f} "
                 f"| {s['to_device']:.1f} / {s['to_device_bytes'] / 1024:.0f} | {s['syncs']:.1f} | {s['info_dicts']:.0f} "
-                f"| {s['calls']:.0f} | {fixed} |")
+                f"| {s['calls']:.0f} | {fixed} |"
+            )
     return lines
 
 

@@ -77,10 +77,17 @@ def measure(config: str, task: str, repeats: int, folder: Path, kwargs: dict) ->
     with th.no_grad():
         diff = (policy.get_distribution(obs).distribution.mean - loaded(*inputs)).abs().max().item()
     return dict(
-        config=config, task=task, kind="height map" if "hfield" in keys else "flat", **sizes, diff=diff,
-        flops=matmul_flops(actor, inputs), flops_metamorph=matmul_flops(reference, inputs),
-        compact_ms=batch1_latency(loaded, inputs, repeats) * 1e3, metamorph_ms=batch1_latency(loaded_reference, inputs, repeats) * 1e3,
-        tokens=int(len(actor.real_tokens)), sizes={k: policy.config[k] for k in ("d_model", "n_layers", "ff_dim")},
+        config=config,
+        task=task,
+        kind="height map" if "hfield" in keys else "flat",
+        **sizes,
+        diff=diff,
+        flops=matmul_flops(actor, inputs),
+        flops_metamorph=matmul_flops(reference, inputs),
+        compact_ms=batch1_latency(loaded, inputs, repeats) * 1e3,
+        metamorph_ms=batch1_latency(loaded_reference, inputs, repeats) * 1e3,
+        tokens=int(len(actor.real_tokens)),
+        sizes={k: policy.config[k] for k in ("d_model", "n_layers", "ff_dim")},
     )
 
 
@@ -97,10 +104,13 @@ def main() -> None:
     folder = Path("runs/benchmarks")
     folder.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
-    rows = [measure(config, task, args.repeats, folder, policy_kwargs(config, args.profile)) for config in args.configs for task in args.tasks]
+    rows = [
+        measure(config, task, args.repeats, folder, policy_kwargs(config, args.profile)) for config in args.configs for task in args.tasks
+    ]
     sizes = rows[0]["sizes"]
-    width = (f"profile `{args.profile}`'s student sizes" if args.profile else "`paper` width") + \
-        f" (d_model {sizes['d_model']}, {sizes['n_layers']} layer(s), FFN {sizes['ff_dim']})"
+    width = (
+        f"profile `{args.profile}`'s student sizes" if args.profile else "`paper` width"
+    ) + f" (d_model {sizes['d_model']}, {sizes['n_layers']} layer(s), FFN {sizes['ff_dim']})"
     lines = [
         "# Deployment sizes, like for like: pruned DivMorph actor vs MetaMorph actor (same folding)",
         "",

@@ -103,8 +103,17 @@ def measure(task: str, repeats: int, folder: Path) -> list[dict]:
         with th.no_grad():
             reference = policy.get_distribution(policy.obs_to_tensor(venv.normalize_obs(raw))[0]).distribution.mean
             diff = (reference - loaded(*inputs)).abs().max().item()
-        rows.append(dict(model=name, task=task, weights=actor.stored_numbers()["weights"], flops=matmul_flops(actor, inputs),
-                         latency_ms=batch1_latency(loaded, inputs, repeats) * 1e3, diff=diff, real_tokens=int(len(actor.real_tokens))))
+        rows.append(
+            dict(
+                model=name,
+                task=task,
+                weights=actor.stored_numbers()["weights"],
+                flops=matmul_flops(actor, inputs),
+                latency_ms=batch1_latency(loaded, inputs, repeats) * 1e3,
+                diff=diff,
+                real_tokens=int(len(actor.real_tokens)),
+            )
+        )
     return rows
 
 

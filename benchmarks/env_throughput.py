@@ -115,9 +115,17 @@ def measure_task(task: str, files: list[Path], steps: int, blocks: int, wrapped:
             env.reset(seed=1000 + k)
             reset_times.append(time.perf_counter() - start)
         env_s, phys_s = statistics.median(env_times), statistics.median(phys_times)
-        rows.append({"name": path.stem, "env": 1 / env_s, "physics": 1 / phys_s, "ratio": phys_s / env_s,
-                     "reset_ms": 1000 * statistics.median(reset_times), "overhead_us": 1e6 * statistics.median(overheads),
-                     "own_ratio": statistics.median(inside)})
+        rows.append(
+            {
+                "name": path.stem,
+                "env": 1 / env_s,
+                "physics": 1 / phys_s,
+                "ratio": phys_s / env_s,
+                "reset_ms": 1000 * statistics.median(reset_times),
+                "overhead_us": 1e6 * statistics.median(overheads),
+                "own_ratio": statistics.median(inside),
+            }
+        )
         env.close()
     # Worst case: every reset draws a robot whose world is not cached, so it is compiled anew.
     cold = gym.make(unimal_envs.env_id(task), morphologies=files, world_cache_size=1)
@@ -160,11 +168,13 @@ def main(argv: list[str] | None = None) -> None:
     for task in args.tasks:
         result = measure_task(task, files, args.steps, args.blocks, wrapped=not args.unwrapped)
         results.append(result)
-        print(f"{task:<16} env {result['env']:8.0f} steps/s   physics {result['physics']:8.0f} steps/s   "
-              f"ratio {result['ratio']:.2f} (min {result['min_ratio']:.2f})   own trajectory {result['own_ratio']:.2f} "
-              f"(min {result['min_own_ratio']:.2f}), {result['overhead_us']:.1f} us/step besides mj_step   "
-              f"reset {result['reset_ms']:.1f} ms, "
-              f"with a new robot {result['cold_reset_ms']:.1f} ms (max {result['cold_reset_max_ms']:.1f})")
+        print(
+            f"{task:<16} env {result['env']:8.0f} steps/s   physics {result['physics']:8.0f} steps/s   "
+            f"ratio {result['ratio']:.2f} (min {result['min_ratio']:.2f})   own trajectory {result['own_ratio']:.2f} "
+            f"(min {result['min_own_ratio']:.2f}), {result['overhead_us']:.1f} us/step besides mj_step   "
+            f"reset {result['reset_ms']:.1f} ms, "
+            f"with a new robot {result['cold_reset_ms']:.1f} ms (max {result['cold_reset_max_ms']:.1f})"
+        )
 
     command = "python benchmarks/env_throughput.py " + " ".join(argv if argv is not None else sys.argv[1:])
     lines = [
@@ -192,13 +202,23 @@ def main(argv: list[str] | None = None) -> None:
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
-        lines.append(f"| {r['task']} | {r['env']:.0f} | {r['physics']:.0f} | {r['ratio']:.2f} | {r['min_ratio']:.2f} | "
-                     f"{r['own_ratio']:.2f} / {r['min_own_ratio']:.2f} | {r['overhead_us']:.1f} | "
-                     f"{r['reset_ms']:.1f} | {r['cold_reset_ms']:.1f} / {r['cold_reset_max_ms']:.1f} |")
-    lines += ["", "Per morphology:", "", "| task | morphology | env steps/s | physics steps/s | ratio | reset (ms) |", "|---|---|---|---|---|---|"]
+        lines.append(
+            f"| {r['task']} | {r['env']:.0f} | {r['physics']:.0f} | {r['ratio']:.2f} | {r['min_ratio']:.2f} | "
+            f"{r['own_ratio']:.2f} / {r['min_own_ratio']:.2f} | {r['overhead_us']:.1f} | "
+            f"{r['reset_ms']:.1f} | {r['cold_reset_ms']:.1f} / {r['cold_reset_max_ms']:.1f} |"
+        )
+    lines += [
+        "",
+        "Per morphology:",
+        "",
+        "| task | morphology | env steps/s | physics steps/s | ratio | reset (ms) |",
+        "|---|---|---|---|---|---|",
+    ]
     for r in results:
         for row in r["rows"]:
-            lines.append(f"| {r['task']} | {row['name']} | {row['env']:.0f} | {row['physics']:.0f} | {row['ratio']:.2f} | {row['reset_ms']:.1f} |")
+            lines.append(
+                f"| {r['task']} | {row['name']} | {row['env']:.0f} | {row['physics']:.0f} | {row['ratio']:.2f} | {row['reset_ms']:.1f} |"
+            )
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text("\n".join(lines) + "\n")
     print(f"wrote {args.out}")

@@ -42,8 +42,16 @@ ACTOR = {
 }
 
 
-def probe(run: Path, model_folder: str | None, task: str, robots, trains: list[str] | None, eps: float, lr: float = 1e-3,
-          divmorph_way: bool = False) -> tuple[float, float]:
+def probe(
+    run: Path,
+    model_folder: str | None,
+    task: str,
+    robots,
+    trains: list[str] | None,
+    eps: float,
+    lr: float = 1e-3,
+    divmorph_way: bool = False,
+) -> tuple[float, float]:
     """approx KL and clip fraction of one update.
 
     :param model_folder: the trained model, under ``run`` (``None``: a MetaMorph from random init, as the scratch arm).
@@ -54,14 +62,32 @@ def probe(run: Path, model_folder: str | None, task: str, robots, trains: list[s
     if model_folder is None:
         profile = recorded_profile(run / "run.json")
         venv = VecNormalize(env, gamma=0.99)
-        model = PPO("MetaMorphPolicy", venv, policy_kwargs=profile.teachers.policy_kwargs, n_steps=512, batch_size=512,
-                    n_epochs=4, learning_rate=lr, seed=0, device="cpu")
+        model = PPO(
+            "MetaMorphPolicy",
+            venv,
+            policy_kwargs=profile.teachers.policy_kwargs,
+            n_steps=512,
+            batch_size=512,
+            n_epochs=4,
+            learning_rate=lr,
+            seed=0,
+            device="cpu",
+        )
     else:
         source = run / model_folder
         saved = PPO.load(source / "model.zip", device="cpu")
         venv = inherited_normalizer(source, env, 0.99, freeze_observations=True)
-        model = PPO(type(saved.policy), venv, policy_kwargs=saved.policy_kwargs, n_steps=512, batch_size=512, n_epochs=4,
-                    learning_rate=lr, seed=0, device="cpu")
+        model = PPO(
+            type(saved.policy),
+            venv,
+            policy_kwargs=saved.policy_kwargs,
+            n_steps=512,
+            batch_size=512,
+            n_epochs=4,
+            learning_rate=lr,
+            seed=0,
+            device="cpu",
+        )
         model.policy.load_state_dict(saved.policy.state_dict())
     set_adam_eps(model.policy.optimizer, eps)
     if divmorph_way:
@@ -89,8 +115,9 @@ def gain(run: Path, model_folder: str, task: str, robots, steps: int = 100) -> t
     """
     source = run / model_folder
     model = PPO.load(source / "model.zip", device="cpu")
-    venv = inherited_normalizer(source, make_vec_env(f"Unimal-{task}-v0", 4, 100, 1000, morphologies=robots), 0.99,
-                                freeze_observations=True)
+    venv = inherited_normalizer(
+        source, make_vec_env(f"Unimal-{task}-v0", 4, 100, 1000, morphologies=robots), 0.99, freeze_observations=True
+    )
     obs, batch = venv.reset(), []
     for _ in range(steps):
         action, _ = model.predict(obs, deterministic=True)
@@ -133,68 +160,99 @@ def main() -> None:
         ("dense distilled student", "students/distilled", None, 1e-5, 1e-4),
         ("dense distilled student", "students/distilled", None, 1e-5, 1e-5),
     ]
-    lines = ["# First-update KL of fine-tuned models on a training task", "",
-             f"`python benchmarks/first_update_kl.py --run {args.run} --task {args.task}`; machine: {platform.node()} "
-             f"({platform.machine()}, 1 torch thread). One rollout of 4 x 512 steps on the run's training robots, observation "
-             "statistics frozen, then one PPO update (4 epochs, minibatch 512); SB3's `train/approx_kl` (mean over the update's "
-             "minibatches) and clip fraction. A log-probability check before the first step found rollout and update agree "
-             "exactly (log ratio 0), so the KL is the update's.", "",
-             "| model | Adam eps | learning rate | actor parts that train | approx KL | clip fraction |", "|---|---|---|---|---|---|"]
+    lines = [
+        "# First-update KL of fine-tuned models on a training task",
+        "",
+        f"`python benchmarks/first_update_kl.py --run {args.run} --task {args.task}`; machine: {platform.node()} "
+        f"({platform.machine()}, 1 torch thread). One rollout of 4 x 512 steps on the run's training robots, observation "
+        "statistics frozen, then one PPO update (4 epochs, minibatch 512); SB3's `train/approx_kl` (mean over the update's "
+        "minibatches) and clip fraction. A log-probability check before the first step found rollout and update agree "
+        "exactly (log ratio 0), so the KL is the update's.",
+        "",
+        "| model | Adam eps | learning rate | actor parts that train | approx KL | clip fraction |",
+        "|---|---|---|---|---|---|",
+    ]
     for label, folder, trains, eps, lr in probes:
         kl, clip = probe(run, folder, args.task, robots, trains, eps, lr)
         parts = "all" if trains is None else (", ".join(trains) or "none (critic only)")
         lines.append(f"| {label} | {eps:.0e} | {lr:.0e} | {parts} | {kl:.3f} | {clip:.2f} |")
         print(lines[-1], flush=True)
     # every arm's start, set up as its transfer arm sets it up, at three learning rates (one eps for all)
-    lines += ["", "## The first update of every arm's start, set up as its arm sets it up", "",
-              "Adam eps 1e-5 for all; the DivMorph student as the DivMorph arm trains it (gates fixed, selected tailors at "
-              "the learning rate, learngenes and shared parts at 0.1x); the others fully.", "",
-              "| arm's start | learning rate | approx KL | clip fraction |", "|---|---|---|---|"]
-    starts = [("scratch (MetaMorph, random init)", None, False), ("FT teacher (closest)", "teachers/FT", False),
-              ("dense distilled student (distilled)", "students/distilled", False), ("DivMorph student (divmorph)", "student", True)]
+    lines += [
+        "",
+        "## The first update of every arm's start, set up as its arm sets it up",
+        "",
+        "Adam eps 1e-5 for all; the DivMorph student as the DivMorph arm trains it (gates fixed, selected tailors at "
+        "the learning rate, learngenes and shared parts at 0.1x); the others fully.",
+        "",
+        "| arm's start | learning rate | approx KL | clip fraction |",
+        "|---|---|---|---|",
+    ]
+    starts = [
+        ("scratch (MetaMorph, random init)", None, False),
+        ("FT teacher (closest)", "teachers/FT", False),
+        ("dense distilled student (distilled)", "students/distilled", False),
+        ("DivMorph student (divmorph)", "student", True),
+    ]
     for label, folder, divmorph_way in starts:
         for lr in (1e-3, 3e-4, 1e-4):
             kl, clip = probe(run, folder, args.task, robots, None, 1e-5, lr, divmorph_way)
             lines.append(f"| {label} | {lr:.0e} | {kl:.3f} | {clip:.2f} |")
             print(lines[-1], flush=True)
-    lines += ["", "What the rows say (recorded run `results/cpu`, FT): on a task both were trained for, one update at the "
-              "transfer learning rate moves the distilled students' policies by a KL of hundreds where their FT teacher moves by "
-              "0.36; Adam's eps does not matter; the critic alone moves nothing; of the actor's parts, the token embedding's "
-              "weight alone (the linear map of the 52 proprioceptive + 35 context columns, times sqrt(d_model)) gives most of it, "
-              "its bias and the position embedding nothing; a 10x smaller learning rate brings it to 0.05. Training the embedding "
-              "weight's columns in three groups (dynamic proprioception, static proprioception, context) one group at a time gave "
-              "0.06, 0.10 and 0.05 (a probe not in this table), so the effect needs the coherent step of all columns together: "
-              "the distilled students respond to one Adam step on every input column of the embedding far more than their "
-              "teacher does.", "",
-              "**Cause.** Adam's first steps move every weight by about the learning rate whatever its gradient's size, so one "
-              "update shifts the token embedding's output by a fixed amount along the gradient's direction in every model; what "
-              "differs is how far the action means follow. The gain table shows the distilled students' means move about 3x "
-              "further than their teacher's per unit of embedding output in a random direction (more along the gradient, "
-              "which finds the steepest one), and the dense student's decoder weights are about 4x its teacher's. The "
-              "distilled function is steeper, so the teachers' learning rate is too large for it. Why distillation makes it "
-              "steeper is a hypothesis not tested here: DAgger regresses onto five teachers' unbounded action means (up to 10 "
-              "and more, where the environment clips at 1), with no weight decay.", "",
-              "**Fix (one rule for every arm that starts from trained weights).** The second table, on the training task only: "
-              "at the teachers' rate 1e-3 even the FT teacher's first update is 24x scratch's (0.36 against 0.015) and the dense "
-              "student's 30,000x; at 1e-4 every fine-tuned start's first update is the size of scratch's at 1e-3 (0.008-0.047 "
-              "against 0.015). So every fine-tuned arm (closest, distilled, divmorph, grl) takes the fine-tuning rate lin_1e-4 "
-              "(`transfer.finetune_overrides`), arms from random init keep lin_1e-3, and the race of `results/cpu-race` runs "
-              "under that rule. Not done: distilling with clipped targets or weight decay, which would remove the cause in the "
-              "student itself (it needs new students).", ""]
-    lines += ["", "## Why the distilled students move so far: their gain from the token embedding to the action means", "",
-              "On states each model visits on the task (4 x 100 deterministic steps), the action means' vector-Jacobian norm "
-              "with respect to the token embedding's output (mean over 4 random directions in action space), and that "
-              "output's RMS; dense decoder weights where the model has them.", "",
-              "| model | gain (means per embedding unit) | embedding RMS | decoder layer-1 weight norm | action head weight norm |",
-              "|---|---|---|---|---|"]
-    for label, folder in (("FT teacher", "teachers/FT"), ("dense distilled student", "students/distilled"),
-                          ("DivMorph student", "student")):
+    lines += [
+        "",
+        "What the rows say (recorded run `results/cpu`, FT): on a task both were trained for, one update at the "
+        "transfer learning rate moves the distilled students' policies by a KL of hundreds where their FT teacher moves by "
+        "0.36; Adam's eps does not matter; the critic alone moves nothing; of the actor's parts, the token embedding's "
+        "weight alone (the linear map of the 52 proprioceptive + 35 context columns, times sqrt(d_model)) gives most of it, "
+        "its bias and the position embedding nothing; a 10x smaller learning rate brings it to 0.05. Training the embedding "
+        "weight's columns in three groups (dynamic proprioception, static proprioception, context) one group at a time gave "
+        "0.06, 0.10 and 0.05 (a probe not in this table), so the effect needs the coherent step of all columns together: "
+        "the distilled students respond to one Adam step on every input column of the embedding far more than their "
+        "teacher does.",
+        "",
+        "**Cause.** Adam's first steps move every weight by about the learning rate whatever its gradient's size, so one "
+        "update shifts the token embedding's output by a fixed amount along the gradient's direction in every model; what "
+        "differs is how far the action means follow. The gain table shows the distilled students' means move about 3x "
+        "further than their teacher's per unit of embedding output in a random direction (more along the gradient, "
+        "which finds the steepest one), and the dense student's decoder weights are about 4x its teacher's. The "
+        "distilled function is steeper, so the teachers' learning rate is too large for it. Why distillation makes it "
+        "steeper is a hypothesis not tested here: DAgger regresses onto five teachers' unbounded action means (up to 10 "
+        "and more, where the environment clips at 1), with no weight decay.",
+        "",
+        "**Fix (one rule for every arm that starts from trained weights).** The second table, on the training task only: "
+        "at the teachers' rate 1e-3 even the FT teacher's first update is 24x scratch's (0.36 against 0.015) and the dense "
+        "student's 30,000x; at 1e-4 every fine-tuned start's first update is the size of scratch's at 1e-3 (0.008-0.047 "
+        "against 0.015). So every fine-tuned arm (closest, distilled, divmorph, grl) takes the fine-tuning rate lin_1e-4 "
+        "(`transfer.finetune_overrides`), arms from random init keep lin_1e-3, and the race of `results/cpu-race` runs "
+        "under that rule. Not done: distilling with clipped targets or weight decay, which would remove the cause in the "
+        "student itself (it needs new students).",
+        "",
+    ]
+    lines += [
+        "",
+        "## Why the distilled students move so far: their gain from the token embedding to the action means",
+        "",
+        "On states each model visits on the task (4 x 100 deterministic steps), the action means' vector-Jacobian norm "
+        "with respect to the token embedding's output (mean over 4 random directions in action space), and that "
+        "output's RMS; dense decoder weights where the model has them.",
+        "",
+        "| model | gain (means per embedding unit) | embedding RMS | decoder layer-1 weight norm | action head weight norm |",
+        "|---|---|---|---|---|",
+    ]
+    for label, folder in (
+        ("FT teacher", "teachers/FT"),
+        ("dense distilled student", "students/distilled"),
+        ("DivMorph student", "student"),
+    ):
         g, rms = gain(run, folder, args.task, robots)
         policy = PPO.load(run / folder / "model.zip", device="cpu").policy
         first = getattr(policy.mlp_extractor.policy_net.layers[0], "weight", None)
         head = getattr(policy.action_net, "weight", None)
-        lines.append(f"| {label} | {g:.2f} | {rms:.2f} | {'-' if first is None else f'{first.norm():.1f}'} | "
-                     f"{'-' if head is None else f'{head.norm():.2f}'} |")
+        lines.append(
+            f"| {label} | {g:.2f} | {rms:.2f} | {'-' if first is None else f'{first.norm():.1f}'} | "
+            f"{'-' if head is None else f'{head.norm():.2f}'} |"
+        )
         print(lines[-1], flush=True)
     lines += ["", f"Wall time: {time.time() - start:.0f} s.", ""]
     Path(args.out).write_text("\n".join(lines))

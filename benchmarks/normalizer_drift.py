@@ -89,19 +89,27 @@ def main() -> None:
     mixture = normalizer.obs_rms[KEY]
     per_task = {task: statistics(run / "teachers" / task) for task in TASKS}
 
-    lines = ["# Observation statistics of a multi-task student, and what moving them does", "",
-             f"`python benchmarks/normalizer_drift.py --run {args.run} --robots {args.robots} --steps {args.steps} "
-             f"--drift-steps {args.drift_steps}`; machine: {platform.node()} ({platform.machine()}, 1 torch thread); "
-             "training tasks and training robots only.", "",
-             "## A. Per-task statistics (each teacher's) and the student's mixture", "",
-             "Torso token; the limbs' height columns behave the same. Mixture units: (task mean - mixture mean) / mixture sd, "
-             "and the task's sd / the mixture's sd (how much of the normalised range the task's own variation spans).", "",
-             "| statistics | count | y mean | y sd | height z mean (m) | z sd (m) | z mean in mixture units | z sd / mixture z sd |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "# Observation statistics of a multi-task student, and what moving them does",
+        "",
+        f"`python benchmarks/normalizer_drift.py --run {args.run} --robots {args.robots} --steps {args.steps} "
+        f"--drift-steps {args.drift_steps}`; machine: {platform.node()} ({platform.machine()}, 1 torch thread); "
+        "training tasks and training robots only.",
+        "",
+        "## A. Per-task statistics (each teacher's) and the student's mixture",
+        "",
+        "Torso token; the limbs' height columns behave the same. Mixture units: (task mean - mixture mean) / mixture sd, "
+        "and the task's sd / the mixture's sd (how much of the normalised range the task's own variation spans).",
+        "",
+        "| statistics | count | y mean | y sd | height z mean (m) | z sd (m) | z mean in mixture units | z sd / mixture z sd |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     mz, sz = mixture.mean[0, 2], np.sqrt(mixture.var[0, 2])
     for name, rms in [*per_task.items(), ("student (mixture)", mixture)]:
         m, s = rms.mean[0], np.sqrt(rms.var[0])
-        lines.append(f"| {name} | {rms.count:,.0f} | {m[1]:.2f} | {s[1]:.2f} | {m[2]:.2f} | {s[2]:.3f} | {(m[2] - mz) / sz:+.2f} | {s[2] / sz:.3f} |")
+        lines.append(
+            f"| {name} | {rms.count:,.0f} | {m[1]:.2f} | {s[1]:.2f} | {m[2]:.2f} | {s[2]:.3f} | {(m[2] - mz) / sz:+.2f} | {s[2] / sz:.3f} |"
+        )
 
     # B and C: fixed states of every training task, with the student acting on its own statistics
     states, heights, base_returns = {}, {}, {}
@@ -116,17 +124,27 @@ def main() -> None:
 
     real = {task: states[task]["act_padding_mask"] < 0.5 for task in TASKS}
     reference = {task: actions(normalizer, task) for task in TASKS}
-    lines += ["", f"## B. Drift: the student's statistics after {args.drift_steps:,} env steps of one training task", "",
-              "A transfer whose statistics go on learning adds the new task's states to them. Stand-in new tasks: training "
-              "tasks, their moments from their teachers' statistics (count = the drift steps). Action change: mean |delta a| "
-              "over the real action slots of the fixed states, / mean |a|; returns: deterministic, "
-              f"{args.robots} training robots x 1 episode of {args.steps} steps, with the original / drifted statistics.", ""]
+    lines += [
+        "",
+        f"## B. Drift: the student's statistics after {args.drift_steps:,} env steps of one training task",
+        "",
+        "A transfer whose statistics go on learning adds the new task's states to them. Stand-in new tasks: training "
+        "tasks, their moments from their teachers' statistics (count = the drift steps). Action change: mean |delta a| "
+        "over the real action slots of the fixed states, / mean |a|; returns: deterministic, "
+        f"{args.robots} training robots x 1 episode of {args.steps} steps, with the original / drifted statistics.",
+        "",
+    ]
     header = "| statistics learnt on | new z mean / sd (m) | " + " | ".join(f"{t}: action change, return" for t in TASKS) + " |"
     lines += [header, "|---" * (2 + len(TASKS)) + "|"]
     height = np.zeros(mixture.mean.shape[-1], bool)
     height[2] = True
-    for source, columns in (("FT", None), ("Patrol", None), ("Incline", None), ("FT, height column only", height),
-                            ("FT, every column but height", ~height)):
+    for source, columns in (
+        ("FT", None),
+        ("Patrol", None),
+        ("Incline", None),
+        ("FT, height column only", height),
+        ("FT, every column but height", ~height),
+    ):
         drifted = load_normalizer(run / "student" / "vecnormalize.pkl")  # a fresh copy
         moments = per_task[source.split(",")[0]]
         learnt = drifted.obs_rms[KEY]
@@ -142,9 +160,15 @@ def main() -> None:
         new = drifted.obs_rms[KEY]
         lines.append(f"| {source} | {new.mean[0, 2]:.2f} / {np.sqrt(new.var[0, 2]):.2f} | " + " | ".join(cells) + " |")
 
-    lines += ["", "## C. Height above the ground under the torso vs absolute height, per task", "",
-              "On the states of B (the student acting; the fall check already computes this height).", "",
-              "| task | absolute z mean (m) | absolute z sd | above-ground mean (m) | above-ground sd |", "|---|---|---|---|---|"]
+    lines += [
+        "",
+        "## C. Height above the ground under the torso vs absolute height, per task",
+        "",
+        "On the states of B (the student acting; the fall check already computes this height).",
+        "",
+        "| task | absolute z mean (m) | absolute z sd | above-ground mean (m) | above-ground sd |",
+        "|---|---|---|---|---|",
+    ]
     everything = {"relative": [], "absolute": []}
     for task in TASKS:
         relative, absolute = heights[task]
@@ -154,26 +178,30 @@ def main() -> None:
     rel, ab = np.concatenate(everything["relative"]), np.concatenate(everything["absolute"])
     lines.append(f"| all five (pooled) | {ab.mean():.2f} | {ab.std():.3f} | {rel.mean():.3f} | {rel.std():.3f} |")
     flat_sd = np.sqrt(per_task["FT"].var[0, 2])
-    lines += ["", "## Decision", "",
-              "1. **Transfer keeps the statistics it inherits** (`transfer.observation_statistics: frozen`, the default; "
-              "reward statistics start afresh and learn). B: letting them learn for one task's worth of steps moves the "
-              "student's actions by a large fraction of their size on every training task and takes most of its return "
-              "with it, with no weight changed.",
-              "   The height column alone accounts for it (the rows of B that drift one group of columns): the mixture "
-              "squeezes a flat task's height variation into a few hundredths of a normalised unit (A), so the student "
-              "reads heights through large weights, and a shift of the mixture's mean by a few tenths of a metre reads as "
-              "a different posture.",
-              "2. **Multi-task students keep one set of statistics, not per-task ones.** Per-task statistics fit the "
-              "training tasks (A) but a novel task has none: the student would meet it with statistics of another task, "
-              "or have to learn them, which is the drift of B.",
-              f"3. **Height relative to the ground is the better input for a multi-task student**: pooled over the five "
-              f"tasks, the above-ground height has sd {rel.std():.2f} m around {rel.mean():.2f} m, close to every task's own "
-              f"(C), while the world height's mixture (sd {np.sqrt(mixture.var[0, 2]):.1f} m, A) squeezes FT's own variation "
-              f"(sd {flat_sd:.2f} m) into {flat_sd / np.sqrt(mixture.var[0, 2]):.3f} of a normalised unit and puts Incline "
-              f"{abs((per_task['Incline'].mean[0, 2] - mz) / sz):.1f} sd away from the rest. It is the contract option "
-              "`gym.make(..., height_reference=\"ground\")`; MetaMorph's world height stays the default (and the shipped "
-              "models were trained with it).",
-              ""]
+    lines += [
+        "",
+        "## Decision",
+        "",
+        "1. **Transfer keeps the statistics it inherits** (`transfer.observation_statistics: frozen`, the default; "
+        "reward statistics start afresh and learn). B: letting them learn for one task's worth of steps moves the "
+        "student's actions by a large fraction of their size on every training task and takes most of its return "
+        "with it, with no weight changed.",
+        "   The height column alone accounts for it (the rows of B that drift one group of columns): the mixture "
+        "squeezes a flat task's height variation into a few hundredths of a normalised unit (A), so the student "
+        "reads heights through large weights, and a shift of the mixture's mean by a few tenths of a metre reads as "
+        "a different posture.",
+        "2. **Multi-task students keep one set of statistics, not per-task ones.** Per-task statistics fit the "
+        "training tasks (A) but a novel task has none: the student would meet it with statistics of another task, "
+        "or have to learn them, which is the drift of B.",
+        f"3. **Height relative to the ground is the better input for a multi-task student**: pooled over the five "
+        f"tasks, the above-ground height has sd {rel.std():.2f} m around {rel.mean():.2f} m, close to every task's own "
+        f"(C), while the world height's mixture (sd {np.sqrt(mixture.var[0, 2]):.1f} m, A) squeezes FT's own variation "
+        f"(sd {flat_sd:.2f} m) into {flat_sd / np.sqrt(mixture.var[0, 2]):.3f} of a normalised unit and puts Incline "
+        f"{abs((per_task['Incline'].mean[0, 2] - mz) / sz):.1f} sd away from the rest. It is the contract option "
+        '`gym.make(..., height_reference="ground")`; MetaMorph\'s world height stays the default (and the shipped '
+        "models were trained with it).",
+        "",
+    ]
     lines += [f"Wall time: {time.time() - start:.0f} s.", ""]
     Path(args.out).write_text("\n".join(lines))
     print("\n".join(lines))

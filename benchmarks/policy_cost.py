@@ -152,17 +152,24 @@ def render(results: dict, args: argparse.Namespace, device: th.device) -> str:
         f"`forward` under `no_grad` in eval mode on {args.n_envs} observations. All policies are timed in "
         f"the same process, interleaved in alternating order ({args.repeats} update repeats, "
         f"{5 * args.repeats} rollout repeats, {args.warmup} warm-up); medians"
-        + (f", then the median over {processes} fresh processes of each cell's time and ratio "
-           f"(every process's DivMorph update ratio in the last column). " if processes > 1 else ". ")
-        + 
-        "`DivMorph` is the default policy (diverted actor, MetaMorph critic); `DivMorph+critic` also "
+        + (
+            f", then the median over {processes} fresh processes of each cell's time and ratio "
+            f"(every process's DivMorph update ratio in the last column). "
+            if processes > 1
+            else ". "
+        )
+        + "`DivMorph` is the default policy (diverted actor, MetaMorph critic); `DivMorph+critic` also "
         f"factorizes and gates the critic (`factorize_critic=True`). Target: DivMorph update <= {TARGET}x "
         "MetaMorph's in every cell at the small size.",
         "",
         "## Time (ms, median; ratio to MetaMorph)",
         "",
-        "| size | threads | minibatch B | " + " | ".join(f"{n} update" for n in names) + " | "
-        + " | ".join(f"{n} rollout" for n in names) + " | target |" + (" DivMorph update ratio per process |" if processes > 1 else ""),
+        "| size | threads | minibatch B | "
+        + " | ".join(f"{n} update" for n in names)
+        + " | "
+        + " | ".join(f"{n} rollout" for n in names)
+        + " | target |"
+        + (" DivMorph update ratio per process |" if processes > 1 else ""),
         "|---|---|---|" + "---:|" * (2 * len(names)) + "---|" + ("---|" if processes > 1 else ""),
     ]
     for (size, threads, batch), (update, rollout, _, _) in results.items():
@@ -188,8 +195,7 @@ def render(results: dict, args: argparse.Namespace, device: th.device) -> str:
             "DivMorph: "
             + ", ".join(
                 f"{k}={config[k]}"
-                for k in ("d_model", "n_layers", "n_heads", "ff_dim")
-                + ("n_morph_tailors", "n_task_tailors", "top_k_morph", "top_k_task")
+                for k in ("d_model", "n_layers", "n_heads", "ff_dim") + ("n_morph_tailors", "n_task_tailors", "top_k_morph", "top_k_task")
             ),
             "",
             "| part | " + " | ".join(names) + " |",
@@ -244,9 +250,14 @@ def main(argv: list[str] | None = None) -> None:
                 for batch in args.batch:
                     update, rollout, counts, config = benchmark_size(args, size, device, batch)
                     results[size, threads, batch] = ([update], [rollout], counts, config)
-                    print(f"{size}, {threads} thread(s), B={batch}: update " + ", ".join(f"{n} {_ms(t):.1f} ms" for n, t in update.items()), flush=True)
+                    print(
+                        f"{size}, {threads} thread(s), B={batch}: update " + ", ".join(f"{n} {_ms(t):.1f} ms" for n, t in update.items()),
+                        flush=True,
+                    )
     if args.json:
-        cells = [{"cell": list(key), "update": u[0], "rollout": r[0], "counts": c, "config": cfg} for key, (u, r, c, cfg) in results.items()]
+        cells = [
+            {"cell": list(key), "update": u[0], "rollout": r[0], "counts": c, "config": cfg} for key, (u, r, c, cfg) in results.items()
+        ]
         Path(args.json).write_text(json.dumps(cells))
         return
     text = render(results, args, device)
@@ -257,9 +268,30 @@ def main(argv: list[str] | None = None) -> None:
 
 def _measure_in_processes(args: argparse.Namespace) -> dict:
     """Run the whole measurement in ``args.processes`` fresh processes, one after the other; gather them."""
-    child = [sys.executable, __file__, "--sizes", *args.sizes, "--batch", *map(str, args.batch), "--threads", *map(str, args.threads),
-             "--n-envs", str(args.n_envs), "--morphologies", str(args.morphologies), "--tasks", str(args.tasks),
-             "--repeats", str(args.repeats), "--warmup", str(args.warmup), "--device", args.device, "--seed", str(args.seed)]
+    child = [
+        sys.executable,
+        __file__,
+        "--sizes",
+        *args.sizes,
+        "--batch",
+        *map(str, args.batch),
+        "--threads",
+        *map(str, args.threads),
+        "--n-envs",
+        str(args.n_envs),
+        "--morphologies",
+        str(args.morphologies),
+        "--tasks",
+        str(args.tasks),
+        "--repeats",
+        str(args.repeats),
+        "--warmup",
+        str(args.warmup),
+        "--device",
+        args.device,
+        "--seed",
+        str(args.seed),
+    ]
     results: dict = {}
     with tempfile.TemporaryDirectory() as folder:
         for process in range(args.processes):

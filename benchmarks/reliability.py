@@ -109,8 +109,7 @@ def observation_problems(obs: dict, space: gym.spaces.Dict) -> list[str]:
         if value is None:
             continue
         if not isinstance(value, np.ndarray) or value.shape != sub.shape or value.dtype != sub.dtype:
-            problems.append(f"{key}: {getattr(value, 'shape', None)} {getattr(value, 'dtype', type(value))}, "
-                            f"space {sub.shape} {sub.dtype}")
+            problems.append(f"{key}: {getattr(value, 'shape', None)} {getattr(value, 'dtype', type(value))}, space {sub.shape} {sub.dtype}")
             continue
         finite = np.isfinite(value)
         if not finite.all():
@@ -230,9 +229,7 @@ def malloc_trim() -> bool:
         return False
 
 
-def run_soak(
-    total: int, n_morph: int, chunk: int, sample_every: int, seed: int, cache: int, desc: str = "soak"
-) -> SoakResult:
+def run_soak(total: int, n_morph: int, chunk: int, sample_every: int, seed: int, cache: int, desc: str = "soak") -> SoakResult:
     with MujocoWarnings() as warnings:
         result = _soak(total, n_morph, chunk, sample_every, seed, cache, desc)
     result.warnings = warnings.messages
@@ -256,9 +253,7 @@ def _soak(total: int, n_morph: int, chunk: int, sample_every: int, seed: int, ca
     result = SoakResult()
     result.rss_before_envs = rss_mb()
     files = morphology_files("train")[:n_morph]
-    envs = {
-        task: gym.make(unimal_envs.env_id(task), morphologies=files, world_cache_size=cache) for task in C.TASK_NAMES
-    }
+    envs = {task: gym.make(unimal_envs.env_id(task), morphologies=files, world_cache_size=cache) for task in C.TASK_NAMES}
     space = C.observation_space()
     build_counts = Counter()
     for i, (task, env) in enumerate(envs.items()):
@@ -430,7 +425,7 @@ def report(
             "",
             f"Seeds {args.fuzz_seed}..{args.fuzz_seed + fuzz.count - 1} -> `generate_unimal(seed)` -> MJCF file "
             f"(unimals_100 layout, temporary directory) -> `load_morphology` -> "
-            f"`gym.make(\"Unimal-FT-v0\", morphologies=[path])`, reset(seed=seed), {args.fuzz_steps} uniform random "
+            f'`gym.make("Unimal-FT-v0", morphologies=[path])`, reset(seed=seed), {args.fuzz_steps} uniform random '
             "actions in [-1, 1] (reset on episode end). Checked on every reset and step: observation keys, shapes, "
             "dtype float32, values finite and inside the space's bounds; reward finite.",
             "",
@@ -441,7 +436,7 @@ def report(
             f"| ran {args.fuzz_steps} steps clean | **{fuzz.clean} / {fuzz.count}** ({clean_pct:.1f} %) |",
             f"| failures | {len(fuzz.failures)} |",
             f"| env steps / episodes | {fuzz.steps:,} / {fuzz.episodes:,} |",
-            f"| physics faults (`info[\"physics_fault\"]`, the episode ended cleanly) | {fuzz.physics_faults} |",
+            f'| physics faults (`info["physics_fault"]`, the episode ended cleanly) | {fuzz.physics_faults} |',
             f"| limbs per robot (count:robots) | {' '.join(f'{k}:{v}' for k, v in sorted(fuzz.limbs.items()))} |",
             f"| time | {fuzz.seconds:.0f} s ({fuzz.generate_seconds:.0f} s of it generating; "
             f"{1e3 * fuzz.seconds / max(fuzz.count, 1):.0f} ms per robot) |",
@@ -460,8 +455,11 @@ def report(
         mem = memory_summary(soak.samples, warmup)
         rate = soak.steps / soak.seconds
         evicting = args.world_cache_size < args.soak_morphologies
-        full = (f"step {soak.caches_full_at:,}" if soak.caches_full_at is not None
-                else "not reached within the soak, so only the minimum applies")
+        full = (
+            f"step {soak.caches_full_at:,}"
+            if soak.caches_full_at is not None
+            else "not reached within the soak, so only the minimum applies"
+        )
         flat = "yes" if abs(mem["slope"]) < 1.0 else "no"
         lines += [
             "## Soak: all 10 tasks, random actions",
@@ -482,7 +480,7 @@ def report(
             f"| time | {soak.seconds:.0f} s |",
             f"| non-finite observations or rewards | **{soak.non_finite}** |",
             f"| observations outside the space after reset | {soak.bad_observations} |",
-            f"| physics faults (`info[\"physics_fault\"]`) | {soak.physics_faults} |",
+            f'| physics faults (`info["physics_fault"]`) | {soak.physics_faults} |',
             f"| RSS before creating the envs | {soak.rss_before_envs:.1f} MiB |",
             f"| RSS after creating and resetting the 10 envs (step 0) | {mem['initial']:.1f} MiB |",
             f"| RSS at start (after warm-up, step {mem['start_step']:,}) | {mem['start']:.1f} MiB |",
@@ -497,8 +495,7 @@ def report(
             "",
             "![RSS vs steps](reliability_memory.png)",
             "",
-            "RSS samples (thousand steps: MiB): "
-            + ", ".join(f"{s // 1000}: {r:.0f}" for s, r in soak.samples),
+            "RSS samples (thousand steps: MiB): " + ", ".join(f"{s // 1000}: {r:.0f}" for s, r in soak.samples),
             "",
             "Per task:",
             "",
@@ -526,19 +523,15 @@ def report(
             "",
             "| measure | value |",
             "|---|---|",
-            f"| env steps / episodes / steps/s | {control.steps:,} / {control.episodes:,} / "
-            f"{control.steps / control.seconds:,.0f} |",
-            f"| non-finite observations or rewards / physics faults | **{control.non_finite}** / "
-            f"{control.physics_faults} |",
+            f"| env steps / episodes / steps/s | {control.steps:,} / {control.episodes:,} / {control.steps / control.seconds:,.0f} |",
+            f"| non-finite observations or rewards / physics faults | **{control.non_finite}** / {control.physics_faults} |",
             f"| RSS at step 0 / at start (after warm-up, step {c_mem['start_step']:,}) | {c_mem['initial']:.1f} / "
             f"{c_mem['start']:.1f} MiB |",
             f"| RSS max after warm-up / at end | {c_mem['max_after']:.1f} / {c_mem['end']:.1f} MiB |",
-            f"| growth after warm-up / slope | {c_mem['growth']:+.1f} MiB / **{c_mem['slope']:+.3f} MiB per 100k "
-            "steps** |",
+            f"| growth after warm-up / slope | {c_mem['growth']:+.1f} MiB / **{c_mem['slope']:+.3f} MiB per 100k steps** |",
             *_trim_rows(control, c_mem),
             "",
-            "RSS samples (thousand steps: MiB): "
-            + ", ".join(f"{s // 1000}: {r:.0f}" for s, r in control.samples),
+            "RSS samples (thousand steps: MiB): " + ", ".join(f"{s // 1000}: {r:.0f}" for s, r in control.samples),
             "",
         ]
     lines += ["## MuJoCo warnings", ""]
@@ -583,19 +576,21 @@ def main(argv: list[str] | None = None) -> int:
     with MujocoWarnings() as warnings:
         if args.fuzz_count > 0:
             fuzz = run_fuzz(args.fuzz_count, args.fuzz_seed, args.fuzz_steps)
-            print(f"fuzz: {fuzz.compiled}/{fuzz.count} compiled, {fuzz.clean}/{fuzz.count} clean, "
-                  f"{len(fuzz.failures)} failures, {fuzz.physics_faults} physics faults, {fuzz.seconds:.0f} s")
+            print(
+                f"fuzz: {fuzz.compiled}/{fuzz.count} compiled, {fuzz.clean}/{fuzz.count} clean, "
+                f"{len(fuzz.failures)} failures, {fuzz.physics_faults} physics faults, {fuzz.seconds:.0f} s"
+            )
             for seed, stage, err in fuzz.failures[:10]:
                 print(f"  seed {seed} [{stage}]: {err}")
         if args.soak_steps > 0:
-            soak = run_soak(
-                args.soak_steps, args.soak_morphologies, args.chunk, args.sample_every, args.seed, args.world_cache_size
-            )
+            soak = run_soak(args.soak_steps, args.soak_morphologies, args.chunk, args.sample_every, args.seed, args.world_cache_size)
             warmup = warmup_end(soak, args.warmup_steps)
             mem = memory_summary(soak.samples, warmup)
-            print(f"soak: {soak.steps:,} steps in {soak.seconds:.0f} s ({soak.steps / soak.seconds:,.0f} steps/s), "
-                  f"non-finite {soak.non_finite}, physics faults {soak.physics_faults}; RSS start {mem['start']:.1f} "
-                  f"max {mem['max']:.1f} end {mem['end']:.1f} MiB, slope {mem['slope']:+.3f} MiB/100k steps")
+            print(
+                f"soak: {soak.steps:,} steps in {soak.seconds:.0f} s ({soak.steps / soak.seconds:,.0f} steps/s), "
+                f"non-finite {soak.non_finite}, physics faults {soak.physics_faults}; RSS start {mem['start']:.1f} "
+                f"max {mem['max']:.1f} end {mem['end']:.1f} MiB, slope {mem['slope']:+.3f} MiB/100k steps"
+            )
             label = f"soak: world cache {args.world_cache_size}, {args.soak_morphologies} robots"
             curves = [(label, soak.samples, warmup)]
             if args.control_steps > 0:
@@ -605,8 +600,10 @@ def main(argv: list[str] | None = None) -> int:
                 )  # fmt: skip
                 c_warmup = warmup_end(control, args.warmup_steps)
                 c_mem = memory_summary(control.samples, c_warmup)
-                print(f"control: {control.steps:,} steps, non-finite {control.non_finite}, RSS start "
-                      f"{c_mem['start']:.1f} end {c_mem['end']:.1f} MiB, slope {c_mem['slope']:+.3f} MiB/100k steps")
+                print(
+                    f"control: {control.steps:,} steps, non-finite {control.non_finite}, RSS start "
+                    f"{c_mem['start']:.1f} end {c_mem['end']:.1f} MiB, slope {c_mem['slope']:+.3f} MiB/100k steps"
+                )
                 curves.append(("control: no eviction (fresh process)", control.samples, c_warmup))
             plot_memory(curves, args.plot, f"UNIMAL soak over 10 tasks, {args.soak_morphologies} robots ({MACHINE})")
     for run in (soak, control):

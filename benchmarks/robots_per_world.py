@@ -127,8 +127,11 @@ def main(argv: list[str] | None = None) -> None:
         merged = measure([merged_scene(env, k, args.spacing)], args.worlds, device, args.repeats, args.settle)
         separate = measure([env.world_spec(i)[0].compile() for i in range(k)], args.worlds, device, args.repeats, args.settle)
         rows.append((k, merged, separate))
-        print(f"K={k}: merged {merged['substep'] * 1e3:.2f} ms, {merged['nodes']['kernels']} kernels; "
-              f"separate {separate['substep'] * 1e3:.2f} ms, {separate['nodes']['kernels']} kernels", flush=True)
+        print(
+            f"K={k}: merged {merged['substep'] * 1e3:.2f} ms, {merged['nodes']['kernels']} kernels; "
+            f"separate {separate['substep'] * 1e3:.2f} ms, {separate['nodes']['kernels']} kernels",
+            flush=True,
+        )
 
     nodes = lambda n: n["kernels"] + n["memsets"] + n["copies"] + n["conditionals"]  # noqa: E731
     command = "python benchmarks/robots_per_world.py " + " ".join(argv if argv is not None else sys.argv[1:])
@@ -152,9 +155,11 @@ def main(argv: list[str] | None = None) -> None:
     ]
     for k, merged, separate in rows:
         nv = merged_scene(env, k, args.spacing).nv
-        lines.append(f"| {k} | {nv} | {nodes(merged['nodes'])} | {merged['substep'] * 1e3:.2f} | {nodes(separate['nodes'])} "
-                     f"| {separate['substep'] * 1e3:.2f} | {merged['substep'] / separate['substep']:.2f} "
-                     f"| {merged['first']:.1f}, {separate['first']:.1f} |")
+        lines.append(
+            f"| {k} | {nv} | {nodes(merged['nodes'])} | {merged['substep'] * 1e3:.2f} | {nodes(separate['nodes'])} "
+            f"| {separate['substep'] * 1e3:.2f} | {merged['substep'] / separate['substep']:.2f} "
+            f"| {merged['first']:.1f}, {separate['first']:.1f} |"
+        )
     out = args.out or RESULTS / f"robots_per_world_{'cpu' if device == 'cpu' else 'cuda'}.md"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("\n".join(lines) + "\n")

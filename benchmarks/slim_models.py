@@ -183,9 +183,11 @@ def main(argv: list[str] | None = None) -> int:
             new_model, new_norm = slim_model(old_model), slim_normalizer(old_norm)
         problems = compare(old_model, old_norm, new_model, new_norm, batches)
         n = sum(len(b["proprioceptive"]) for b in batches.values())
-        print(f"| `{folder}` | {len(old_model):,} -> {len(new_model):,} B | {len(old_norm):,} -> {len(new_norm):,} B | "
-              f"{'bit-identical' if not problems else 'DIFFERENT'} | "
-              f"{'bit-identical on ' + str(n) if not problems else '; '.join(problems)} |")
+        print(
+            f"| `{folder}` | {len(old_model):,} -> {len(new_model):,} B | {len(old_norm):,} -> {len(new_norm):,} B | "
+            f"{'bit-identical' if not problems else 'DIFFERENT'} | "
+            f"{'bit-identical on ' + str(n) if not problems else '; '.join(problems)} |"
+        )
         (failed if problems else pending).append((folder, new_model, new_norm))
     if failed:
         print(f"\n{len(failed)} model(s) differ: {[f for f, _, _ in failed]}; nothing written", file=sys.stderr)

@@ -42,8 +42,11 @@ SMALL = dict(d_model=32, n_layers=1, ff_dim=64)
 def train_teacher(task: str, steps: int, folder: Path, seed: int) -> Teacher:
     """PPO with the zoo's settings for ``task``; saves model + statistics into ``folder``."""
     hp = zoo_hyperparams(f"Unimal-{task}-v0", overrides=dict(n_envs=2, n_steps=256, batch_size=256, n_epochs=2))
-    venv = VecNormalize(make_vec_env(f"Unimal-{task}-v0", n_envs=hp.n_envs, seed=seed, env_kwargs=dict(morphologies=ROBOTS)),
-                        gamma=hp.ppo_kwargs["gamma"], **hp.normalize)
+    venv = VecNormalize(
+        make_vec_env(f"Unimal-{task}-v0", n_envs=hp.n_envs, seed=seed, env_kwargs=dict(morphologies=ROBOTS)),
+        gamma=hp.ppo_kwargs["gamma"],
+        **hp.normalize,
+    )
     model = PPO(hp.policy, venv, policy_kwargs={**hp.policy_kwargs, **SMALL}, seed=seed, **hp.ppo_kwargs)
     model.learn(steps)
     folder.mkdir(parents=True, exist_ok=True)
@@ -66,18 +69,34 @@ def main(argv: list[str] | None = None) -> None:
     venv = make_vec_env("Unimal-MultiTask-v0", n_envs=2, seed=args.seed, env_kwargs=dict(tasks=TASKS, morphologies=ROBOTS))
     venv = TeacherMixingVecEnv(venv, teachers, beta=0.5, seed=args.seed)
     venv = VecNormalize(venv, norm_obs_keys=["proprioceptive"], norm_reward=False)
-    student = ImitationPPO(DivMorphPolicy, venv, n_steps=256, batch_size=256, seed=args.seed,
-                           policy_kwargs=dict(**SMALL, n_morph_tailors=8, n_task_tailors=8, top_k_morph=2, top_k_task=2))
-    dagger = DAggerCallback(teachers, TASK_NAMES, beta=LinearSchedule(0.5, 0.0, 1.0), learning_rate=1e-3,
-                            epochs=2, batch_size=256, buffer_size=20_000, seed=args.seed)
+    student = ImitationPPO(
+        DivMorphPolicy,
+        venv,
+        n_steps=256,
+        batch_size=256,
+        seed=args.seed,
+        policy_kwargs=dict(**SMALL, n_morph_tailors=8, n_task_tailors=8, top_k_morph=2, top_k_task=2),
+    )
+    dagger = DAggerCallback(
+        teachers,
+        TASK_NAMES,
+        beta=LinearSchedule(0.5, 0.0, 1.0),
+        learning_rate=1e-3,
+        epochs=2,
+        batch_size=256,
+        buffer_size=20_000,
+        seed=args.seed,
+    )
     student.learn(args.steps, callback=dagger)
 
     folder = args.out / "student"
     folder.mkdir(parents=True, exist_ok=True)
     student.save(folder / "model.zip")
     venv.save(str(folder / "vecnormalize.pkl"))
-    print(f"student: {student.num_timesteps} steps of DAgger, {dagger.dataset.size} labelled states, tailors in use "
-          f"after the last round: {dagger.tailor_usage['morphology'][-1]} morphology, {dagger.tailor_usage['task'][-1]} task -> {folder}")
+    print(
+        f"student: {student.num_timesteps} steps of DAgger, {dagger.dataset.size} labelled states, tailors in use "
+        f"after the last round: {dagger.tailor_usage['morphology'][-1]} morphology, {dagger.tailor_usage['task'][-1]} task -> {folder}"
+    )
     print("(TensorBoard: pass tensorboard_log= to ImitationPPO for distill/loss, distill/kl/<task>, gates/*)")
 
 

@@ -35,8 +35,11 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("student", type=Path, help="folder with the student's model.zip and vecnormalize.pkl")
     parser.add_argument("--task", default="FT", choices=TASK_NAMES)
-    parser.add_argument("--robot", default=None,
-                        help="robot name (default: the first robot the student was trained on, from its run's robot_sets.json; else train-000)")
+    parser.add_argument(
+        "--robot",
+        default=None,
+        help="robot name (default: the first robot the student was trained on, from its run's robot_sets.json; else train-000)",
+    )
     parser.add_argument("--out", type=Path, default=Path("exported"))
     args = parser.parse_args(argv)
     th.set_num_threads(1)  # batch-1 inference of a small model: one thread is fastest
@@ -70,8 +73,10 @@ def main(argv: list[str] | None = None) -> None:
         if terminated or truncated:
             obs, _ = env.reset()
     env.close()
-    print(f"{robot.stem} x {args.task}: {actor.stored_numbers()['weights']:,} weights "
-          f"(the student's actor: {actor_parameter_count(policy):,}); max |ONNX - student| over 20 steps {worst:.1e}")
+    print(
+        f"{robot.stem} x {args.task}: {actor.stored_numbers()['weights']:,} weights "
+        f"(the student's actor: {actor_parameter_count(policy):,}); max |ONNX - student| over 20 steps {worst:.1e}"
+    )
     print(f"-> {onnx_file} (onnxruntime + numpy), {script_file} (torch.jit.load)")
 
 

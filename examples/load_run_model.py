@@ -30,8 +30,12 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("folder", type=Path, help="a run folder with model.zip (+ vecnormalize.pkl)")
     parser.add_argument("--task", default=None, help="task to run (default: the folder's name when it is a task, e.g. teachers/FT)")
-    parser.add_argument("--robots", type=int, default=2,
-                        help="first N robots the model was trained on (its run's robot_sets.json; else the train set), one episode each")
+    parser.add_argument(
+        "--robots",
+        type=int,
+        default=2,
+        help="first N robots the model was trained on (its run's robot_sets.json; else the train set), one episode each",
+    )
     parser.add_argument("--steps", type=int, default=200, help="longest episode")
     args = parser.parse_args(argv)
     th.set_num_threads(1)  # small models: a second thread only contends with the simulation
@@ -48,8 +52,7 @@ def main(argv: list[str] | None = None) -> None:
     trained = trained_robots(args.folder)
     robots = (trained if trained is not None else unimal_envs.morphology.loader.morphology_files("train"))[: args.robots]
     print(f"robots: {[r.stem for r in robots]} ({'the ones it was trained on' if trained else 'the shipped train set'})")
-    venv = make_vec_env(f"Unimal-{task}-v0", n_envs=len(robots), seed=0,
-                        env_kwargs=dict(morphologies=robots, max_episode_steps=args.steps))
+    venv = make_vec_env(f"Unimal-{task}-v0", n_envs=len(robots), seed=0, env_kwargs=dict(morphologies=robots, max_episode_steps=args.steps))
     if stats_file.is_file():
         venv = VecNormalize.load(str(stats_file), venv)
         venv.training, venv.norm_reward = False, False

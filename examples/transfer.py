@@ -38,8 +38,13 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("student", type=Path, help="folder with the student's model.zip and vecnormalize.pkl")
     parser.add_argument("--task", default="Escape", choices=NOVEL_TASKS)
-    parser.add_argument("--steps", type=int, default=4096, help="PPO steps (at least 2 rollouts of 2 x 256: the zoo's "
-                        "learning rate decays linearly to 0 over the run, so the last update moves nothing)")
+    parser.add_argument(
+        "--steps",
+        type=int,
+        default=4096,
+        help="PPO steps (at least 2 rollouts of 2 x 256: the zoo's "
+        "learning rate decays linearly to 0 over the run, so the last update moves nothing)",
+    )
     parser.add_argument("--robots", type=int, default=4, help="first N robots of the train set")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
@@ -65,14 +70,18 @@ def main(argv: list[str] | None = None) -> None:
     with th.no_grad():
         gates = model.policy.get_gates(obs)
     selection = UnitSelection.from_gates(gates.morphology.numpy(), gates.task.numpy())
-    print(f"{args.task}: gates select {selection.morphology.sum()} of {selection.morphology.size} morphology tailors "
-          f"and {selection.task.sum()} of {selection.task.size} task tailors")
+    print(
+        f"{args.task}: gates select {selection.morphology.sum()} of {selection.morphology.size} morphology tailors "
+        f"and {selection.task.sum()} of {selection.task.size} task tailors"
+    )
 
     # 2. fixed gates and per-unit learning rates; 3. PPO on the novel task
     rates = prepare_transfer(model.policy, selection, learngene_scale=0.1)
     model.learn(args.steps)
-    print(f"transferred for {model.num_timesteps} steps; applied learngene / selected-tailor update ratio "
-          f"{rates.measured_ratio():.3f} (configured 0.1)")
+    print(
+        f"transferred for {model.num_timesteps} steps; applied learngene / selected-tailor update ratio "
+        f"{rates.measured_ratio():.3f} (configured 0.1)"
+    )
 
 
 if __name__ == "__main__":

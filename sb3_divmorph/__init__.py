@@ -27,8 +27,12 @@ from sb3_divmorph.transformer import MultiHeadSelfAttention, TransformerEncoder,
 
 # The policies are SB3 ActorCriticPolicy subclasses: on-policy algorithms (PPO, A2C) take them.
 for _algo in (PPO, A2C):
-    _algo.policy_aliases.update(MetaMorphPolicy=MetaMorphPolicy, DivMorphPolicy=DivMorphPolicy,
-                                ModuMorphPolicy=ModuMorphPolicy, HyperDistillPolicy=HyperDistillPolicy)
+    _algo.policy_aliases.update(
+        MetaMorphPolicy=MetaMorphPolicy,
+        DivMorphPolicy=DivMorphPolicy,
+        ModuMorphPolicy=ModuMorphPolicy,
+        HyperDistillPolicy=HyperDistillPolicy,
+    )
 
 
 def _on_policy_only(name: str) -> type:
@@ -37,8 +41,10 @@ def _on_policy_only(name: str) -> type:
 
     class OnPolicyOnly:
         def __init__(self, *args, **kwargs):
-            raise TypeError(f"{name} is an on-policy actor-critic policy (stochastic actor + state-value critic): use it "
-                            "with PPO or A2C; off-policy algorithms (SAC, TD3, DDPG, DQN) need Q-function policies")
+            raise TypeError(
+                f"{name} is an on-policy actor-critic policy (stochastic actor + state-value critic): use it "
+                "with PPO or A2C; off-policy algorithms (SAC, TD3, DDPG, DQN) need Q-function policies"
+            )
 
     OnPolicyOnly.__name__ = OnPolicyOnly.__qualname__ = f"{name}OnPolicyOnly"
     return OnPolicyOnly

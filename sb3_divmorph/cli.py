@@ -43,29 +43,51 @@ def _parser() -> argparse.ArgumentParser:
 
     def command(name: str, help_text: str) -> argparse.ArgumentParser:
         p = sub.add_parser(name, help=help_text, description=help_text)
-        p.add_argument("--profile", default=None,
-                       help="profile name in the profiles file (default: the one recorded in --out's run.json, else demo)")
+        p.add_argument(
+            "--profile", default=None, help="profile name in the profiles file (default: the one recorded in --out's run.json, else demo)"
+        )
         p.add_argument("--profiles", default="zoo_configs/divmorph.yml", help="profiles file (default: the shipped one)")
         p.add_argument("--out", "--run", default=None, help="run folder (default: runs/<profile>)")
         p.add_argument("--no-progress", action="store_true", help="no progress bars")
         p.add_argument("--seed", type=int, default=None, help="override the profile's seed")
         p.add_argument("--device", default=None, help="override the profile's device (cpu, cuda, auto)")
-        p.add_argument("--train-robots", default=None, metavar="N|SET",
-                       help="override the training robots: a count, or a set (name or directory) used whole")
+        p.add_argument(
+            "--train-robots",
+            default=None,
+            metavar="N|SET",
+            help="override the training robots: a count, or a set (name or directory) used whole",
+        )
         p.add_argument("--novel-robots", default=None, metavar="N|SET", help="override the novel robots likewise")
-        p.add_argument("--force", action="store_true",
-                       help="the settings differ from the run's (run.json): retrain every begun stage they touch "
-                            "(old folders kept in <out>/superseded/)")
-        p.add_argument("--redo", action="append", default=[], metavar="STAGE",
-                       help="retrain this stage and the begun stages built on it (repeatable; teachers, distill, hyperdistill, "
-                            "grl, transfer, export, evaluate); old folders kept in <out>/superseded/")
-        p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                       help="override any profile key, e.g. --set teachers.n_timesteps=5000 (repeatable; validated like the YAML)")
+        p.add_argument(
+            "--force",
+            action="store_true",
+            help="the settings differ from the run's (run.json): retrain every begun stage they touch "
+            "(old folders kept in <out>/superseded/)",
+        )
+        p.add_argument(
+            "--redo",
+            action="append",
+            default=[],
+            metavar="STAGE",
+            help="retrain this stage and the begun stages built on it (repeatable; teachers, distill, hyperdistill, "
+            "grl, transfer, export, evaluate); old folders kept in <out>/superseded/",
+        )
+        p.add_argument(
+            "--set",
+            action="append",
+            default=[],
+            metavar="KEY=VALUE",
+            help="override any profile key, e.g. --set teachers.n_timesteps=5000 (repeatable; validated like the YAML)",
+        )
         return p
 
     def grid(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
-        p.add_argument("--backend", choices=("local", "ray"), default="local",
-                       help="local: one run after the other in this process (default); ray: every run a Ray task")
+        p.add_argument(
+            "--backend",
+            choices=("local", "ray"),
+            default="local",
+            help="local: one run after the other in this process (default); ray: every run a Ray task",
+        )
         p.add_argument("--address", default=None, help="Ray cluster address (host:port, ray://host:port or auto); default: a local Ray")
         p.add_argument("--cpus-per-run", type=float, default=1, help="CPUs Ray reserves per run (default 1)")
         p.add_argument("--gpus-per-run", type=float, default=0, help="GPUs (fractions allowed) Ray reserves per run (default 0)")
@@ -80,41 +102,67 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--task", action="append", help="only this training task (repeatable)")
     p = grid(command("distill", "DAgger distillation of the teachers into the DivMorph student (and the students of the arms)"))
     p.add_argument("--arms", type=arms_list, default=None, help="also distil the students these arms start from (comma-separated)")
-    p.add_argument("--students", type=arms_list, default=None,
-                   help="distil exactly these students (comma-separated; see `sb3_divmorph.pipeline.distill.STUDENTS`), e.g. deploy-g1k1")
+    p.add_argument(
+        "--students",
+        type=arms_list,
+        default=None,
+        help="distil exactly these students (comma-separated; see `sb3_divmorph.pipeline.students.STUDENTS`), e.g. deploy-g1k1",
+    )
     command("hyperdistill", "HyperDistill baseline: distil the teachers into a hypernetwork student, export per-robot MLPs")
     grid(command("grl", "GRL baseline: evolve a population of MetaMorph agents; the best learngene (whole layers) for the grl arm"))
     p = grid(command("transfer", "race the transfer arms on novel tasks (arms x tasks x seeds, one run each)"))
     p.add_argument("--task", action="append", help="novel task (repeatable; default: the profile's)")
     from sb3_divmorph.pipeline.arms import ARMS
 
-    p.add_argument("--arms", type=arms_list, default=None,
-                   help="comma-separated arms (default: the profile's transfer.arms), of: "
-                        + "; ".join(f"{name} ({arm.label})" for name, arm in ARMS.items()))
+    p.add_argument(
+        "--arms",
+        type=arms_list,
+        default=None,
+        help="comma-separated arms (default: the profile's transfer.arms), of: "
+        + "; ".join(f"{name} ({arm.label})" for name, arm in ARMS.items()),
+    )
     p.add_argument("--seeds", type=int, nargs="+", default=None, help="seeds, one run each (default: the profile's transfer.seeds)")
-    p.add_argument("--closest-by", choices=("embedding", "return"), default=None,
-                   help="closest arm: most similar instruction embedding (default) or best zero-shot teacher return")
+    p.add_argument(
+        "--closest-by",
+        choices=("embedding", "return"),
+        default=None,
+        help="closest arm: most similar instruction embedding (default) or best zero-shot teacher return",
+    )
     p.add_argument("--no-scratch", action="store_true", help="leave scratch out of the default arms")
     p = command("export", "prune + merge the student into a compact actor (ONNX and/or TorchScript)")
     p.add_argument("--morphology", action="append", help="robot name in the train/novel sets, or an MJCF path")
     p.add_argument("--task", action="append", help="task (default: the profile's)")
-    p.add_argument("--format", choices=("onnx", "torchscript", "all"), default="all",
-                   help="onnx (runs with onnxruntime + numpy), torchscript (torch alone), or all (default)")
-    p.add_argument("--student", action="append",
-                   help="distilled DivMorph student to deploy (repeatable; default: divmorph and every finished deploy-* student)")
+    p.add_argument(
+        "--format",
+        choices=("onnx", "torchscript", "all"),
+        default="all",
+        help="onnx (runs with onnxruntime + numpy), torchscript (torch alone), or all (default)",
+    )
+    p.add_argument(
+        "--student",
+        action="append",
+        help="distilled DivMorph student to deploy (repeatable; default: divmorph and every finished deploy-* student)",
+    )
     p = command("evaluate", "per-morphology returns on train and novel robots")
-    p.add_argument("--model", action="append", dest="models",
-                   help="only this model label (repeatable): teacher, teacher-untrained, student, student-<name>, hyperdistill, transfer-<arm>")
+    p.add_argument(
+        "--model",
+        action="append",
+        dest="models",
+        help="only this model label (repeatable): teacher, teacher-untrained, student, student-<name>, hyperdistill, transfer-<arm>",
+    )
     p.add_argument("--task", action="append", dest="eval_tasks", help="only this task (repeatable)")
     p.add_argument("--split", action="append", dest="splits", choices=("train", "novel"), help="only these robots (repeatable)")
     p.add_argument("--episodes", type=int, default=None, help="episodes per robot (default: the profile's evaluate.episodes)")
-    p.add_argument("--into", type=Path, default=None,
-                   help="folder for the selection's returns.csv (default: evaluations/<run>-<time>/ here); a selection never "
-                        "writes into the run's evaluate/")
+    p.add_argument(
+        "--into",
+        type=Path,
+        default=None,
+        help="folder for the selection's returns.csv (default: evaluations/<run>-<time>/ here); a selection never "
+        "writes into the run's evaluate/",
+    )
     command("report", "plots, the paper's figures and a markdown summary of the run")
     p = command("figure", "one of the paper's figures (PNG + CSV in report/figures/)")
     p.add_argument("name", help="transfer-train, transfer-novel, deployment, ablation or gates")
-
 
     # Commands that read no run: they take no --out and create nothing but what they write.
     from sb3_divmorph.record import add_arguments as record_arguments
@@ -131,8 +179,12 @@ def _parser() -> argparse.ArgumentParser:
     p = sub.add_parser("branch", help=help_text, description=help_text)
     p.add_argument("--from", dest="source", required=True, help="the run folder whose finished stages are reused")
     p.add_argument("--out", "--run", required=True, help="the new run folder (must not exist or be empty)")
-    p.add_argument("--stages", type=arms_list, default=list(REUSABLE_STAGES),
-                   help=f"comma-separated stages to reuse (default: {','.join(REUSABLE_STAGES)})")
+    p.add_argument(
+        "--stages",
+        type=arms_list,
+        default=list(REUSABLE_STAGES),
+        help=f"comma-separated stages to reuse (default: {','.join(REUSABLE_STAGES)})",
+    )
     help_text = "list the profiles (or print one, validated) and the file they are read from"
     p = sub.add_parser("profiles", help=help_text, description=help_text)
     p.add_argument("--profile", help="print this profile's settings")
@@ -173,8 +225,10 @@ def _branch(args: argparse.Namespace, argv: list[str] | None) -> int:
         return 2
     for link in links:
         print(f"{link} -> {os.readlink(link)}")
-    print(f"[divmorph] branch: {len(links)} finished runs of {args.source} reused in {args.out}; run the later stages there "
-          f"with --run {args.out} (and --set KEY=VALUE for their new settings)")
+    print(
+        f"[divmorph] branch: {len(links)} finished runs of {args.source} reused in {args.out}; run the later stages there "
+        f"with --run {args.out} (and --set KEY=VALUE for their new settings)"
+    )
     return 0
 
 
@@ -223,8 +277,11 @@ def _put_back(out: Path, record: dict, previous_record: str | None) -> None:
 
     failed = restore_superseded(out, record, previous_record)
     if record["history"][-1].get("superseded"):
-        print(f"divmorph: the previous {', '.join(record['history'][-1]['retrained'])} folders are back in {out}"
-              + (f" (the failed attempt's output: {failed})" if failed else ""), file=sys.stderr)
+        print(
+            f"divmorph: the previous {', '.join(record['history'][-1]['retrained'])} folders are back in {out}"
+            + (f" (the failed attempt's output: {failed})" if failed else ""),
+            file=sys.stderr,
+        )
 
 
 def _remove_if_untouched(out: Path) -> None:
@@ -272,8 +329,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"divmorph figure: unknown figure {args.name!r}; figures: {list(P.FIGURES)}", file=sys.stderr)
         return 2
     if args.command in _READS_A_RUN and args.out and not out.is_dir():
-        print(f"divmorph {args.command}: no such run folder: {out} (train its stages with --out {out} first, or check the path)",
-              file=sys.stderr)
+        print(
+            f"divmorph {args.command}: no such run folder: {out} (train its stages with --out {out} first, or check the path)",
+            file=sys.stderr,
+        )
         return 2
     created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
@@ -287,7 +346,8 @@ def main(argv: list[str] | None = None) -> int:
         # is only continued with the settings it was started with (unless --force)
         # An evaluation of a selection only reads the run: its records stay as they are.
         reads_only = args.command == "evaluate" and any(
-            getattr(args, k) is not None for k in ("models", "eval_tasks", "splits", "episodes", "into"))
+            getattr(args, k) is not None for k in ("models", "eval_tasks", "splits", "episodes", "into")
+        )
         if not reads_only:
             previous_record = (out / "run.json").read_text() if (out / "run.json").is_file() else None
             record = check_and_record(out, profile, command_line, args.force, args.redo)
@@ -313,8 +373,10 @@ def main(argv: list[str] | None = None) -> int:
             P.distill(profile, out, progress, students, backend)
         elif args.command == "grl":
             learngene = P.evolve(profile, out, backend, progress)
-            print(f"learngene: {'+'.join(learngene['units'])} (agent {learngene['agent']} of generation {learngene['generation']}, "
-                  f"{learngene['task']}) -> {Path(out) / 'grl' / 'learngene.json'}")
+            print(
+                f"learngene: {'+'.join(learngene['units'])} (agent {learngene['agent']} of generation {learngene['generation']}, "
+                f"{learngene['task']}) -> {Path(out) / 'grl' / 'learngene.json'}"
+            )
         elif args.command == "figure":
             path = P.make_figure(profile, out, args.name)
             if path is None:
@@ -322,19 +384,25 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{args.name} -> {path} (numbers: {path.with_suffix('.csv')})")
         elif args.command == "hyperdistill":
             for r in P.hyperdistill(profile, out, progress):
-                print(f"{r['robot']} x {r['task']}: MLP of {r['mlp_weights']:,} weights, max |diff| {r['max_abs_diff']:.1e}, "
-                      f"latency {r['latency_mlp_ms']:.3f} ms -> {Path(out) / 'hyperdistill' / 'export'}")
+                print(
+                    f"{r['robot']} x {r['task']}: MLP of {r['mlp_weights']:,} weights, max |diff| {r['max_abs_diff']:.1e}, "
+                    f"latency {r['latency_mlp_ms']:.3f} ms -> {Path(out) / 'hyperdistill' / 'export'}"
+                )
         elif args.command == "transfer":
-            P.transfer(profile, out, args.task, False if args.no_scratch else None, progress, args.arms, args.seeds, backend, args.closest_by)
+            P.transfer(
+                profile, out, args.task, False if args.no_scratch else None, progress, args.arms, args.seeds, backend, args.closest_by
+            )
         elif args.command == "export":
             robots = [_robot_path(m) for m in args.morphology] if args.morphology else None
             formats = ("onnx", "torchscript") if args.format == "all" else (args.format,)
             for r in P.export_all(profile, out, args.task, robots, formats, args.student):
-                print(f"{r['student']}: {r['robot']} x {r['task']}: {r['compact_weights']:,} weights "
-                      f"({r['reduction_vs_metamorph']:.1f}x smaller than MetaMorph's actor through the same folding), "
-                      f"max |diff| {r['max_abs_diff']:.1e}, "
-                      f"latency {r['latency_compact_ms']:.3f} ms vs {r['latency_student_ms']:.3f} ms, "
-                      f"return {r['compact_return']:.1f} (student {r['student_return']:.1f})")
+                print(
+                    f"{r['student']}: {r['robot']} x {r['task']}: {r['compact_weights']:,} weights "
+                    f"({r['reduction_vs_metamorph']:.1f}x smaller than MetaMorph's actor through the same folding), "
+                    f"max |diff| {r['max_abs_diff']:.1e}, "
+                    f"latency {r['latency_compact_ms']:.3f} ms vs {r['latency_student_ms']:.3f} ms, "
+                    f"return {r['compact_return']:.1f} (student {r['student_return']:.1f})"
+                )
         elif args.command == "evaluate":
             folder = P.evaluate(profile, out, progress, args.models, args.eval_tasks, args.splits, args.episodes, args.into)
             print(f"returns -> {folder / 'returns.csv'}")

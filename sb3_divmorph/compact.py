@@ -197,7 +197,9 @@ class CompactActor(DeployedActor):
         self.token_bias = nn.Parameter(constant * embedding.scale + embedding.position[real], requires_grad=False)
 
         activation = "gelu" if extractor.encoder.layers and extractor.encoder.layers[0].activation is F.gelu else "relu"
-        self.blocks = nn.ModuleList(CompactBlock(block, None if gates is None else gates[0], activation) for block in extractor.encoder.layers)
+        self.blocks = nn.ModuleList(
+            CompactBlock(block, None if gates is None else gates[0], activation) for block in extractor.encoder.layers
+        )
         tailor = None if gates is None else gates[0]
         self.exteroception = nn.ModuleDict({k: merged_encoder(extractor.exteroception[k], tailor) for k in self.used_extero})
 
@@ -280,7 +282,11 @@ def metamorph_twin(policy: nn.Module) -> nn.Module:
 
 
 def size_comparison(
-    policy: nn.Module, compact: CompactActor, observation: Mapping[str, np.ndarray], observation_keys: tuple[str, ...], normalizer: Any | None = None
+    policy: nn.Module,
+    compact: CompactActor,
+    observation: Mapping[str, np.ndarray],
+    observation_keys: tuple[str, ...],
+    normalizer: Any | None = None,
 ) -> dict[str, float]:
     """Like-for-like sizes: the compact actor against the MetaMorph actor of the same task and
     sizes exported through the *same* folding (:class:`CompactActor`), so that pruning is credited
@@ -294,7 +300,13 @@ def size_comparison(
     folded = CompactActor.from_policy(twin, observation, observation_keys, normalizer).stored_numbers()["weights"]
     unfolded = actor_parameter_count(twin)
     ours = compact.stored_numbers()["weights"]
-    return {"metamorph_actor": unfolded, "metamorph_folded": folded, "compact": ours, "folding": unfolded / folded, "reduction": folded / ours}
+    return {
+        "metamorph_actor": unfolded,
+        "metamorph_folded": folded,
+        "compact": ours,
+        "folding": unfolded / folded,
+        "reduction": folded / ours,
+    }
 
 
 def batch1_latency(fn, inputs: tuple, repeats: int = 200, warmup: int = 20) -> float:

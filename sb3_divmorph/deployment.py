@@ -122,8 +122,14 @@ def export_onnx(actor: nn.Module, example: Mapping[str, np.ndarray], path: str |
     with th.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the TorchScript-based exporter's deprecation notice
         th.onnx.export(
-            actor.eval(), actor_inputs(example), buffer, input_names=names, output_names=["actions"],
-            dynamic_axes={name: {0: "batch"} for name in [*names, "actions"]}, dynamo=False, opset_version=17,
+            actor.eval(),
+            actor_inputs(example),
+            buffer,
+            input_names=names,
+            output_names=["actions"],
+            dynamic_axes={name: {0: "batch"} for name in [*names, "actions"]},
+            dynamo=False,
+            opset_version=17,
         )
     model = onnx.load_from_string(buffer.getvalue())
     kept = [i.name for i in model.graph.input]

@@ -58,8 +58,7 @@ from stable_baselines3.common.type_aliases import DictRolloutBufferSamples
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper, VecMonitor, VecNormalize
 from torch.overrides import TorchFunctionMode
 
-__all__ = ["DevicePPO", "DeviceDictRolloutBuffer", "DeviceNormalizer", "HostTransferCounter", "TorchRunningMeanStd",
-           "device_env_chain"]
+__all__ = ["DevicePPO", "DeviceDictRolloutBuffer", "DeviceNormalizer", "HostTransferCounter", "TorchRunningMeanStd", "device_env_chain"]
 
 
 # ---------------------------------------------------------------------------- env chain
@@ -243,9 +242,17 @@ class DeviceDictRolloutBuffer(DictRolloutBuffer):
     :param static_keys: observation keys constant per env (see above).
     """
 
-    def __init__(self, buffer_size: int, observation_space: spaces.Dict, action_space: spaces.Space,
-                 device: th.device | str = "auto", gae_lambda: float = 1, gamma: float = 0.99, n_envs: int = 1,
-                 static_keys: Iterable[str] = ()):
+    def __init__(
+        self,
+        buffer_size: int,
+        observation_space: spaces.Dict,
+        action_space: spaces.Space,
+        device: th.device | str = "auto",
+        gae_lambda: float = 1,
+        gamma: float = 0.99,
+        n_envs: int = 1,
+        static_keys: Iterable[str] = (),
+    ):
         self.static_keys = tuple(k for k in observation_space.spaces if k in set(static_keys))
         self._storage_ready = False
         super().__init__(buffer_size, observation_space, action_space, device, gae_lambda, gamma, n_envs)
@@ -263,8 +270,15 @@ class DeviceDictRolloutBuffer(DictRolloutBuffer):
         self.generator_ready = False
         self.pos, self.full = 0, False
 
-    def add(self, obs: Mapping[str, th.Tensor], action: th.Tensor, reward: th.Tensor,  # type: ignore[override]
-            episode_start: th.Tensor, value: th.Tensor, log_prob: th.Tensor) -> None:
+    def add(
+        self,
+        obs: Mapping[str, th.Tensor],
+        action: th.Tensor,
+        reward: th.Tensor,  # type: ignore[override]
+        episode_start: th.Tensor,
+        value: th.Tensor,
+        log_prob: th.Tensor,
+    ) -> None:
         """Store one step of every env (all arguments tensors on the device)."""
         for key, store in self.observations.items():
             store[self.pos].copy_(obs[key])
@@ -395,8 +409,11 @@ class HostTransferCounter(TorchFunctionMode):
                 self._on_host.add(id(result))
         elif name in self._SYNCS:
             self.counts["syncs"] += 1
-        elif name in ("__getitem__", "__setitem__") and isinstance(args[1] if len(args) > 1 else None, th.Tensor) \
-                and args[1].dtype == th.bool:
+        elif (
+            name in ("__getitem__", "__setitem__")
+            and isinstance(args[1] if len(args) > 1 else None, th.Tensor)
+            and args[1].dtype == th.bool
+        ):
             self.counts["syncs"] += 1
         elif name in self._FROM_HOST and first is not None and not isinstance(first, th.Tensor):
             self.counts["to_device"] += 1
@@ -511,11 +528,20 @@ class DevicePPO(PPO):
         static = self._static_keys(chain)
         if not isinstance(buffer, DeviceDictRolloutBuffer) or buffer.static_keys != static or buffer.n_envs != self.n_envs:
             self.rollout_buffer_class = DeviceDictRolloutBuffer
-            self.rollout_buffer_kwargs = {**{k: v for k, v in self.rollout_buffer_kwargs.items() if k != "static_keys"},
-                                          "static_keys": static}
+            self.rollout_buffer_kwargs = {
+                **{k: v for k, v in self.rollout_buffer_kwargs.items() if k != "static_keys"},
+                "static_keys": static,
+            }
             self.rollout_buffer = DeviceDictRolloutBuffer(
-                self.n_steps, self.observation_space, self.action_space, device=self.device, gamma=self.gamma,
-                gae_lambda=self.gae_lambda, n_envs=self.n_envs, **self.rollout_buffer_kwargs)
+                self.n_steps,
+                self.observation_space,
+                self.action_space,
+                device=self.device,
+                gamma=self.gamma,
+                gae_lambda=self.gae_lambda,
+                n_envs=self.n_envs,
+                **self.rollout_buffer_kwargs,
+            )
 
     def _state(self, chain) -> dict[str, Any]:
         """The device-side state for this env chain (normaliser mirror, episode counters)."""
@@ -523,17 +549,21 @@ class DevicePPO(PPO):
         state = self._device_state
         if state.get("env") is not benv or state.get("source") is not normalizer:
             state.clear()
-            state.update(env=benv, source=normalizer, episodes=_DeviceEpisodes(benv.num_envs, benv.torch_device),
-                         normalizer=DeviceNormalizer(normalizer, benv.torch_device) if normalizer is not None else None)
+            state.update(
+                env=benv,
+                source=normalizer,
+                episodes=_DeviceEpisodes(benv.num_envs, benv.torch_device),
+                normalizer=DeviceNormalizer(normalizer, benv.torch_device) if normalizer is not None else None,
+            )
         return state
 
     def _excluded_save_params(self) -> list[str]:
         # device tensors and env references: rebuilt on the next learn (a fresh reset)
-        return [*super()._excluded_save_params(), "_device_state", "_last_obs", "_last_episode_starts",
-                "_last_original_obs", "timings"]
+        return [*super()._excluded_save_params(), "_device_state", "_last_obs", "_last_episode_starts", "_last_original_obs", "timings"]
 
-    def _setup_learn(self, total_timesteps: int, callback=None, reset_num_timesteps: bool = True,
-                     tb_log_name: str = "run", progress_bar: bool = False) -> tuple[int, BaseCallback]:
+    def _setup_learn(
+        self, total_timesteps: int, callback=None, reset_num_timesteps: bool = True, tb_log_name: str = "run", progress_bar: bool = False
+    ) -> tuple[int, BaseCallback]:
         chain = self._device_chain()
         if chain is None:
             return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
@@ -589,8 +619,7 @@ class DevicePPO(PPO):
             self._synchronize()
             self.timings["rollout"] += time.perf_counter() - start
 
-    def _collect_on_device(self, chain, callback: BaseCallback, rollout_buffer: DeviceDictRolloutBuffer,
-                           n_rollout_steps: int) -> bool:
+    def _collect_on_device(self, chain, callback: BaseCallback, rollout_buffer: DeviceDictRolloutBuffer, n_rollout_steps: int) -> bool:
         benv, _ = chain
         state = self._state(chain)
         normalizer, episodes = state["normalizer"], state["episodes"]

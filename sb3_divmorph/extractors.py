@@ -105,14 +105,14 @@ class MorphologyTransformerExtractor(BaseFeaturesExtractor):
         token_dim = proprio_shape[1] + (observation_space[CONTEXT].shape[1] if self.use_context else 0)
 
         extero = {
-            key: list(dims)
-            for key, dims in sorted((exteroception or {}).items())
-            if key in observation_space.spaces and len(dims) > 0
+            key: list(dims) for key, dims in sorted((exteroception or {}).items()) if key in observation_space.spaces and len(dims) > 0
         }
         builder = LinearBuilder(Factorization(**factorization) if factorization else None)
         extero_builder = builder if factorize_exteroception else LinearBuilder()
         encoders = {
-            key: ExteroceptionEncoder(int(th.tensor(observation_space[key].shape).prod()), dims, extero_builder, name=f"exteroception.{key}")
+            key: ExteroceptionEncoder(
+                int(th.tensor(observation_space[key].shape).prod()), dims, extero_builder, name=f"exteroception.{key}"
+            )
             for key, dims in extero.items()
         }
         extero_dim = sum(encoder.out_dim for encoder in encoders.values())
@@ -143,8 +143,6 @@ class MorphologyTransformerExtractor(BaseFeaturesExtractor):
         tokens = th.where(padding[..., None], th.zeros((), dtype=tokens.dtype, device=tokens.device), tokens)
         features = self.encoder(self.embedding(tokens), padding, tailor_gates)
         if len(self.exteroception):
-            extero = th.cat(
-                [encoder(observations[key].flatten(1), tailor_gates) for key, encoder in self.exteroception.items()], dim=-1
-            )
+            extero = th.cat([encoder(observations[key].flatten(1), tailor_gates) for key, encoder in self.exteroception.items()], dim=-1)
             features = th.cat([features, extero[:, None, :].expand(-1, features.shape[1], -1)], dim=-1)
         return features

@@ -178,10 +178,12 @@ class DiversionRouter(nn.Module):
     ):
         super().__init__()
         self.morphology_encoder = MorphologyEncoder(context_dim, max_tokens, morph_embed_dim, morph_encoder_layers)
-        self.morphology_gate = TopKSoftGate(morph_embed_dim, n_morph_tailors, top_k_morph, gate_hidden_dim,
-                                            name="morphology gate (top_k_morph, over n_morph_tailors)")
-        self.task_gate = TopKSoftGate(task_embedding_dim, n_task_tailors, top_k_task, gate_hidden_dim,
-                                      name="task gate (top_k_task, over n_task_tailors)")
+        self.morphology_gate = TopKSoftGate(
+            morph_embed_dim, n_morph_tailors, top_k_morph, gate_hidden_dim, name="morphology gate (top_k_morph, over n_morph_tailors)"
+        )
+        self.task_gate = TopKSoftGate(
+            task_embedding_dim, n_task_tailors, top_k_task, gate_hidden_dim, name="task gate (top_k_task, over n_task_tailors)"
+        )
         self._last: tuple[tuple, tuple[th.Tensor, ...], GateActivations] | None = None
 
     def forward(self, context: th.Tensor, padding_mask: th.Tensor, task_embedding: th.Tensor) -> GateActivations:
@@ -197,8 +199,10 @@ class DiversionRouter(nn.Module):
         # inputs and the parameters are unchanged.
         key = tuple((p.data_ptr(), p._version) for p in self.parameters())
         inputs = (context, padding_mask, task_embedding)
-        if self._last is not None and self._last[0] == key and all(
-            a.shape == b.shape and a.device == b.device and th.equal(a, b) for a, b in zip(self._last[1], inputs)
+        if (
+            self._last is not None
+            and self._last[0] == key
+            and all(a.shape == b.shape and a.device == b.device and th.equal(a, b) for a, b in zip(self._last[1], inputs))
         ):
             return self._last[2]
         gates = self._route(context, padding_mask, task_embedding)

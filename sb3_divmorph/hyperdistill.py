@@ -80,10 +80,17 @@ from sb3_divmorph.transformer import TransformerEncoderLayer, attention_mask
 #: Sizes per preset: ``paper`` is the authors' reported setting (2 layers of width 256,
 #: context encoders of width 128 with a 2-head Transformer layer of FFN 256).
 HYPERDISTILL_PRESETS: dict[str, dict[str, Any]] = {
-    "small": dict(hidden_dim=64, n_layers=2, embed_dim=32, n_heads=2, encoder_ff_dim=64,
-                  exteroception=dict(hfield=[32, 32], goal=[16], object=[16])),
-    "paper": dict(hidden_dim=256, n_layers=2, embed_dim=128, n_heads=2, encoder_ff_dim=256,
-                  exteroception=dict(hfield=[64, 64], goal=[32], object=[32])),
+    "small": dict(
+        hidden_dim=64, n_layers=2, embed_dim=32, n_heads=2, encoder_ff_dim=64, exteroception=dict(hfield=[32, 32], goal=[16], object=[16])
+    ),
+    "paper": dict(
+        hidden_dim=256,
+        n_layers=2,
+        embed_dim=128,
+        n_heads=2,
+        encoder_ff_dim=256,
+        exteroception=dict(hfield=[64, 64], goal=[32], object=[32]),
+    ),
 }
 LOSSES = ("nll", "kl")
 #: What the student is told of the task: nothing, or the one-hot of ``task_index``.
@@ -168,7 +175,9 @@ class HyperDistillNetwork(nn.Module):
         self.task_input, self.n_tasks = task_input, 0
         if task_input == "index":
             if TASK_INDEX not in observation_space.spaces:
-                raise ValueError(f"task_input='index' needs a {TASK_INDEX!r} observation; the observation space has {sorted(observation_space.spaces)}")
+                raise ValueError(
+                    f"task_input='index' needs a {TASK_INDEX!r} observation; the observation space has {sorted(observation_space.spaces)}"
+                )
             self.n_tasks = int(observation_space[TASK_INDEX].high.max()) + 1
         self.context_dim = observation_space[CONTEXT].shape[1] + self.n_tasks
         self.slots, self.hidden_dim, self.embed_dim = slots_per_token, hidden_dim, embed_dim
@@ -191,9 +200,7 @@ class HyperDistillNetwork(nn.Module):
 
     def check_tokens(self, tokens: int, what: str = "robot") -> None:
         if tokens > self.n_tokens:
-            raise ValueError(
-                f"{what} has {tokens} tokens (torso + limbs); this HyperDistill student supports at most {self.n_tokens}"
-            )
+            raise ValueError(f"{what} has {tokens} tokens (torso + limbs); this HyperDistill student supports at most {self.n_tokens}")
         if tokens != self.n_tokens:
             raise ValueError(f"{what} has {tokens} token rows; pad it to the student's {self.n_tokens} (obs_padding_mask)")
 
@@ -224,9 +231,7 @@ class HyperDistillNetwork(nn.Module):
         w_in = (self.in_weight(enc_in).view(U, L, P, H) * real[..., None]).reshape(U, L * P, H)
         b_in = (self.in_bias(enc_in) * real).sum(1)
         pooled = masked_mean(enc_hidden, real[..., 0] < 0.5)
-        hidden = [
-            (wg(pooled).view(U, a, b), bg(pooled)) for (a, b), wg, bg in zip(self.hidden_sizes, self.hidden_weight, self.hidden_bias)
-        ]
+        hidden = [(wg(pooled).view(U, a, b), bg(pooled)) for (a, b), wg, bg in zip(self.hidden_sizes, self.hidden_weight, self.hidden_bias)]
         w_out = self.out_weight(enc_out).view(U, L, self.out_in, S) * real[..., None]
         w_out = w_out.permute(0, 2, 1, 3).reshape(U, self.out_in, L * S)
         b_out = (self.out_bias(enc_out) * real).reshape(U, L * S)
@@ -244,7 +249,9 @@ class HyperDistillNetwork(nn.Module):
         return rows, cols
 
     @staticmethod
-    def run_mlp(weights: MLPWeights, index: int, proprio: th.Tensor, extero: th.Tensor | None, rows: th.Tensor, cols: th.Tensor) -> th.Tensor:
+    def run_mlp(
+        weights: MLPWeights, index: int, proprio: th.Tensor, extero: th.Tensor | None, rows: th.Tensor, cols: th.Tensor
+    ) -> th.Tensor:
         """Robot ``index``'s MLP on its real limbs: (n, L*P) flat proprioception (+ (n, E)) -> (n, len(cols)).
 
         Only the real limbs' rows and columns are multiplied, exactly as in the deployed
@@ -334,12 +341,20 @@ class HyperDistillPolicy(ActorCriticPolicy):
         self.task_input, self.observation_statistics, self.normalized_keys = task_input, observation_statistics, tuple(normalized_keys)
         if preset not in HYPERDISTILL_PRESETS:
             raise ValueError(f"Unknown preset {preset!r}; choose from {sorted(HYPERDISTILL_PRESETS)}")
-        explicit = dict(hidden_dim=hidden_dim, n_layers=n_layers, embed_dim=embed_dim, n_heads=n_heads,
-                        encoder_ff_dim=encoder_ff_dim, exteroception=exteroception)
+        explicit = dict(
+            hidden_dim=hidden_dim,
+            n_layers=n_layers,
+            embed_dim=embed_dim,
+            n_heads=n_heads,
+            encoder_ff_dim=encoder_ff_dim,
+            exteroception=exteroception,
+        )
         self.preset = preset
         self.config = {**HYPERDISTILL_PRESETS[preset], **{k: v for k, v in explicit.items() if v is not None}}
         self.action_std = float(action_std)
-        if not isinstance(observation_space, spaces.Dict) or not {PROPRIOCEPTIVE, CONTEXT, OBS_PADDING_MASK, ACT_PADDING_MASK} <= set(observation_space.spaces):
+        if not isinstance(observation_space, spaces.Dict) or not {PROPRIOCEPTIVE, CONTEXT, OBS_PADDING_MASK, ACT_PADDING_MASK} <= set(
+            observation_space.spaces
+        ):
             raise ValueError("HyperDistillPolicy needs the UNIMAL Dict observation space")
         n_tokens = observation_space[PROPRIOCEPTIVE].shape[0]
         if len(action_space.shape) != 1 or action_space.shape[0] % n_tokens:
@@ -351,8 +366,19 @@ class HyperDistillPolicy(ActorCriticPolicy):
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
-        for key in ("net_arch", "features_extractor_class", "features_extractor_kwargs", "share_features_extractor", "use_sde",
-                    "log_std_init", "squash_output", "full_std", "use_expln", "ortho_init", "activation_fn"):
+        for key in (
+            "net_arch",
+            "features_extractor_class",
+            "features_extractor_kwargs",
+            "share_features_extractor",
+            "use_sde",
+            "log_std_init",
+            "squash_output",
+            "full_std",
+            "use_expln",
+            "ortho_init",
+            "activation_fn",
+        ):
             data.pop(key, None)
         data.update(self.config, preset=self.preset, action_std=self.action_std)
         if self.task_input != "none":  # a student without a task input saves what it saved before
@@ -399,8 +425,10 @@ class HyperDistillPolicy(ActorCriticPolicy):
         else:
             teacher_keys = tuple(getattr(normalizer, "norm_obs_keys", None) or ()) if normalizer.norm_obs else ()
             if set(teacher_keys) != set(self.normalized_keys):
-                raise ValueError(f"the teacher of task {task_index} normalises {sorted(teacher_keys)}; this student "
-                                 f"holds statistics of {sorted(self.normalized_keys)} (normalized_keys)")
+                raise ValueError(
+                    f"the teacher of task {task_index} normalises {sorted(teacher_keys)}; this student "
+                    f"holds statistics of {sorted(self.normalized_keys)} (normalized_keys)"
+                )
             for key in self.normalized_keys:
                 getattr(self, f"teacher_mean_{key}")[task_index] = th.as_tensor(normalizer.obs_rms[key].mean, dtype=th.float64)
                 getattr(self, f"teacher_var_{key}")[task_index] = th.as_tensor(normalizer.obs_rms[key].var, dtype=th.float64)
@@ -413,8 +441,10 @@ class HyperDistillPolicy(ActorCriticPolicy):
         index = obs[TASK_INDEX].reshape(-1).round().long()
         missing = sorted({int(i) for i in index[~self.teacher_set[index]]})
         if missing:
-            raise ValueError(f"no teacher statistics for task index(es) {missing}; this student holds them for "
-                             f"{th.nonzero(self.teacher_set).flatten().tolist()}")
+            raise ValueError(
+                f"no teacher statistics for task index(es) {missing}; this student holds them for "
+                f"{th.nonzero(self.teacher_set).flatten().tolist()}"
+            )
         out = dict(obs)
         clip = self.teacher_clip[index]
         for key in self.normalized_keys:
@@ -489,8 +519,13 @@ class _TaskStatistics:
 
     def __init__(self, policy: HyperDistillPolicy, task_index: int):
         self.norm_obs_keys = list(policy.normalized_keys)
-        self.obs_rms = {k: _RunningStats(getattr(policy, f"teacher_mean_{k}")[task_index].cpu().numpy(),
-                                         getattr(policy, f"teacher_var_{k}")[task_index].cpu().numpy()) for k in self.norm_obs_keys}
+        self.obs_rms = {
+            k: _RunningStats(
+                getattr(policy, f"teacher_mean_{k}")[task_index].cpu().numpy(),
+                getattr(policy, f"teacher_var_{k}")[task_index].cpu().numpy(),
+            )
+            for k in self.norm_obs_keys
+        }
         self.epsilon = float(policy.teacher_epsilon[task_index])
         self.clip_obs = float(policy.teacher_clip[task_index])
 
@@ -625,8 +660,12 @@ def fit_offline(
         for raw, t_mean, t_std, _, t_action in dataset.batches_with_actions(batch_size, rng):
             obs, _ = policy.obs_to_tensor(raw if normalizer is None else normalizer.normalize_obs(raw))
             value = distillation_loss(
-                policy, obs, th.as_tensor(t_mean, device=device), th.as_tensor(t_std, device=device),
-                th.as_tensor(t_action, device=device), loss,
+                policy,
+                obs,
+                th.as_tensor(t_mean, device=device),
+                th.as_tensor(t_std, device=device),
+                th.as_tensor(t_action, device=device),
+                loss,
             )
             optimizer.zero_grad()
             value.backward()
@@ -654,7 +693,11 @@ class HyperDistillMLP(DeployedActor):
     @classmethod
     @th.no_grad()
     def from_policy(
-        cls, policy: HyperDistillPolicy, observation: Mapping[str, np.ndarray], observation_keys: tuple[str, ...], normalizer: Any | None = None
+        cls,
+        policy: HyperDistillPolicy,
+        observation: Mapping[str, np.ndarray],
+        observation_keys: tuple[str, ...],
+        normalizer: Any | None = None,
     ) -> HyperDistillMLP:
         """
         :param policy: the trained student.

@@ -135,9 +135,12 @@ class FactorizedLinear(nn.Module):
                 f"{n_morph_tailors} morphology + {n_task_tailors} task tailors."
             )
         slots = (n_morph_tailors, n_task_tailors) if gate_slots is None else tuple(int(g) for g in gate_slots)
-        if slots[0] < n_morph_tailors or slots[1] < n_task_tailors or (n_morph_tailors == 0) != (slots[0] == 0) or (
-            n_task_tailors == 0
-        ) != (slots[1] == 0):
+        if (
+            slots[0] < n_morph_tailors
+            or slots[1] < n_task_tailors
+            or (n_morph_tailors == 0) != (slots[0] == 0)
+            or (n_task_tailors == 0) != (slots[1] == 0)
+        ):
             raise ValueError(f"gate slots {slots} cannot drive {n_morph_tailors} morphology + {n_task_tailors} task tailors")
         self.gate_slots = slots
         if path not in ("auto", "merged", "lowrank"):
@@ -183,7 +186,9 @@ class FactorizedLinear(nn.Module):
         #: the square factor of the current forward pass, when :func:`batched_square_factors` computed it
         self._shared_square: th.Tensor | None = None
         if slots != (n_morph_tailors, n_task_tailors):
-            self.register_buffer("gate_pool", th.block_diag(slot_pooling(slots[0], n_morph_tailors), slot_pooling(slots[1], n_task_tailors)))
+            self.register_buffer(
+                "gate_pool", th.block_diag(slot_pooling(slots[0], n_morph_tailors), slot_pooling(slots[1], n_task_tailors))
+            )
         else:
             self.gate_pool = None
 
@@ -260,9 +265,7 @@ class FactorizedLinear(nn.Module):
         if self.training or th.is_grad_enabled():
             self._cache = None
             return self._compute_factors()
-        tensors = [self.singular_values, self.tall, *(
-            (self.square_base, self.square_skew) if self.orthogonal else (self.square,)
-        )]
+        tensors = [self.singular_values, self.tall, *((self.square_base, self.square_skew) if self.orthogonal else (self.square,))]
         key = tuple((t.data_ptr(), t._version, t.device) for t in tensors)
         if self._cache is None or self._cache[0] != key:
             self._cache = (key, self._compute_factors())
@@ -337,8 +340,7 @@ class FactorizedLinear(nn.Module):
             f"in_features={self.in_features}, out_features={self.out_features}, "
             f"learngenes={self.n_learngenes}, morph_tailors={self.n_morph_tailors}, "
             f"task_tailors={self.n_task_tailors}, orthogonal={self.orthogonal}, "
-            f"square={self.square_side}, path={self.path}"
-            + (f", gate_slots={self.gate_slots}" if self.gate_pool is not None else "")
+            f"square={self.square_side}, path={self.path}" + (f", gate_slots={self.gate_slots}" if self.gate_pool is not None else "")
         )
 
 
@@ -529,9 +531,9 @@ def project_many(layers: list[nn.Module], x: th.Tensor, tailor_gates: th.Tensor 
     factors = [layer.factors() for layer in layers]
     batch = tailor_gates.shape[0]
     rows = x.reshape(-1, x.shape[-1])
-    learngene_out = F.linear(
-        rows, th.cat([f.merged for f in factors]), th.cat([layer.bias for layer in layers])
-    ).split([layer.out_features for layer in layers], dim=-1)
+    learngene_out = F.linear(rows, th.cat([f.merged for f in factors]), th.cat([layer.bias for layer in layers])).split(
+        [layer.out_features for layer in layers], dim=-1
+    )
     down = th.cat([f.tailor_V for f in factors], dim=1)
     scales = th.cat([f.tailor_s * layer.local_gates(tailor_gates) for f, layer in zip(factors, layers)], dim=-1)
     hidden = ((rows @ down).view(batch, -1, scales.shape[-1]) * scales[:, None, :]).view(-1, scales.shape[-1])

@@ -270,9 +270,7 @@ class ModuMorphExtractor(BaseFeaturesExtractor):
             # MetaMorph's token embedding (proprioception + context), without the position embedding
             self.embedding = nn.Linear(proprio_dim + n_context, d_model)
             nn.init.uniform_(self.embedding.weight, -EMBEDDING_INIT, EMBEDDING_INIT)
-        self.layers = nn.ModuleList(
-            ModuMorphLayer(d_model, n_heads, ff_dim, fixed_attention, dropout, activation) for _ in range(n_layers)
-        )
+        self.layers = nn.ModuleList(ModuMorphLayer(d_model, n_heads, ff_dim, fixed_attention, dropout, activation) for _ in range(n_layers))
         self.exteroception = nn.ModuleDict(encoders)
 
     def forward(self, observations: Mapping[str, th.Tensor], return_attention: bool = False):
@@ -452,8 +450,10 @@ class ModuMorphPolicy(MorphologyTransformerPolicy):
         """Every layer's (B, H, L, L) attention weights in the actor's (or critic's) Transformer, no grad."""
         if isinstance(next(iter(observation.values())), np.ndarray):
             observation, _ = self.obs_to_tensor(observation)  # type: ignore[arg-type]
-        extractor = self.features_extractor if self.share_features_extractor else (
-            self.pi_features_extractor if actor else self.vf_features_extractor
+        extractor = (
+            self.features_extractor
+            if self.share_features_extractor
+            else (self.pi_features_extractor if actor else self.vf_features_extractor)
         )
         with th.no_grad():
             return extractor(self._preprocess(observation), return_attention=True)[1]
@@ -534,7 +534,11 @@ class ModuMorphActor(DeployedActor):
     @classmethod
     @th.no_grad()
     def from_policy(
-        cls, policy: ModuMorphPolicy, observation: Mapping[str, np.ndarray], observation_keys: tuple[str, ...], normalizer: Any | None = None
+        cls,
+        policy: ModuMorphPolicy,
+        observation: Mapping[str, np.ndarray],
+        observation_keys: tuple[str, ...],
+        normalizer: Any | None = None,
     ) -> ModuMorphActor:
         """
         :param policy: a trained :class:`ModuMorphPolicy`.
@@ -568,7 +572,9 @@ class ModuMorphActor(DeployedActor):
         padding = th.zeros(1, len(real), dtype=th.bool)
         context_embedding = extractor.context_encoder(context) if extractor.fixed_attention else None
         self.blocks = nn.ModuleList(
-            _FoldedLayer(layer, layer.attention_weights(layer.norm_context(context_embedding), padding)[0] if layer.fixed_attention else None)
+            _FoldedLayer(
+                layer, layer.attention_weights(layer.norm_context(context_embedding), padding)[0] if layer.fixed_attention else None
+            )
             for layer in extractor.layers
         )
         self.exteroception = nn.ModuleDict({k: _frozen(extractor.exteroception[k]) for k in self.used_extero})

@@ -53,10 +53,15 @@ def learning_curve(folder: str | Path, window: int = 10) -> tuple[np.ndarray, np
     if logs:
         table = pd.concat([pd.read_csv(f) for f in logs]).dropna(subset=["rollout/ep_rew_mean"])
         table = table.sort_values("time/total_timesteps")
-        return (table["time/total_timesteps"].to_numpy(dtype=float), table["rollout/ep_rew_mean"].to_numpy(dtype=float),
-                f"{len(logs)} progress.csv log(s): rollout/ep_rew_mean, mean of SB3's last 100 episodes")
-    raise PlotError(f"{folder} holds no SB3 Monitor files (*monitor.csv) and no progress.csv logs; "
-                    "train with a Monitor-wrapped env (rl-zoo does) or point at a pipeline stage folder")
+        return (
+            table["time/total_timesteps"].to_numpy(dtype=float),
+            table["rollout/ep_rew_mean"].to_numpy(dtype=float),
+            f"{len(logs)} progress.csv log(s): rollout/ep_rew_mean, mean of SB3's last 100 episodes",
+        )
+    raise PlotError(
+        f"{folder} holds no SB3 Monitor files (*monitor.csv) and no progress.csv logs; "
+        "train with a Monitor-wrapped env (rl-zoo does) or point at a pipeline stage folder"
+    )
 
 
 def plot_learning_curves(folders: list[str | Path], out: str | Path, window: int = 10, title: str | None = None) -> Path:
@@ -115,8 +120,9 @@ def run(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m sb3_divmorph.plot``: same arguments as ``divmorph plot``."""
-    parser = argparse.ArgumentParser(prog="python -m sb3_divmorph.plot", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m sb3_divmorph.plot", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     add_arguments(parser)
     return run(parser.parse_args(argv))
 

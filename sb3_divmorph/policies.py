@@ -318,9 +318,7 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
             latent_vf = self.mlp_extractor.forward_critic(vf_features, critic_gates)
         return latent_pi, latent_vf, gates
 
-    def _distribution(
-        self, latent_pi: th.Tensor, obs: Mapping[str, th.Tensor], gates: th.Tensor | None
-    ) -> MaskedDiagGaussianDistribution:
+    def _distribution(self, latent_pi: th.Tensor, obs: Mapping[str, th.Tensor], gates: th.Tensor | None) -> MaskedDiagGaussianDistribution:
         mean_actions = self.action_net(latent_pi, gates).flatten(1)
         return self.action_dist.proba_distribution(mean_actions, self.log_std, obs[ACT_PADDING_MASK])
 
@@ -367,9 +365,7 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
         gates = self._tailor_gates(obs)
         if self.share_features_extractor or features_extractor is not None:
             return (features_extractor or self.features_extractor)(obs, gates)
-        return self.pi_features_extractor(obs, gates), self.vf_features_extractor(
-            obs, None if gates is None else gates.detach()
-        )
+        return self.pi_features_extractor(obs, gates), self.vf_features_extractor(obs, None if gates is None else gates.detach())
 
     # -- analysis ------------------------------------------------------------------------------
     def parameter_counts(self) -> dict[str, int]:

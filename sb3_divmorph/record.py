@@ -96,7 +96,9 @@ def find_model(source: str | Path) -> SavedModel:
         elif zoo and (source / "best_model.zip").is_file():
             model = source / "best_model.zip"
         else:
-            raise RecordError(f"{source} holds no model.zip (divmorph run) nor <env id>.zip (rl-zoo run folder such as logs/ppo/Unimal-FT-v0_1)")
+            raise RecordError(
+                f"{source} holds no model.zip (divmorph run) nor <env id>.zip (rl-zoo run folder such as logs/ppo/Unimal-FT-v0_1)"
+            )
     elif source.suffix == ".zip":
         model = source
     else:
@@ -123,13 +125,17 @@ def find_model(source: str | Path) -> SavedModel:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``record`` arguments (shared by ``divmorph record`` and ``python -m sb3_divmorph.record``)."""
-    parser.add_argument("source", help="model .zip, divmorph stage folder (runs/demo/teachers/FT) or rl-zoo run folder (logs/ppo/Unimal-FT-v0_1)")
+    parser.add_argument(
+        "source", help="model .zip, divmorph stage folder (runs/demo/teachers/FT) or rl-zoo run folder (logs/ppo/Unimal-FT-v0_1)"
+    )
     parser.add_argument("--task", help="task to record (default: the one the model was trained on, when its folder tells)")
     parser.add_argument("--algo", choices=ALGOS, help="algorithm the model was saved by (default: from the rl-zoo folder, else ppo)")
     parser.add_argument("--normalizer", help="VecNormalize statistics (default: the ones saved with the model)")
-    parser.add_argument("--morphologies", default=None,
-                        help="robot set, directory or .xml file (default: the robots the model was trained on, from its "
-                             "run's robot_sets.json; else train)")
+    parser.add_argument(
+        "--morphologies",
+        default=None,
+        help="robot set, directory or .xml file (default: the robots the model was trained on, from its run's robot_sets.json; else train)",
+    )
     parser.add_argument("--robot", action="append", help="robot name in that set (repeatable; default: the first ones, one per episode)")
     parser.add_argument("--episodes", type=int, default=1, help="episodes to record, one after the other (default: 1)")
     parser.add_argument("--steps", type=int, default=1000, help="longest episode, in steps of 0.02 s (default: 1000)")
@@ -137,8 +143,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--width", type=int, default=480)
     parser.add_argument("--height", type=int, default=480)
-    parser.add_argument("--out", help="MP4 file, or GIF when it ends in .gif (default: videos/<model folder>-<env id>.mp4 in "
-                                      "the current folder, never inside the model's folder)")
+    parser.add_argument(
+        "--out",
+        help="MP4 file, or GIF when it ends in .gif (default: videos/<model folder>-<env id>.mp4 in "
+        "the current folder, never inside the model's folder)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -180,8 +189,15 @@ def record(args: argparse.Namespace) -> Path:
         morphologies = trained_robots(saved.model) or "train"
     from sb3_divmorph.pipeline.runs import trained_env_kwargs
 
-    env = gym.make(env_id, morphologies=morphologies, render_mode="rgb_array",
-                   width=args.width, height=args.height, max_episode_steps=args.steps, **trained_env_kwargs(saved.model))
+    env = gym.make(
+        env_id,
+        morphologies=morphologies,
+        render_mode="rgb_array",
+        width=args.width,
+        height=args.height,
+        max_episode_steps=args.steps,
+        **trained_env_kwargs(saved.model),
+    )
     robots = [m.name for m in env.unwrapped.morphologies]
     unknown = sorted(set(args.robot or []) - set(robots))
     if unknown:
@@ -208,8 +224,9 @@ def record(args: argparse.Namespace) -> Path:
         for episode in tqdm(range(args.episodes), desc="[record]", unit="episode", disable=args.no_progress):
             robot = chosen[episode % len(chosen)]
             outcome: dict = {}
-            for frame in episode_frames(env, policy, steps=args.steps, seed=args.seed + episode,
-                                        options={"morphology": robot}, outcome=outcome):
+            for frame in episode_frames(
+                env, policy, steps=args.steps, seed=args.seed + episode, options={"morphology": robot}, outcome=outcome
+            ):
                 count += 1
                 yield frame
             print(f"[record] episode {episode}: {robot}, {outcome['steps']} steps, return {outcome['return']:.1f}")
@@ -224,8 +241,9 @@ def record(args: argparse.Namespace) -> Path:
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m sb3_divmorph.record``: same arguments as ``divmorph record``."""
-    parser = argparse.ArgumentParser(prog="python -m sb3_divmorph.record", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m sb3_divmorph.record", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     add_arguments(parser)
     return run(parser.parse_args(argv))
 

@@ -152,9 +152,7 @@ class TransformerEncoder(nn.Module):
             for i in range(n_layers)
         )
 
-    def forward(
-        self, x: th.Tensor, key_padding_mask: th.Tensor, tailor_gates: th.Tensor | None = None
-    ) -> th.Tensor:
+    def forward(self, x: th.Tensor, key_padding_mask: th.Tensor, tailor_gates: th.Tensor | None = None) -> th.Tensor:
         """
         :param x: (B, L, D) tokens.
         :param key_padding_mask: (B, L) boolean, True = padded.

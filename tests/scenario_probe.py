@@ -41,8 +41,15 @@ class Probe:
         if self.batched:
             from unimal_envs.batched import make_batched_env
 
-            self.benv = make_batched_env(task, morphologies=ROBOTS, worlds_per_robot=worlds, device="cpu", seed=seed,
-                                         terrain_variants=terrain_variants, max_episode_steps=100_000)
+            self.benv = make_batched_env(
+                task,
+                morphologies=ROBOTS,
+                worlds_per_robot=worlds,
+                device="cpu",
+                seed=seed,
+                terrain_variants=terrain_variants,
+                max_episode_steps=100_000,
+            )
             self.block = self.benv.blocks[0]
             self.group = self.block.groups[robot]
             self.obs = {k: v[self.row].numpy() for k, v in self.benv.reset_tensors().items()}

@@ -36,7 +36,9 @@ def _step_world(benv, world: int, action: np.ndarray):
     return benv.step_tensors(actions)
 
 
-@pytest.mark.parametrize("task", ["FT", "VT", "Patrol", "Escape", "ManipulateBox", "Obstacle", "PointNav", "Exploration", "Incline", "PushBoxIncline"])
+@pytest.mark.parametrize(
+    "task", ["FT", "VT", "Patrol", "Escape", "ManipulateBox", "Obstacle", "PointNav", "Exploration", "Incline", "PushBoxIncline"]
+)
 def test_a_world_agrees_with_the_single_env_from_the_same_state_with_the_same_actions(task):
     benv = make_batched_env(task, morphologies=ROBOTS, worlds_per_robot=2, device="cpu", seed=0, terrain_variants=2)
     benv.reset()
@@ -66,9 +68,16 @@ def test_a_world_agrees_with_the_single_env_from_the_same_state_with_the_same_ac
 
 @pytest.mark.parametrize("task", [*C.TASK_NAMES, "MultiTask"])
 def test_every_task_steps_with_finite_values_and_resets_each_world_on_its_own(task):
-    benv = make_batched_env(task, morphologies=ROBOTS, worlds_per_robot=4, device="cpu", seed=1,
-                            max_episode_steps=20, terrain_variants=2,
-                            tasks=["FT", "Patrol"] if task == "MultiTask" else None)
+    benv = make_batched_env(
+        task,
+        morphologies=ROBOTS,
+        worlds_per_robot=4,
+        device="cpu",
+        seed=1,
+        max_episode_steps=20,
+        terrain_variants=2,
+        tasks=["FT", "Patrol"] if task == "MultiTask" else None,
+    )
     n = benv.num_envs
     assert n == 2 * 4 * (2 if task == "MultiTask" else 1)
     obs = benv.reset()
@@ -89,7 +98,7 @@ def test_every_task_steps_with_finite_values_and_resets_each_world_on_its_own(ta
             ended += 1
         episode_steps[done] = 0
     assert ended >= n, "every world is truncated at 20 steps, so 50 steps end at least one episode each"
-    assert [info["task"] for info in infos[:: 8]] == (["FT", "Patrol"] if task == "MultiTask" else [task] * (n // 8))
+    assert [info["task"] for info in infos[::8]] == (["FT", "Patrol"] if task == "MultiTask" else [task] * (n // 8))
     # Each world's static observations are its own robot's and task's.
     np.testing.assert_array_equal(obs["task_index"][:, 0], [C.TASK_NAMES.index(t) for t in benv.task_names])
     robots = {m.name: m for m in load_morphologies(ROBOTS)}
@@ -170,11 +179,21 @@ def test_ppo_trains_saves_and_loads_on_the_batched_env(tmp_path):
     import sb3_divmorph  # noqa: F401  (registers the policy aliases)
 
     tiny = dict(d_model=16, n_layers=1, ff_dim=32, exteroception=dict(hfield=[8], goal=[4], object=[4]))
-    venv = VecNormalize(VecMonitor(make_batched_env("VT", morphologies=ROBOTS, worlds_per_robot=4, device="cpu",
-                                                    seed=0, max_episode_steps=16, terrain_variants=2)),
-                        norm_obs_keys=["proprioceptive", "hfield"])
-    model = PPO("DivMorphPolicy", venv, n_steps=16, batch_size=64, n_epochs=1, seed=0,
-                policy_kwargs=dict(tiny, n_morph_tailors=4, n_task_tailors=4, top_k_morph=2, top_k_task=2))
+    venv = VecNormalize(
+        VecMonitor(
+            make_batched_env("VT", morphologies=ROBOTS, worlds_per_robot=4, device="cpu", seed=0, max_episode_steps=16, terrain_variants=2)
+        ),
+        norm_obs_keys=["proprioceptive", "hfield"],
+    )
+    model = PPO(
+        "DivMorphPolicy",
+        venv,
+        n_steps=16,
+        batch_size=64,
+        n_epochs=1,
+        seed=0,
+        policy_kwargs=dict(tiny, n_morph_tailors=4, n_task_tailors=4, top_k_morph=2, top_k_task=2),
+    )
     before = [p.detach().clone() for p in model.policy.parameters()]
     model.learn(total_timesteps=2 * 16 * 8)
     assert any(not torch.equal(a, b) for a, b in zip(before, model.policy.parameters()))
@@ -246,11 +265,18 @@ def test_the_pipeline_trains_its_stages_on_the_batched_backend_when_the_profile_
     monkeypatch.setattr(DevicePPO, "_collect_on_device", lambda self, *a: on_device.append(1) or collect(self, *a))
     on_warp = {"env_backend": "batched", "worlds_per_robot": 2, "terrain_variants": 3}
     profiles = write_profiles(
-        tmp_path, teachers__n_timesteps=64, teachers__overrides={"n_steps": 16, "batch_size": 32, "n_epochs": 1}, **{
-            f"{stage}__{key}": value for stage in ("teachers", "distill", "transfer") for key, value in on_warp.items()},
-        transfer__tasks=["PointNav"], transfer__arms=["divmorph"], transfer__eval_every=0,
-        transfer__overrides={"n_steps": 16, "batch_size": 32, "n_epochs": 1}, transfer__n_timesteps=64,
-        distill__n_steps=16, distill__n_timesteps=64)
+        tmp_path,
+        teachers__n_timesteps=64,
+        teachers__overrides={"n_steps": 16, "batch_size": 32, "n_epochs": 1},
+        **{f"{stage}__{key}": value for stage in ("teachers", "distill", "transfer") for key, value in on_warp.items()},
+        transfer__tasks=["PointNav"],
+        transfer__arms=["divmorph"],
+        transfer__eval_every=0,
+        transfer__overrides={"n_steps": 16, "batch_size": 32, "n_epochs": 1},
+        transfer__n_timesteps=64,
+        distill__n_steps=16,
+        distill__n_timesteps=64,
+    )
     out = tmp_path / "run"
     for stage in ("teachers", "distill", "transfer"):
         assert cli([stage, "--profile", "tiny", "--profiles", str(profiles), "--out", str(out), "--no-progress"]) == 0

@@ -37,8 +37,9 @@ NORM_KEYS = ["proprioceptive", "hfield"]
 
 def batched(task: str = "VT", max_episode_steps: int = 5, worlds: int = 2) -> VecNormalize:
     """2 robots x ``worlds`` worlds, monitored and normalised as the pipeline wraps them."""
-    env = make_batched_env(task, morphologies=ROBOTS, worlds_per_robot=worlds, device="cpu", seed=0,
-                           max_episode_steps=max_episode_steps, terrain_variants=2)
+    env = make_batched_env(
+        task, morphologies=ROBOTS, worlds_per_robot=worlds, device="cpu", seed=0, max_episode_steps=max_episode_steps, terrain_variants=2
+    )
     return VecNormalize(VecMonitor(env), norm_obs_keys=NORM_KEYS)
 
 
@@ -102,8 +103,14 @@ def test_gae_bootstrapping_and_minibatches_match_sb3s_rollout_buffer_on_the_same
         start = (rng.random(envs) < 0.3).astype(np.float32)
         value, log_prob = torch.randn(envs, 1), torch.randn(envs)
         ref.add(obs, action, reward, start, value, log_prob)
-        buf.add({k: torch.as_tensor(v) for k, v in obs.items()}, torch.as_tensor(action), torch.as_tensor(reward),
-                torch.as_tensor(start), value, log_prob)
+        buf.add(
+            {k: torch.as_tensor(v) for k, v in obs.items()},
+            torch.as_tensor(action),
+            torch.as_tensor(reward),
+            torch.as_tensor(start),
+            value,
+            log_prob,
+        )
     last, dones = torch.randn(envs), np.array([True, False, True])
     ref.compute_returns_and_advantage(last, dones)
     buf.compute_returns_and_advantage(last, torch.as_tensor(dones))
@@ -129,8 +136,7 @@ def test_the_hot_loop_stays_on_the_device(monkeypatch):
 
     for name in ("reset", "step_async", "step_wait", "_numpy"):
         monkeypatch.setattr(BatchedUnimalEnv, name, refuse)
-    model = DevicePPO("MetaMorphPolicy", batched(max_episode_steps=3), n_steps=8, batch_size=32, n_epochs=1, seed=0,
-                      policy_kwargs=TINY)
+    model = DevicePPO("MetaMorphPolicy", batched(max_episode_steps=3), n_steps=8, batch_size=32, n_epochs=1, seed=0, policy_kwargs=TINY)
     model.learn(2 * 8 * 4)  # would raise through `refuse` if any VecEnv method ran
     assert model.num_timesteps == 64 and len(model.ep_info_buffer) >= 8
 

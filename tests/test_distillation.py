@@ -49,14 +49,17 @@ def teachers(tmp_path_factory):
     folder = tmp_path_factory.mktemp("teachers")
     found = {}
     for seed, task in enumerate(("FT", "Patrol")):
-        venv = VecNormalize(DummyVecEnv([lambda task=task: gym.make(f"Unimal-{task}-v0", morphologies=ROBOTS, max_episode_steps=50)]),
-                            norm_obs_keys=["proprioceptive"])
+        venv = VecNormalize(
+            DummyVecEnv([lambda task=task: gym.make(f"Unimal-{task}-v0", morphologies=ROBOTS, max_episode_steps=50)]),
+            norm_obs_keys=["proprioceptive"],
+        )
         model = PPO("MetaMorphPolicy", venv, n_steps=64, batch_size=64, n_epochs=1, seed=seed, policy_kwargs=TINY)
         model.learn(64)
         model.save(folder / task / "model.zip")
         venv.save(str(folder / task / "vecnormalize.pkl"))
-        found[TASK_NAMES.index(task)] = Teacher.load(folder / task / "model.zip", folder / task / "vecnormalize.pkl", task,
-                                                     observation_space=venv.observation_space)
+        found[TASK_NAMES.index(task)] = Teacher.load(
+            folder / task / "model.zip", folder / task / "vecnormalize.pkl", task, observation_space=venv.observation_space
+        )
     return found
 
 
@@ -105,7 +108,9 @@ def test_dagger_reduces_the_kl_to_each_states_own_teacher(teachers):
     assert set(np.unique(tasks)) == {TASK_NAMES.index("FT"), TASK_NAMES.index("Patrol")}
     assert after < 0.5 * before
     # ImitationPPO did not run PPO's update: the critic (not distilled) is untouched
-    critic = [n for n, _ in student.policy.named_parameters() if n.startswith(("vf_features_extractor", "value_net", "mlp_extractor.value_net"))]
+    critic = [
+        n for n, _ in student.policy.named_parameters() if n.startswith(("vf_features_extractor", "value_net", "mlp_extractor.value_net"))
+    ]
     names = [n for n, _ in student.policy.named_parameters()]
     for name in critic:
         i = names.index(name)
@@ -155,8 +160,9 @@ def test_a_resumed_distillation_keeps_its_dataset_and_optimiser(teachers, tmp_pa
     assert {p.name for p in saved.iterdir()} == {"dagger_dataset.npz", "dagger_state.pt", "model.zip", "vecnormalize.pkl"}
 
     resumed = dagger()
-    TrainingRun(tmp_path / "student", 384, 1000, make_model, multitask_venv, algo=ImitationPPO,
-                callbacks=[resumed], progress_bar=False).run()
+    TrainingRun(
+        tmp_path / "student", 384, 1000, make_model, multitask_venv, algo=ImitationPPO, callbacks=[resumed], progress_bar=False
+    ).run()
     # two more rollouts, each adding 128 states to the 128 aggregated before the checkpoint
     assert list(read_progress(tmp_path / "student")["distill/dataset_size"]) == [256, 384]
     # and Adam went on counting: 2 minibatches before the checkpoint, then 4 and 6
@@ -216,8 +222,9 @@ def test_unit_learning_rates_scale_each_elements_update():
 
 def test_transfer_keeps_gates_fixed_and_unselected_tailors_frozen():
     th.manual_seed(0)
-    venv = VecNormalize(DummyVecEnv([lambda: gym.make("Unimal-Escape-v0", morphologies=ROBOTS, max_episode_steps=50)]),
-                        norm_obs_keys=["proprioceptive"])
+    venv = VecNormalize(
+        DummyVecEnv([lambda: gym.make("Unimal-Escape-v0", morphologies=ROBOTS, max_episode_steps=50)]), norm_obs_keys=["proprioceptive"]
+    )
     model = PPO("DivMorphPolicy", venv, n_steps=64, batch_size=64, n_epochs=2, learning_rate=1e-3, seed=0, policy_kwargs=TINY_DIVMORPH)
     obs = venv.reset()
     gates = model.policy.get_gates(obs)
@@ -230,8 +237,8 @@ def test_transfer_keeps_gates_fixed_and_unselected_tailors_frozen():
     model.learn(128)
     moved = (layer.singular_values.detach() - before_s).abs()
     unselected = th.as_tensor(~selection.tailors)
-    assert th.all(moved[layer.n_learngenes:][unselected] == 0)
-    assert moved[layer.n_learngenes:][~unselected].max() > 0
+    assert th.all(moved[layer.n_learngenes :][unselected] == 0)
+    assert moved[layer.n_learngenes :][~unselected].max() > 0
     assert moved[: layer.n_learngenes].max() > 0
     assert all(th.equal(a, b) for a, b in zip(router_before, model.policy.router.parameters()))
     after = model.policy.get_gates(obs)
@@ -243,10 +250,19 @@ def test_critic_warmup_trains_only_the_critic_then_both(policy):
     from sb3_divmorph.finetune import CriticWarmup, critic_modules
 
     th.manual_seed(0)
-    venv = VecNormalize(DummyVecEnv([lambda: gym.make("Unimal-Escape-v0", morphologies=ROBOTS, max_episode_steps=50)]),
-                        norm_obs_keys=["proprioceptive"])
-    model = PPO(policy, venv, n_steps=64, batch_size=64, n_epochs=2, learning_rate=1e-3, seed=0,
-                policy_kwargs=TINY_DIVMORPH if policy == "DivMorphPolicy" else TINY)
+    venv = VecNormalize(
+        DummyVecEnv([lambda: gym.make("Unimal-Escape-v0", morphologies=ROBOTS, max_episode_steps=50)]), norm_obs_keys=["proprioceptive"]
+    )
+    model = PPO(
+        policy,
+        venv,
+        n_steps=64,
+        batch_size=64,
+        n_epochs=2,
+        learning_rate=1e-3,
+        seed=0,
+        policy_kwargs=TINY_DIVMORPH if policy == "DivMorphPolicy" else TINY,
+    )
     if policy == "DivMorphPolicy":  # with the per-unit learning rates of a DivMorph transfer installed
         gates = model.policy.get_gates(venv.reset())
         prepare_transfer(model.policy, UnitSelection.from_gates(gates.morphology.numpy(), gates.task.numpy()))
@@ -256,8 +272,7 @@ def test_critic_warmup_trains_only_the_critic_then_both(policy):
         return {name: p.detach().clone() for name, p in model.policy.named_parameters()}
 
     def moved(before, in_critic):
-        return [n for n, p in model.policy.named_parameters()
-                if (id(p) in critic) == in_critic and not th.equal(p.detach(), before[n])]
+        return [n for n, p in model.policy.named_parameters() if (id(p) in critic) == in_critic and not th.equal(p.detach(), before[n])]
 
     warmup = CriticWarmup(128)
     before = snapshot()
@@ -267,8 +282,9 @@ def test_critic_warmup_trains_only_the_critic_then_both(policy):
     before = snapshot()
     model.learn(64, callback=warmup, reset_num_timesteps=False)  # the update at 192 > 128 trains both
     assert moved(before, in_critic=True) and moved(before, in_critic=False)
-    assert not warmup.active and all(p.requires_grad for p in model.policy.pi_features_extractor.parameters()
-                                     if policy == "MetaMorphPolicy")
+    assert not warmup.active and all(
+        p.requires_grad for p in model.policy.pi_features_extractor.parameters() if policy == "MetaMorphPolicy"
+    )
     with pytest.raises(ValueError, match="critic warm-up"):
         CriticWarmup(-1)
 
@@ -276,10 +292,13 @@ def test_critic_warmup_trains_only_the_critic_then_both(policy):
 @pytest.mark.parametrize("task, activation", [("FT", th.nn.ReLU), ("VT", th.nn.Tanh), ("ManipulateBox", th.nn.ReLU)])
 def test_compact_actor_equals_the_student_and_runs_from_torch_alone(task, activation, tmp_path):
     th.manual_seed(1)
-    venv = VecNormalize(DummyVecEnv([lambda: gym.make(f"Unimal-{task}-v0", morphologies=ROBOTS[:1], max_episode_steps=50)]),
-                        norm_obs_keys=["proprioceptive"])
-    model = PPO("DivMorphPolicy", venv, n_steps=64, batch_size=64, n_epochs=1, seed=0,
-                policy_kwargs=dict(TINY_DIVMORPH, activation_fn=activation))
+    venv = VecNormalize(
+        DummyVecEnv([lambda: gym.make(f"Unimal-{task}-v0", morphologies=ROBOTS[:1], max_episode_steps=50)]),
+        norm_obs_keys=["proprioceptive"],
+    )
+    model = PPO(
+        "DivMorphPolicy", venv, n_steps=64, batch_size=64, n_epochs=1, seed=0, policy_kwargs=dict(TINY_DIVMORPH, activation_fn=activation)
+    )
     model.learn(64)  # moves the weights away from the SVD init and fills the statistics
     venv.training = False
     venv.reset()
@@ -307,5 +326,7 @@ def test_compact_actor_equals_the_student_and_runs_from_torch_alone(task, activa
         "assert 'sb3_divmorph' not in sys.modules and 'stable_baselines3' not in sys.modules\n"
         "print(float((out - torch.as_tensor(d['reference'])).abs().max()))\n"
     )
-    result = subprocess.run([sys.executable, "-c", script, str(path), str(tmp_path / "inputs.npz")], capture_output=True, text=True, check=True)
+    result = subprocess.run(
+        [sys.executable, "-c", script, str(path), str(tmp_path / "inputs.npz")], capture_output=True, text=True, check=True
+    )
     assert float(result.stdout.strip()) <= 1e-5

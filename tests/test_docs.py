@@ -15,8 +15,13 @@ REPO = Path(__file__).resolve().parents[1]
 def test_the_docs_build_strictly_with_the_generated_api_reference(tmp_path):
     pytest.importorskip("mkdocs", reason="the docs need the dev extra (mkdocs, mkdocstrings)")
     site = tmp_path / "site"
-    build = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(site)],
-                           cwd=REPO, capture_output=True, text=True, timeout=300)
+    build = subprocess.run(
+        [sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(site)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert build.returncode == 0, build.stderr[-3000:]
     api = (site / "api" / "index.html").read_text()
     # the generated reference holds the docstrings' parameters, not just the names

@@ -186,6 +186,7 @@ def test_proprioception_sensors_are_read_once_per_step_not_while_stepping(train_
     assert np.isfinite(again).all() and not np.array_equal(again, obs)
     assert model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_SENSOR
 
+
 def test_wrong_action_shape_is_rejected(train_files):
     env = make_ft(train_files[:1])
     env.reset(seed=0)

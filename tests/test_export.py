@@ -30,8 +30,10 @@ ONNX_ACTOR = Path(sb3_divmorph.__file__).parent / "onnx_actor.py"
 def trained_student(task: str, policy: str = "DivMorphPolicy", **policy_kwargs):
     """A tiny student moved off its init by a few PPO steps, its normaliser and a batch of raw observations."""
     th.manual_seed(2)
-    venv = VecNormalize(DummyVecEnv([lambda: gym.make(f"Unimal-{task}-v0", morphologies=ROBOTS[:1], max_episode_steps=50)]),
-                        norm_obs_keys=["proprioceptive", "hfield"])
+    venv = VecNormalize(
+        DummyVecEnv([lambda: gym.make(f"Unimal-{task}-v0", morphologies=ROBOTS[:1], max_episode_steps=50)]),
+        norm_obs_keys=["proprioceptive", "hfield"],
+    )
     model = PPO(policy, venv, n_steps=64, batch_size=64, n_epochs=1, seed=0, policy_kwargs={**TINY, **policy_kwargs})
     model.learn(64)
     venv.training = False
@@ -137,7 +139,8 @@ def test_onnx_actor_runs_with_onnxruntime_and_numpy_only(tmp_path):
     )
     result = subprocess.run(
         [sys.executable, "-c", script, str(ONNX_ACTOR), str(tmp_path / "obs.npz"), str(tmp_path / "other.npz"), str(path)],
-        capture_output=True, text=True,
+        capture_output=True,
+        text=True,
     )
     assert result.returncode == 0, result.stderr
     out = json.loads(result.stdout)

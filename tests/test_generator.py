@@ -136,7 +136,7 @@ def test_same_seed_gives_identical_bytes_and_seeds_differ():
 
 def test_xml_formatting_is_fixed(robots):
     for robot in robots[:4]:
-        assert "-0 " not in robot.xml and "-0\"" not in robot.xml
+        assert "-0 " not in robot.xml and '-0"' not in robot.xml
         assert "000000" not in robot.xml.replace("1e-6", "")  # no float noise like 0.060000000000000005
         assert robot.xml.startswith('<?xml version="1.0" encoding="UTF-8"?>\n<mujoco model="unimal">')
 

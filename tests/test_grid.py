@@ -32,8 +32,12 @@ def test_bad_arms_seeds_and_missing_stages_give_clear_errors(tmp_path, capsys):
     assert "seed(s) [0] given twice" in capsys.readouterr().err
     assert cli(["transfer", *base, "--arms", "scratch,scratch"]) == 2
     assert "given twice" in capsys.readouterr().err
-    for arm, stage in (("distilled", "divmorph distill"), ("no-kdiv-decoder", "divmorph distill"),
-                       ("closest", "divmorph teachers"), ("grl", "divmorph grl")):
+    for arm, stage in (
+        ("distilled", "divmorph distill"),
+        ("no-kdiv-decoder", "divmorph distill"),
+        ("closest", "divmorph teachers"),
+        ("grl", "divmorph grl"),
+    ):
         assert cli(["transfer", *base, "--arms", arm]) == 2
         err = capsys.readouterr().err
         assert stage in err, (arm, err)
@@ -89,8 +93,26 @@ def test_a_ray_grid_resumes_after_one_run_is_killed(tmp_path):
     pytest.importorskip("ray")
     profiles = write_profiles(tmp_path, transfer__n_timesteps=1536, transfer__checkpoint_every=256, transfer__eval_every=0)
     out = tmp_path / "run"
-    command = [sys.executable, "-m", "sb3_divmorph.cli", "transfer", "--task", "Escape", "--arms", "scratch", "--seeds", "0", "1",
-               "--backend", "ray", "--cpus-per-run", "1", "--ray-cpus", "2", *_base(profiles, out)]
+    command = [
+        sys.executable,
+        "-m",
+        "sb3_divmorph.cli",
+        "transfer",
+        "--task",
+        "Escape",
+        "--arms",
+        "scratch",
+        "--seeds",
+        "0",
+        "1",
+        "--backend",
+        "ray",
+        "--cpus-per-run",
+        "1",
+        "--ray-cpus",
+        "2",
+        *_base(profiles, out),
+    ]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).resolve().parents[1]), os.environ.get("PYTHONPATH", "")])}
     victim, survivor = out / "transfer" / "Escape" / "scratch" / "seed-1", out / "transfer" / "Escape" / "scratch" / "seed-0"
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)

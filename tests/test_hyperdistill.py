@@ -153,8 +153,12 @@ def test_exported_mlp_equals_the_student_and_onnx_runs_without_torch(trained_stu
     assert not any(n.startswith(("encoders", "in_weight", "hidden_weight", "out_weight")) for n, _ in mlp.named_parameters())
     assert mlp.stored_numbers()["weights"] < student.parameter_counts()["total"] / 2
     # another robot gets another MLP
-    other = HyperDistillMLP.from_policy(student, {**first, **{k: v for k, v in _robot_obs(task, 2).items() if k in ("context", "obs_padding_mask", "act_padding_mask")}},
-                                        TASKS[task].observation_keys, normalizer)
+    other = HyperDistillMLP.from_policy(
+        student,
+        {**first, **{k: v for k, v in _robot_obs(task, 2).items() if k in ("context", "obs_padding_mask", "act_padding_mask")}},
+        TASKS[task].observation_keys,
+        normalizer,
+    )
     assert not th.allclose(other(*actor_inputs(first)), mlp(*actor_inputs(first)))
 
     path = export_torchscript(mlp, first, tmp_path / "mlp.pt", {"task": task})
@@ -189,8 +193,11 @@ def _robot_obs(task: str, index: int) -> dict[str, np.ndarray]:
 def test_bad_input_gives_clear_errors(trained_student, tmp_path):
     student, normalizer = trained_student
     obs = _robot_obs("FT", 0)
-    too_many = {**obs, "context": np.zeros((13, obs["context"].shape[1]), np.float32),
-                "proprioceptive": np.zeros((13, obs["proprioceptive"].shape[1]), np.float32)}
+    too_many = {
+        **obs,
+        "context": np.zeros((13, obs["context"].shape[1]), np.float32),
+        "proprioceptive": np.zeros((13, obs["proprioceptive"].shape[1]), np.float32),
+    }
     with pytest.raises(ValueError, match="13 tokens.*at most 12"):
         HyperDistillMLP.from_policy(student, too_many, ("hfield",), normalizer)
     batch = {k: th.as_tensor(v[None]) for k, v in too_many.items()}
@@ -205,7 +212,9 @@ def test_bad_input_gives_clear_errors(trained_student, tmp_path):
     other = gym.spaces.Dict({**model.observation_space.spaces, "proprioceptive": gym.spaces.Box(-1, 1, (12, 50))})
     with pytest.raises(SpaceMismatchError, match="proprioceptive"):
         load_student(tmp_path / "student.zip", other)
-    PPO("MetaMorphPolicy", multitask_venv(n_envs=1), n_steps=16, policy_kwargs=dict(d_model=8, n_layers=1, ff_dim=8)).save(tmp_path / "meta.zip")
+    PPO("MetaMorphPolicy", multitask_venv(n_envs=1), n_steps=16, policy_kwargs=dict(d_model=8, n_layers=1, ff_dim=8)).save(
+        tmp_path / "meta.zip"
+    )
     with pytest.raises(TypeError, match="not a HyperDistill student"):
         load_student(tmp_path / "meta.zip")
 
@@ -219,8 +228,17 @@ def test_pipeline_trains_modumorph_teachers_distils_and_exports(tmp_path):
     profile = json.loads(json.dumps(TINY))
     profile["teachers"].update(tasks=["FT"], n_timesteps=64, policy_kwargs=dict(TINY["teachers"]["policy_kwargs"], hypernet_dim=8))
     profile["export"] = {"tasks": ["FT"], "robots_per_split": 1, "latency_repeats": 3}
-    profile["hyperdistill"] = {"policy_kwargs": STUDENT, "rollout_samples": 128, "epochs": 30, "batch_size": 64, "learning_rate": 0.003,
-                               "dagger_timesteps": 64, "n_envs": 2, "n_steps": 32, "buffer_size": 256}
+    profile["hyperdistill"] = {
+        "policy_kwargs": STUDENT,
+        "rollout_samples": 128,
+        "epochs": 30,
+        "batch_size": 64,
+        "learning_rate": 0.003,
+        "dagger_timesteps": 64,
+        "n_envs": 2,
+        "n_steps": 32,
+        "buffer_size": 256,
+    }
     path = tmp_path / "profiles.yml"
     path.write_text(yaml.safe_dump({"tiny": profile}))
     out = tmp_path / "run"
@@ -334,9 +352,11 @@ def test_profile_key_task_input_new_runs_index_recorded_runs_none(tmp_path):
     path.write_text(yaml.safe_dump({"tiny": profile}))
     new = load_profile("tiny", path)
     assert (new.hyperdistill.task_input, new.hyperdistill.observation_statistics) == ("index", "teachers")
-    for bad, message in (({"task_input": "embedding"}, "hyperdistill.task_input must be 'index' or 'none', got 'embedding'"),
-                         ({"policy_kwargs": dict(STUDENT, task_input="none")}, "policy_kwargs.task_input is set by the pipeline"),
-                         ({"observation_statistics": "student"}, "observation_statistics must be 'teachers' or 'own', got 'student'")):
+    for bad, message in (
+        ({"task_input": "embedding"}, "hyperdistill.task_input must be 'index' or 'none', got 'embedding'"),
+        ({"policy_kwargs": dict(STUDENT, task_input="none")}, "policy_kwargs.task_input is set by the pipeline"),
+        ({"observation_statistics": "student"}, "observation_statistics must be 'teachers' or 'own', got 'student'"),
+    ):
         path.write_text(yaml.safe_dump({"tiny": {**profile, "hyperdistill": {**profile["hyperdistill"], **bad}}}))
         with pytest.raises(ConfigError, match=message):
             load_profile("tiny", path)
@@ -347,7 +367,9 @@ def test_profile_key_task_input_new_runs_index_recorded_runs_none(tmp_path):
     legacy = recorded_profile(tmp_path / "run.json").hyperdistill
     assert (legacy.task_input, legacy.observation_statistics) == ("none", "own")
     assert stage_changes(_with_defaults(record), configuration(new), "hyperdistill") == [
-        "hyperdistill.observation_statistics: 'own' -> 'teachers'", "hyperdistill.task_input: 'none' -> 'index'"]
+        "hyperdistill.observation_statistics: 'own' -> 'teachers'",
+        "hyperdistill.task_input: 'none' -> 'index'",
+    ]
     assert "task_input" not in with_current_values(record)["hyperdistill"]  # a branch links the recorded student
     shipped_profile = recorded_profile(SHIPPED / "run.json").hyperdistill
     assert (shipped_profile.task_input, shipped_profile.observation_statistics) == ("none", "own")
@@ -362,8 +384,13 @@ def test_student_on_its_teachers_statistics_sees_what_each_teacher_sees(teacher,
     into the exported MLP; a state of a task without a teacher is refused."""
     ft = next(iter(teacher.values()))
     venv = multitask_venv(n_envs=1)
-    model = ImitationPPO("HyperDistillPolicy", venv, n_steps=16, batch_size=16,
-                         policy_kwargs=dict(STUDENT, task_input="index", observation_statistics="teachers"))
+    model = ImitationPPO(
+        "HyperDistillPolicy",
+        venv,
+        n_steps=16,
+        batch_size=16,
+        policy_kwargs=dict(STUDENT, task_input="index", observation_statistics="teachers"),
+    )
     model.policy.set_teacher_statistics(TASK_NAMES.index("FT"), ft.normalizer)
     th.manual_seed(0)
     with th.no_grad():

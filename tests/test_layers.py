@@ -74,8 +74,17 @@ def test_a_layer_too_small_for_its_tailors_is_an_error_naming_it():
     # the policy refuses such a configuration instead of silently not diverting its decoder
     env = gym.make("Unimal-FT-v0", morphologies=morphology_files("train")[:1])
     with pytest.raises(LayerDiversionError, match="actor decoder.0"):
-        DivMorphPolicy(env.observation_space, env.action_space, lambda _: 1e-3, d_model=128, n_layers=1, ff_dim=128,
-                       net_arch=dict(pi=[64], vf=[64]), n_morph_tailors=56, n_task_tailors=56)
+        DivMorphPolicy(
+            env.observation_space,
+            env.action_space,
+            lambda _: 1e-3,
+            d_model=128,
+            n_layers=1,
+            ff_dim=128,
+            net_arch=dict(pi=[64], vf=[64]),
+            n_morph_tailors=56,
+            n_task_tailors=56,
+        )
 
 
 def test_per_layer_tailor_counts_fit_every_rank_and_pool_the_gate_slots():
@@ -89,7 +98,7 @@ def test_per_layer_tailor_counts_fit_every_rank_and_pool_the_gate_slots():
         gates = th.zeros(1, 28)
         gates[0, slot] = 1.0
         local = small.local_gates(gates)[0]
-        assert local[: 3].tolist() == [1.0 if j == slot * 3 // 14 else 0.0 for j in range(3)] and local[3:].sum() == 0
+        assert local[:3].tolist() == [1.0 if j == slot * 3 // 14 else 0.0 for j in range(3)] and local[3:].sum() == 0
     # pooled gates still give an exact pruned layer and a working forward
     gates = th.zeros(2, 28)
     gates[:, [1, 20]] = 1.0
@@ -147,11 +156,16 @@ def test_cayley_map_is_orthogonal_and_identity_at_zero():
     assert th.allclose(q.T @ q, th.eye(6, dtype=q.dtype), atol=1e-5)
 
 
-
 def test_batched_square_factors_give_every_layer_its_own_factor_and_gradient(monkeypatch):
     th.manual_seed(0)
-    layers = th.nn.ModuleList([FactorizedLinear(8, 8, 2, 2), FactorizedLinear(20, 8, 2, 2), FactorizedLinear(8, 8, 1, 1),
-                               FactorizedLinear(6, 6, 1, 1, orthogonal=False)])
+    layers = th.nn.ModuleList(
+        [
+            FactorizedLinear(8, 8, 2, 2),
+            FactorizedLinear(20, 8, 2, 2),
+            FactorizedLinear(8, 8, 1, 1),
+            FactorizedLinear(6, 6, 1, 1, orthogonal=False),
+        ]
+    )
     for layer in layers:
         if layer.orthogonal:
             layer.square_skew.data.normal_(0, 0.3)  # distinct rotations: a mix-up between layers shows
@@ -182,6 +196,7 @@ def test_batched_square_factors_give_every_layer_its_own_factor_and_gradient(mon
 
 
 _solve = th.linalg.solve
+
 
 @pytest.mark.parametrize("in_features,out_features", SHAPES)
 def test_square_factor_stays_orthogonal_under_training(in_features, out_features):

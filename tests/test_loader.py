@@ -67,7 +67,7 @@ def test_masks_agree_with_hinges(write_robot):
         (unimal_xml(joint_type="slide", hinges="x"), "slide joint"),
         (unimal_xml(extra_body="<body name='limb/9'><geom type='sphere' size='0.05'/></body>"), "has 0 hinges"),
         (unimal_xml(legs=2).replace('<motor name="limbx/1" joint="limbx/1" gear="200"/>', ""), "hinges without a motor"),
-        (unimal_xml(legs=2).replace('fromto', 'bogus'), "could not compile"),
+        (unimal_xml(legs=2).replace("fromto", "bogus"), "could not compile"),
     ],
 )
 def test_bad_mjcf_is_rejected_with_its_name(write_robot, xml, message):

@@ -17,8 +17,15 @@ th.set_num_threads(1)
 
 SPACE = contract.observation_space()
 ACTION_SPACE = contract.action_space()
-TINY = dict(d_model=16, n_layers=2, n_heads=2, ff_dim=32, hypernet_dim=8, net_arch=dict(pi=[16], vf=[16]),
-            exteroception=dict(hfield=[8], goal=[4], object=[4]))
+TINY = dict(
+    d_model=16,
+    n_layers=2,
+    n_heads=2,
+    ff_dim=32,
+    hypernet_dim=8,
+    net_arch=dict(pi=[16], vf=[16]),
+    exteroception=dict(hfield=[8], goal=[4], object=[4]),
+)
 VARIANTS = {
     "modumorph": {},
     "no-fixed-attention": dict(fixed_attention=False),
@@ -158,8 +165,15 @@ def test_mixed_batch_equals_per_sample_evaluation(variant):
 def test_save_load_roundtrip(tmp_path):
     from test_policies import StandInEnv
 
-    model = PPO("ModuMorphPolicy", StandInEnv(), n_steps=32, batch_size=16, n_epochs=1, seed=0,
-                policy_kwargs=dict(TINY, fixed_attention=True, hypernetwork=True))
+    model = PPO(
+        "ModuMorphPolicy",
+        StandInEnv(),
+        n_steps=32,
+        batch_size=16,
+        n_epochs=1,
+        seed=0,
+        policy_kwargs=dict(TINY, fixed_attention=True, hypernetwork=True),
+    )
     model.learn(64)
     model.save(tmp_path / "model")
     loaded = PPO.load(tmp_path / "model", device="cpu")
@@ -169,7 +183,9 @@ def test_save_load_roundtrip(tmp_path):
     obs = random_observations(SPACE, 8, seed=5)
     assert np.array_equal(model.predict(obs, deterministic=True)[0], loaded.predict(obs, deterministic=True)[0])
     model.policy.save(tmp_path / "policy.pth")
-    assert np.array_equal(model.predict(obs, deterministic=True)[0], ModuMorphPolicy.load(tmp_path / "policy.pth").predict(obs, deterministic=True)[0])
+    assert np.array_equal(
+        model.predict(obs, deterministic=True)[0], ModuMorphPolicy.load(tmp_path / "policy.pth").predict(obs, deterministic=True)[0]
+    )
 
 
 def test_ppo_improves_return_on_flat_terrain():
@@ -187,8 +203,10 @@ def test_folded_actor_equals_the_policy(variant, tmp_path, train_files):
     from unimal_envs.tasks import TASKS
 
     task = "VT"
-    venv = VecNormalize(DummyVecEnv([lambda: gym.make(f"Unimal-{task}-v0", morphologies=train_files[:1], max_episode_steps=30)]),
-                        norm_obs_keys=["proprioceptive"])
+    venv = VecNormalize(
+        DummyVecEnv([lambda: gym.make(f"Unimal-{task}-v0", morphologies=train_files[:1], max_episode_steps=30)]),
+        norm_obs_keys=["proprioceptive"],
+    )
     model = PPO("ModuMorphPolicy", venv, n_steps=32, batch_size=32, n_epochs=1, seed=0, policy_kwargs=dict(TINY, **VARIANTS[variant]))
     model.learn(32)
     perturb_weights(model.policy)

@@ -77,7 +77,9 @@ def test_fetch_over_http_then_use_the_set_by_name(archive, server, tmp_path, mon
     folder = folders["unimals100-train"]
     assert leftovers(cache) == ["unimals100-train"]  # no staging folder, no downloaded archive left
     assert len(list((folder / "xml").glob("*.xml"))) == 100 and len(list((folder / "metadata").glob("*.json"))) == 100
-    assert (folder / "xml" / "floor-1409-0-12-01-12-30-07.xml").read_bytes() == (OFFICIAL_TRAIN / "xml" / "floor-1409-0-12-01-12-30-07.xml").read_bytes()
+    assert (folder / "xml" / "floor-1409-0-12-01-12-30-07.xml").read_bytes() == (
+        OFFICIAL_TRAIN / "xml" / "floor-1409-0-12-01-12-30-07.xml"
+    ).read_bytes()
     assert (folder / O.MANIFEST).is_file()
 
     # Idempotent: a cached set is not fetched again (this source would fail).

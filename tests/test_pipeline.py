@@ -44,10 +44,24 @@ TINY = {
     },
     "student": {"policy_kwargs": {**TINY_POLICY, "n_morph_tailors": 6, "n_task_tailors": 6, "top_k_morph": 2, "top_k_task": 2}},
     "distill": {"n_timesteps": 128, "n_envs": 2, "n_steps": 32, "epochs": 1, "batch_size": 32, "buffer_size": 256, "checkpoint_every": 64},
-    "transfer": {"tasks": ["Escape"], "n_timesteps": 128, "overrides": {"n_envs": 1, "n_steps": 64, "batch_size": 64, "n_epochs": 1},
-                 "checkpoint_every": 64, "arms": list(ARMS), "seeds": [0], "eval_every": 64, "eval_episodes": 1},
-    "hyperdistill": {"teacher_policy": "MetaMorphPolicy", "policy_kwargs": {"hidden_dim": 16, "embed_dim": 8},
-                     "rollout_samples": 256, "epochs": 2, "batch_size": 64, "n_envs": 2},
+    "transfer": {
+        "tasks": ["Escape"],
+        "n_timesteps": 128,
+        "overrides": {"n_envs": 1, "n_steps": 64, "batch_size": 64, "n_epochs": 1},
+        "checkpoint_every": 64,
+        "arms": list(ARMS),
+        "seeds": [0],
+        "eval_every": 64,
+        "eval_episodes": 1,
+    },
+    "hyperdistill": {
+        "teacher_policy": "MetaMorphPolicy",
+        "policy_kwargs": {"hidden_dim": 16, "embed_dim": 8},
+        "rollout_samples": 256,
+        "epochs": 2,
+        "batch_size": 64,
+        "n_envs": 2,
+    },
     "grl": {"population": 2, "generations": 2, "steps_per_agent": 64, "learngene_layers": 2, "tournament": 2, "mutation": 0.5},
     "export": {"tasks": ["FT", "Escape"], "latency_repeats": 5},
     "evaluate": {"episodes": 1},
@@ -170,7 +184,7 @@ def test_a_deployment_student_is_distilled_exported_and_reported_beside_the_stud
     # The finished evaluation grew by the new student's rows and kept every row it had.
     grown = (out / "evaluate" / "returns.csv").read_text().splitlines()
     assert grown[: len(evaluated.splitlines())] == evaluated.splitlines()
-    assert {line.split(",")[0] for line in grown[len(evaluated.splitlines()):]} == {"student-deploy-g1k1"}
+    assert {line.split(",")[0] for line in grown[len(evaluated.splitlines()) :]} == {"student-deploy-g1k1"}
     summary = (out / "summary.md").read_text()
     assert "| deploy-g1k1 | " in summary and "deploy-g1k1" in summary.split("## Findings")[1]
     with open(out / "export" / "summary.csv") as f:
@@ -230,8 +244,10 @@ def test_closest_starts_from_the_teacher_the_embeddings_say(finished_run):
     out, _ = finished_run
     choice = json.loads((out / "transfer" / "Escape" / "closest-by-embedding.json").read_text())
     embeddings = shipped_embeddings()
-    cosine = {t: float(embeddings["Escape"] @ embeddings[t] / np.linalg.norm(embeddings["Escape"]) / np.linalg.norm(embeddings[t]))
-              for t in ("FT", "Patrol")}
+    cosine = {
+        t: float(embeddings["Escape"] @ embeddings[t] / np.linalg.norm(embeddings["Escape"]) / np.linalg.norm(embeddings[t]))
+        for t in ("FT", "Patrol")
+    }
     assert choice["closest"] == max(cosine, key=cosine.get)
     assert choice["scores"] == pytest.approx(cosine, abs=1e-5)
     source = json.loads((out / "transfer" / "Escape" / "closest" / "seed-0" / "source.json").read_text())
@@ -263,8 +279,11 @@ def test_ablation_students_lack_what_they_claim(finished_run):
     def layers(folder):
         policy = PPO.load(folder / "model.zip", device="cpu").policy
         assert isinstance(policy, DivMorphPolicy) and policy.is_gated
-        return {name: layer for name, layer in policy.named_modules()
-                if isinstance(layer, FactorizedLinear) and name.startswith(("features_extractor.encoder", "mlp_extractor.policy_net"))}
+        return {
+            name: layer
+            for name, layer in policy.named_modules()
+            if isinstance(layer, FactorizedLinear) and name.startswith(("features_extractor.encoder", "mlp_extractor.policy_net"))
+        }
 
     full = layers(out / "student")
     assert all(layer.n_tailors > 0 and layer.orthogonality_error() < 1e-5 for layer in full.values())
@@ -312,15 +331,19 @@ def test_finetune_settings_reach_the_arms_that_start_from_trained_weights_only(f
 
     out, profiles = finished_run
     profile = load_profile("tiny", profiles, overrides={"transfer.finetune_overrides": {"learning_rate": 1.25e-5}})
-    rates = {arm: transfer_run(profile, out, "Escape", arm, 0, progress_bar=False).make_model().lr_schedule(1.0)
-             for arm in ("scratch", "modumorph", "divmorph", "closest", "distilled", "grl")}
+    rates = {
+        arm: transfer_run(profile, out, "Escape", arm, 0, progress_bar=False).make_model().lr_schedule(1.0)
+        for arm in ("scratch", "modumorph", "divmorph", "closest", "distilled", "grl")
+    }
     assert rates["divmorph"] == rates["closest"] == rates["distilled"] == rates["grl"] == pytest.approx(1.25e-5)
     assert rates["scratch"] == rates["modumorph"] != pytest.approx(1.25e-5)
     from sb3_divmorph.finetune import CriticWarmup
 
     profile = load_profile("tiny", profiles, overrides={"transfer.critic_warmup": 64})
-    warmups = {arm: [c.steps for c in transfer_run(profile, out, "Escape", arm, 0, progress_bar=False).callbacks
-                     if isinstance(c, CriticWarmup)] for arm in ("scratch", "divmorph", "closest")}
+    warmups = {
+        arm: [c.steps for c in transfer_run(profile, out, "Escape", arm, 0, progress_bar=False).callbacks if isinstance(c, CriticWarmup)]
+        for arm in ("scratch", "divmorph", "closest")
+    }
     assert warmups == {"scratch": [], "divmorph": [64], "closest": [64]}
     with pytest.raises(ConfigError, match="critic_warmup"):
         load_profile("tiny", profiles, overrides={"transfer.critic_warmup": -1})
@@ -340,8 +363,19 @@ def test_a_finished_pipeline_is_skipped_not_recomputed(finished_run):
 def test_a_killed_run_resumes_from_its_last_checkpoint(tmp_path):
     profiles = write_profiles(tmp_path, teachers__n_timesteps=4096, teachers__checkpoint_every=256, teachers__tasks=["FT"])
     out = tmp_path / "run"
-    command = [sys.executable, "-m", "sb3_divmorph.cli", "teachers", "--profile", "tiny", "--profiles", str(profiles),
-               "--out", str(out), "--no-progress"]
+    command = [
+        sys.executable,
+        "-m",
+        "sb3_divmorph.cli",
+        "teachers",
+        "--profile",
+        "tiny",
+        "--profiles",
+        str(profiles),
+        "--out",
+        str(out),
+        "--no-progress",
+    ]
     process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     checkpoints = out / "teachers" / "FT" / "checkpoints"
     deadline = time.time() + 240
@@ -444,8 +478,13 @@ def test_command_line_overrides_reach_the_profile_and_are_validated(tmp_path, ca
     from sb3_divmorph.cli import _overrides
 
     profiles = write_profiles(tmp_path)
-    args = argparse.Namespace(seed=7, device="cpu", train_robots="3", novel_robots="train",
-                              set=["teachers.n_timesteps=4096", "transfer.tasks=[PointNav]", "max_episode_steps=50"])
+    args = argparse.Namespace(
+        seed=7,
+        device="cpu",
+        train_robots="3",
+        novel_robots="train",
+        set=["teachers.n_timesteps=4096", "transfer.tasks=[PointNav]", "max_episode_steps=50"],
+    )
     profile = load_profile("tiny", profiles, _overrides(args))
     assert (profile.seed, profile.device, profile.train_robots, profile.max_episode_steps) == (7, "cpu", 3, 50)
     assert (profile.novel_set, profile.novel_robots) == ("train", None)
@@ -567,8 +606,10 @@ def test_closest_by_return_picks_the_best_zero_shot_teacher(finished_run):
     profile = load_profile("tiny", profiles)
     choice = closest_task(profile, out, "Escape", by="return")
     robots = profile_robots(profile, "train")
-    returns = {t: np.mean([r["return"] for r in evaluate_model(out / "teachers" / t, "Escape", robots, 1, 40, profile.seed)])
-               for t in ("FT", "Patrol")}
+    returns = {
+        t: np.mean([r["return"] for r in evaluate_model(out / "teachers" / t, "Escape", robots, 1, 40, profile.seed)])
+        for t in ("FT", "Patrol")
+    }
     assert choice["scores"] == pytest.approx(returns)
     assert choice["closest"] == max(returns, key=returns.get)
 
@@ -577,8 +618,25 @@ def test_closest_by_return_picks_the_best_zero_shot_teacher(finished_run):
     other.mkdir()
     (other / "source.json").write_text(json.dumps({"arm": "closest", "seed": 7, "source": "teachers/Elsewhere"}))
     try:
-        assert cli(["transfer", "--profile", "tiny", "--profiles", str(profiles), "--out", str(out), "--arms", "closest",
-                    "--seeds", "7", "--no-progress"]) == 2
+        assert (
+            cli(
+                [
+                    "transfer",
+                    "--profile",
+                    "tiny",
+                    "--profiles",
+                    str(profiles),
+                    "--out",
+                    str(out),
+                    "--arms",
+                    "closest",
+                    "--seeds",
+                    "7",
+                    "--no-progress",
+                ]
+            )
+            == 2
+        )
         assert list(other.iterdir()) == [other / "source.json"]
     finally:
         (other / "source.json").unlink()
@@ -593,8 +651,12 @@ def test_report_figures_label_axes_and_give_each_task_its_own_scale(tmp_path, mo
     monkeypatch.setattr(R.plt, "close", figures.append)
     groups = {("teacher", "FT", "train"): [900.0, 20.0], ("student", "FT", "train"): [800.0], ("teacher", "Patrol", "novel"): [3.0]}
     R.plot_returns(groups, tmp_path / "returns.png", "a title naming the robots")
-    gates = {"task_gates": np.eye(3), "tasks": np.array(["FT", "VT", "Patrol"]),
-             "morphology_gates": np.eye(2), "robots": np.array(["a", "b"])}
+    gates = {
+        "task_gates": np.eye(3),
+        "tasks": np.array(["FT", "VT", "Patrol"]),
+        "morphology_gates": np.eye(2),
+        "robots": np.array(["a", "b"]),
+    }
     R.plot_gates(gates, tmp_path / "gates.png")
     returns_fig, gates_fig = figures
     panels = [ax for ax in returns_fig.axes if ax.get_title()]
@@ -651,13 +713,17 @@ def test_findings_put_the_hyperdistill_student_beside_the_others_when_it_was_eva
     from sb3_divmorph.pipeline.report import findings
 
     profile = load_profile("demo")
-    groups = {(model, task, split): [value]
-              for task in profile.teachers.tasks for split in ("train", "novel")
-              for model, value in (("teacher-untrained", 1.0), ("teacher", 100.0), ("student", 95.0), ("student-distilled", 80.0))}
+    groups = {
+        (model, task, split): [value]
+        for task in profile.teachers.tasks
+        for split in ("train", "novel")
+        for model, value in (("teacher-untrained", 1.0), ("teacher", 100.0), ("student", 95.0), ("student-distilled", 80.0))
+    }
     without = "\n".join(findings(profile, groups, []))
     assert "HyperDistill" not in without
-    groups.update({("hyperdistill", task, split): [value] for task in profile.teachers.tasks
-                   for split, value in (("train", 70.0), ("novel", 12.5))})
+    groups.update(
+        {("hyperdistill", task, split): [value] for task in profile.teachers.tasks for split, value in (("train", 70.0), ("novel", 12.5))}
+    )
     rows = findings(profile, groups, [])
     header = next(line for line in rows if line.startswith("| task"))
     assert "| HyperDistill student |" in header and header.endswith("teacher / student / HyperDistill |")
@@ -681,8 +747,7 @@ def test_a_branch_reuses_a_runs_stages_and_trains_only_what_follows(finished_run
     assert cli(["teachers", "--run", str(out), "--set", "teachers.n_timesteps=256", "--no-progress"]) == 2
     assert "teachers: teachers.n_timesteps: 128 -> 256" in capsys.readouterr().err
     # ...a new transfer budget trains there, from the source's student, skipping the reused stages
-    assert cli(["transfer", "--run", str(out), "--set", "transfer.n_timesteps=192", "--arms", "divmorph,closest",
-                "--no-progress"]) == 0
+    assert cli(["transfer", "--run", str(out), "--set", "transfer.n_timesteps=192", "--arms", "divmorph,closest", "--no-progress"]) == 0
     for arm in ("divmorph", "closest"):
         assert read_done(out / "transfer" / "Escape" / arm / "seed-0")["num_timesteps"] >= 192
         assert not (out / "transfer" / "Escape" / arm / "seed-0").is_symlink()
@@ -748,8 +813,15 @@ def test_with_learning_rate_zero_a_transfer_run_leaves_every_fine_tuned_arms_act
         after = trained.predict(normalizer.normalize_obs(raw), deterministic=True)[0]
         np.testing.assert_array_equal(after, before, err_msg=f"{arm}: actions moved with learning rate 0")
     # the former rule, kept as an option: statistics that go on learning move a frozen student's actions
-    learning = load_profile("tiny", profiles, overrides={"transfer.finetune_overrides": {"learning_rate": 0.0}, "transfer.eval_every": 0,
-                                                         "transfer.observation_statistics": "learning"})
+    learning = load_profile(
+        "tiny",
+        profiles,
+        overrides={
+            "transfer.finetune_overrides": {"learning_rate": 0.0},
+            "transfer.eval_every": 0,
+            "transfer.observation_statistics": "learning",
+        },
+    )
     run = transfer_run(learning, out, "Escape", "divmorph", 2, progress_bar=False)
     start = run.make_model()
     run.prepare(start)
@@ -774,8 +846,10 @@ def test_every_arm_sees_its_novel_tasks_inputs_under_one_optimiser_rule(finished
     starts = [(arm, None) for arm in ARMS if arm != "closest"] + [("closest", "FT"), ("closest", "Patrol")]
     for arm, teacher in starts:
         if teacher is not None:  # force the teacher the closest arm starts from
-            atomic_write_json(closest_file(out, task, "embedding"), {"task": task, "closest": teacher, "by": "embedding",
-                                                                     "criterion": "test", "scores": {}})
+            atomic_write_json(
+                closest_file(out, task, "embedding"),
+                {"task": task, "closest": teacher, "by": "embedding", "criterion": "test", "scores": {}},
+            )
         run = transfer_run(profile, out, task, arm, 1 if teacher == "Patrol" else 0, progress_bar=False)
         model = run.make_model()
         run.prepare(model)
@@ -826,8 +900,13 @@ def test_a_profile_measuring_heights_from_the_ground_makes_every_env_of_the_run_
         original(self, *args, **kwargs)
 
     monkeypatch.setattr(UnimalEnv, "__init__", recording)
-    profiles = write_profiles(tmp_path, height_reference="ground", teachers__tasks=["FT", "Incline"],
-                              transfer__arms=["divmorph", "scratch", "closest"], export__tasks=["Incline"])
+    profiles = write_profiles(
+        tmp_path,
+        height_reference="ground",
+        teachers__tasks=["FT", "Incline"],
+        transfer__arms=["divmorph", "scratch", "closest"],
+        export__tasks=["Incline"],
+    )
     out = tmp_path / "run"
     assert cli(["pipeline", "--profile", "tiny", "--profiles", str(profiles), "--out", str(out), "--no-progress"]) == 0
     assert len(made) > 20 and set(made) == {"ground"}

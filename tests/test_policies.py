@@ -35,9 +35,7 @@ TINY = dict(
     net_arch=dict(pi=[16], vf=[16]),
     exteroception=dict(hfield=[8], goal=[4], object=[4]),
 )
-TINY_DIVMORPH = dict(
-    TINY, n_morph_tailors=3, n_task_tailors=3, top_k_morph=2, top_k_task=2, morph_embed_dim=8, gate_hidden_dim=8
-)
+TINY_DIVMORPH = dict(TINY, n_morph_tailors=3, n_task_tailors=3, top_k_morph=2, top_k_task=2, morph_embed_dim=8, gate_hidden_dim=8)
 VARIANTS = {
     "metamorph": (MetaMorphPolicy, TINY),
     "metamorph-shared": (MetaMorphPolicy, dict(TINY, share_features_extractor=True)),
@@ -240,8 +238,11 @@ def test_every_named_diversion_trains_its_gates_and_morphology_encoder(diversion
     policy.optimizer.zero_grad()
     (-log_prob.mean()).backward()
     router = policy.router
-    for name, module in (("morphology gate", router.morphology_gate), ("task gate", router.task_gate),
-                         ("morphology encoder", router.morphology_encoder)):
+    for name, module in (
+        ("morphology gate", router.morphology_gate),
+        ("task gate", router.task_gate),
+        ("morphology encoder", router.morphology_encoder),
+    ):
         norm = sum(float(p.grad.abs().sum()) for p in module.parameters() if p.grad is not None)
         assert norm > 0, f"{diversion}: no gradient reaches the {name}"
 

@@ -39,11 +39,18 @@ def test_the_ft_teacher_walks_on_a_fresh_clone(official_train):
     assert rows[0]["length"] == 1000 and rows[0]["return"] > 1000  # the whole episode without a fall, far forward
 
 
-@pytest.mark.parametrize("folder, policy", [("student", "DivMorphPolicy"), ("students/distilled", "MetaMorphPolicy"),
-                                            ("students/deploy-g1k1", "DivMorphPolicy"), ("hyperdistill/student", "HyperDistillPolicy"),
-                                            ("students/no-kdiv-transformer", "DivMorphPolicy"),
-                                            ("students/no-kdiv-decoder", "DivMorphPolicy"),
-                                            ("students/no-orthogonality", "DivMorphPolicy")])
+@pytest.mark.parametrize(
+    "folder, policy",
+    [
+        ("student", "DivMorphPolicy"),
+        ("students/distilled", "MetaMorphPolicy"),
+        ("students/deploy-g1k1", "DivMorphPolicy"),
+        ("hyperdistill/student", "HyperDistillPolicy"),
+        ("students/no-kdiv-transformer", "DivMorphPolicy"),
+        ("students/no-kdiv-decoder", "DivMorphPolicy"),
+        ("students/no-orthogonality", "DivMorphPolicy"),
+    ],
+)
 def test_the_students_load_with_their_normalisers(folder, policy):
     model = PPO.load(RUN / folder / "model.zip", device="cpu")
     assert type(model.policy).__name__ == policy

@@ -33,8 +33,12 @@ EXAMPLE_RUNS = [
 
 def code_blocks(language: str, pages: list[str] | None = None) -> list[str]:
     """The ``language`` code blocks of the README and the docs pages (or of ``pages``), in order."""
-    return [code for page in (PAGES if pages is None else pages)
-            for lang, code in re.findall(r"```(\w*)\n(.*?)```", page, flags=re.S) if lang == language]
+    return [
+        code
+        for page in (PAGES if pages is None else pages)
+        for lang, code in re.findall(r"```(\w*)\n(.*?)```", page, flags=re.S)
+        if lang == language
+    ]
 
 
 def run_example(name: str, args: list[str], monkeypatch, capsys) -> str:
@@ -80,8 +84,13 @@ def test_every_example_and_python_block_runs(tmp_path, monkeypatch, capsys, rest
     blocks = code_blocks("python")
     assert len(blocks) >= 5
     for index, code in enumerate(blocks):
-        done = subprocess.run([sys.executable, "-c", "import torch; torch.set_num_threads(1)\n" + code], cwd=tmp_path,
-                              capture_output=True, text=True, timeout=600)
+        done = subprocess.run(
+            [sys.executable, "-c", "import torch; torch.set_num_threads(1)\n" + code],
+            cwd=tmp_path,
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
         assert done.returncode == 0, f"python block {index} (README, then docs/) fails on its own:\n{code}\n{done.stderr[-2000:]}"
     # ... and the quick start's numbers, checked in this process.
     namespace: dict = {"__name__": "__readme__"}
@@ -141,6 +150,18 @@ def test_the_project_is_licensed_citable_and_names_its_sources():
     assert citation["preferred-citation"]["title"] == "Knowledge Diversion for Efficient Morphology Control and Policy Transfer"
     assert "## [Unreleased]" in (REPO / "CHANGELOG.md").read_text()
     references = README.split("## Citing, licence and references")[1]
-    for source in ("DivMorph", "KIND", "MetaMorph", "UNIMAL", "ModuMorph", "HyperDistill", "GRL", "DAgger", "PPO",
-                   "MuJoCo Warp", "Gymnasium", "Stable-Baselines3"):
+    for source in (
+        "DivMorph",
+        "KIND",
+        "MetaMorph",
+        "UNIMAL",
+        "ModuMorph",
+        "HyperDistill",
+        "GRL",
+        "DAgger",
+        "PPO",
+        "MuJoCo Warp",
+        "Gymnasium",
+        "Stable-Baselines3",
+    ):
         assert source in references, source

@@ -49,6 +49,7 @@ def test_sampler_sends_probabilities_to_every_worker_after_the_warm_up(train_fil
     """In a real (tiny) PPO run: episodes are logged per robot, nothing changes during the warm-up,
     then every worker draws with the balanced probabilities."""
     from stable_baselines3 import PPO
+
     venv = make_vec_env("Unimal-FT-v0", n_envs=2, env_kwargs=dict(morphologies=train_files[:3], max_episode_steps=5))
     sampler = BalancedRobotSampler(warmup_iterations=2)
     seen = []
@@ -90,7 +91,14 @@ def test_metamorph_zoo_entries_load_with_the_recipe(train_files):
 
     import sb3_divmorph  # noqa: F401  (policy aliases)
 
-    model = PPO(entry.policy, make_vec_env("Unimal-FT-v0", n_envs=1, env_kwargs=dict(morphologies=train_files[:1])), policy_kwargs=entry.policy_kwargs, n_steps=16, batch_size=16, device="cpu")
+    model = PPO(
+        entry.policy,
+        make_vec_env("Unimal-FT-v0", n_envs=1, env_kwargs=dict(morphologies=train_files[:1])),
+        policy_kwargs=entry.policy_kwargs,
+        n_steps=16,
+        batch_size=16,
+        device="cpu",
+    )
     assert model.policy.optimizer.defaults["eps"] == 1e-5
     with pytest.raises(ConfigError, match="supports only callback"):
         load_zoo_entry("zoo_configs/ppo.yml", "Unimal-FT-v0", {"callback": "some.OtherCallback"})

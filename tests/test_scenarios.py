@@ -112,8 +112,9 @@ def test_a_resting_robot_stands_at_the_height_its_terrain_map_shows_and_follows_
         probe.place((x, y, ground + probe.robot.morphology.torso_height + 0.2), still=True)
         results = probe.run(50)
         _quiet(results, probe)
-        assert probe.lowest_robot_point() == pytest.approx(ground, abs=flatness + 0.03), \
+        assert probe.lowest_robot_point() == pytest.approx(ground, abs=flatness + 0.03), (
             f"draw {draw}: the robot rests at {probe.lowest_robot_point():.3f} m, its terrain map says {ground:.3f} m"
+        )
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -183,7 +184,9 @@ def test_a_torso_moved_into_the_box_pushes_it_and_the_reach_and_push_terms_have_
     moved = probe.box[:2] - box[:2]
     assert moved @ u > 0.2, "the box did not move where it was pushed"
     push = sum(terms["push"] for _, terms, _, _ in approach)
-    assert push > 10.0 and push == pytest.approx(100 * (np.linalg.norm(goal[:2] - box[:2]) - np.linalg.norm(goal[:2] - probe.box[:2])), rel=0.05)
+    assert push > 10.0 and push == pytest.approx(
+        100 * (np.linalg.norm(goal[:2] - box[:2]) - np.linalg.norm(goal[:2] - probe.box[:2])), rel=0.05
+    )
     away = probe.carry(10, velocity=_along(probe, -u, 1.5))
     _quiet(away, probe)
     assert all(terms["reach"] < 0 for _, terms, _, _ in away[2:]), "walking away from the box is not penalised"
@@ -253,8 +256,9 @@ def test_corridor_edges_end_the_episode_at_19_m(task, backend):
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-@pytest.mark.parametrize("task, wall", [("PointNav", (50.0, 0.0)), ("Exploration", (0.0, -50.0)),
-                                        ("ManipulateBox", (-3.0, 0.0)), ("Obstacle", (-3.0, 0.0))])
+@pytest.mark.parametrize(
+    "task, wall", [("PointNav", (50.0, 0.0)), ("Exploration", (0.0, -50.0)), ("ManipulateBox", (-3.0, 0.0)), ("Obstacle", (-3.0, 0.0))]
+)
 def test_walls_stop_a_pushed_robot_without_ending_the_episode(task, wall, backend):
     probe = Probe(task, backend)
     direction = np.sign(wall)
@@ -268,8 +272,9 @@ def test_walls_stop_a_pushed_robot_without_ending_the_episode(task, wall, backen
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-@pytest.mark.parametrize("task, ratio", [("FT", 0.5), ("VT", 0.3), ("Incline", 0.2), ("Obstacle", 0.5), ("Escape", 0.5),
-                                         ("PushBoxIncline", 0.2)])
+@pytest.mark.parametrize(
+    "task, ratio", [("FT", 0.5), ("VT", 0.3), ("Incline", 0.2), ("Obstacle", 0.5), ("Escape", 0.5), ("PushBoxIncline", 0.2)]
+)
 def test_a_fall_ends_the_episode_at_the_documented_height(task, ratio, backend):
     """Falls end the episode when the torso is at most ``fall_height_ratio`` x standing height above
     the ground under it (0.5; VT 0.3; Incline and PushBoxIncline 0.2), measured with the robot

@@ -237,8 +237,11 @@ def test_every_id_passes_check_env_with_the_same_spaces(train_files, env_id):
 
 
 def test_task_observation_keys(train_files):
-    uses = {"hfield": {"VT", "Obstacle", "Escape"}, "goal": {"Patrol", "PointNav", "PushBoxIncline", "ManipulateBox"},
-            "object": {"PushBoxIncline", "ManipulateBox"}}
+    uses = {
+        "hfield": {"VT", "Obstacle", "Escape"},
+        "goal": {"Patrol", "PointNav", "PushBoxIncline", "ManipulateBox"},
+        "object": {"PushBoxIncline", "ManipulateBox"},
+    }
     for task in TASKS:
         # the declared keys (what an exported single-task actor keeps) are the ones the task fills
         assert set(TASKS[task].observation_keys) == {key for key, tasks in uses.items() if task in tasks}, task

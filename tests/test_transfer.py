@@ -17,8 +17,14 @@ from sb3_divmorph.layers import FactorizedLinear
 from unimal_envs.morphology.loader import morphology_files
 
 TINY_DIVMORPH = dict(
-    d_model=16, n_layers=1, ff_dim=32, exteroception=dict(hfield=[8], goal=[4], object=[4]),
-    n_morph_tailors=6, n_task_tailors=6, top_k_morph=2, top_k_task=2,
+    d_model=16,
+    n_layers=1,
+    ff_dim=32,
+    exteroception=dict(hfield=[8], goal=[4], object=[4]),
+    n_morph_tailors=6,
+    n_task_tailors=6,
+    top_k_morph=2,
+    top_k_task=2,
 )
 ROBOTS = morphology_files("train")[:2]
 
@@ -27,8 +33,9 @@ def distilled_like_student(seed: int = 0, **ppo_kwargs) -> tuple[PPO, VecNormali
     """A tiny DivMorph PPO on Escape whose square factors have been rotated (skew != 0), as after
     distillation."""
     th.manual_seed(seed)
-    venv = VecNormalize(DummyVecEnv([lambda: gym.make("Unimal-Escape-v0", morphologies=ROBOTS, max_episode_steps=50)]),
-                        norm_obs_keys=["proprioceptive"])
+    venv = VecNormalize(
+        DummyVecEnv([lambda: gym.make("Unimal-Escape-v0", morphologies=ROBOTS, max_episode_steps=50)]), norm_obs_keys=["proprioceptive"]
+    )
     kwargs = dict(n_steps=64, batch_size=16, n_epochs=5, learning_rate=3e-3, seed=seed)
     model = PPO("DivMorphPolicy", venv, **{"policy_kwargs": TINY_DIVMORPH, **kwargs, **ppo_kwargs})
     with th.no_grad():
@@ -142,14 +149,18 @@ def test_a_part_an_ablation_does_not_divert_trains_at_the_full_rate_unless_asked
 def test_frozen_observation_statistics_stay_while_reward_statistics_learn(tmp_path):
     from sb3_divmorph.finetune import freeze_observation_statistics, observation_statistics_frozen
 
-    venv = VecNormalize(DummyVecEnv([lambda: gym.make("Unimal-FT-v0", morphologies=ROBOTS, max_episode_steps=50)]),
-                        norm_obs_keys=["proprioceptive"])
+    venv = VecNormalize(
+        DummyVecEnv([lambda: gym.make("Unimal-FT-v0", morphologies=ROBOTS, max_episode_steps=50)]), norm_obs_keys=["proprioceptive"]
+    )
     venv.reset()
     for _ in range(5):
         venv.step(np.zeros((1, 24), dtype=np.float32))
     freeze_observation_statistics(venv)
-    mean, var, count = (venv.obs_rms["proprioceptive"].mean.copy(), venv.obs_rms["proprioceptive"].var.copy(),
-                        venv.obs_rms["proprioceptive"].count)
+    mean, var, count = (
+        venv.obs_rms["proprioceptive"].mean.copy(),
+        venv.obs_rms["proprioceptive"].var.copy(),
+        venv.obs_rms["proprioceptive"].count,
+    )
     returns_count = venv.ret_rms.count
     raw = venv.get_original_obs()
     normalised = venv.normalize_obs(raw)["proprioceptive"].copy()
@@ -177,16 +188,22 @@ def test_a_teacher_without_an_encoder_for_a_task_input_gets_one_and_keeps_its_we
 
     tiny = dict(d_model=16, n_layers=1, ff_dim=32)
     th.manual_seed(0)
-    teacher = PPO("MetaMorphPolicy", DummyVecEnv([lambda: gym.make("Unimal-FT-v0", morphologies=ROBOTS)]),
-                  policy_kwargs={**tiny, "exteroception": {}}, n_steps=64, batch_size=64)
+    teacher = PPO(
+        "MetaMorphPolicy",
+        DummyVecEnv([lambda: gym.make("Unimal-FT-v0", morphologies=ROBOTS)]),
+        policy_kwargs={**tiny, "exteroception": {}},
+        n_steps=64,
+        batch_size=64,
+    )
     venv = DummyVecEnv([lambda: gym.make(f"Unimal-{task}-v0", morphologies=ROBOTS)])
-    model = finetuned_model(teacher, venv, task, {**tiny, "exteroception": dict(hfield=[8], goal=[4], object=[4])}, 0, "cpu",
-                            dict(n_steps=64, batch_size=64))
+    model = finetuned_model(
+        teacher, venv, task, {**tiny, "exteroception": dict(hfield=[8], goal=[4], object=[4])}, 0, "cpu", dict(n_steps=64, batch_size=64)
+    )
     assert sorted(model.policy.pi_features_extractor.exteroception) == sorted(keys)
     old, new = teacher.policy.state_dict(), model.policy.state_dict()
     for name, value in old.items():
         target = new[name]
-        assert th.equal(target[:, :value.shape[1]] if target.shape != value.shape else target, value), name
+        assert th.equal(target[:, : value.shape[1]] if target.shape != value.shape else target, value), name
     obs = venv.reset()
     actions = model.predict(obs, deterministic=True)[0]
     for key in keys:

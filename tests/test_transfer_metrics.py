@@ -101,8 +101,12 @@ def test_metrics_are_means_over_seeds_and_robots_with_bootstrap_intervals():
 
 
 def test_episodes_are_averaged_per_robot_and_seeds_share_steps_and_robots():
-    rows = [{"timesteps": t, "split": "train", "robot": r, "episode": e, "return": 10 * e + (100 if r == "b" else 0) + t}
-            for t in (0, 50, 100) for r in ("a", "b") for e in range(3)]
+    rows = [
+        {"timesteps": t, "split": "train", "robot": r, "episode": e, "return": 10 * e + (100 if r == "b" else 0) + t}
+        for t in (0, 50, 100)
+        for r in ("a", "b")
+        for e in range(3)
+    ]
     curves = RobotCurves.from_rows(rows + [{"timesteps": 0, "split": "novel", "robot": "c", "episode": 0, "return": -1}], "train")
     assert curves.robots == ["a", "b"] and list(curves.steps) == [0, 50, 100]
     np.testing.assert_allclose(curves.values, [[10, 60, 110], [110, 160, 210]])

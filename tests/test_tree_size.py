@@ -59,5 +59,9 @@ def test_shipped_models_carry_no_optimiser_moments_or_last_observation():
             data = json.load(io.TextIOWrapper(archive.open("data"), encoding="utf-8"))
         if optimiser > policy / 10 or "_last_obs" in data or "_last_original_obs" in data:
             heavy.append(f"{path.relative_to(ROOT)} (optimiser {optimiser:,} B, policy {policy:,} B)")
-    assert not heavy, "re-save with `python benchmarks/slim_models.py --write " + " ".join(
-        str(Path(h.split(" ")[0]).parent) for h in heavy) + "`: " + "; ".join(heavy)
+    assert not heavy, (
+        "re-save with `python benchmarks/slim_models.py --write "
+        + " ".join(str(Path(h.split(" ")[0]).parent) for h in heavy)
+        + "`: "
+        + "; ".join(heavy)
+    )

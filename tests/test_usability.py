@@ -42,8 +42,10 @@ def tiny_profile(folder: Path) -> tuple[Path, Profile]:
 
 def tiny_model(folder: Path, steps: int = 0) -> PPO:
     """A tiny MetaMorph PPO on FT with VecNormalize, saved as a finished pipeline stage in ``folder``."""
-    venv = VecNormalize(make_vec_env("Unimal-FT-v0", n_envs=1, env_kwargs=dict(morphologies=morphology_files("train")[:1])),
-                        norm_obs_keys=["proprioceptive"])
+    venv = VecNormalize(
+        make_vec_env("Unimal-FT-v0", n_envs=1, env_kwargs=dict(morphologies=morphology_files("train")[:1])),
+        norm_obs_keys=["proprioceptive"],
+    )
     model = PPO("MetaMorphPolicy", venv, n_steps=32, batch_size=32, n_epochs=1, policy_kwargs=TINY, seed=0)
     if steps:
         model.learn(steps)
@@ -233,7 +235,8 @@ def test_record_finds_the_statistics_and_the_task(tmp_path):
     (zoo / "Unimal-VT-v0.zip").write_bytes(b"")
     (zoo / "Unimal-VT-v0" / "config.yml").write_text(
         "!!python/object/apply:collections.OrderedDict\n- - - n_envs\n    - 4\n  - - normalize\n"
-        "    - dict(norm_obs=True, norm_reward=True, norm_obs_keys=['proprioceptive'])\n")
+        "    - dict(norm_obs=True, norm_reward=True, norm_obs_keys=['proprioceptive'])\n"
+    )
     with pytest.raises(RecordError, match="vecnormalize.pkl is missing"):
         find_model(zoo)
     with pytest.raises(RecordError, match="no such file or directory"):
@@ -256,7 +259,9 @@ def test_record_films_a_pipeline_stage_on_its_own_robots_outside_its_folder(tmp_
     (tmp_path / "run" / "robot_sets.json").write_text(json.dumps({"train": {"set": "train", "robots": ["train-002"]}}))
     streamed = []
     original = rendering.write_video
-    monkeypatch.setattr(rendering, "write_video", lambda frames, *a, **k: streamed.append(inspect.isgenerator(frames)) or original(frames, *a, **k))
+    monkeypatch.setattr(
+        rendering, "write_video", lambda frames, *a, **k: streamed.append(inspect.isgenerator(frames)) or original(frames, *a, **k)
+    )
     monkeypatch.chdir(tmp_path)
     parser = argparse.ArgumentParser()
     add_arguments(parser)
@@ -375,8 +380,27 @@ def test_evaluate_a_selection_of_a_shipped_run_into_a_folder_of_ones_own(officia
     record = (run / "run.json").read_text()
     shipped = (run / "evaluate" / "returns.csv").read_text()
     into = tmp_path / "mine"
-    assert cli(["evaluate", "--run", str(run), "--model", "teacher", "--task", "FT", "--split", "train", "--episodes", "1",
-                "--into", str(into), "--no-progress"]) == 0
+    assert (
+        cli(
+            [
+                "evaluate",
+                "--run",
+                str(run),
+                "--model",
+                "teacher",
+                "--task",
+                "FT",
+                "--split",
+                "train",
+                "--episodes",
+                "1",
+                "--into",
+                str(into),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     rows = list(csv.DictReader(open(into / "returns.csv")))
     assert len(rows) == 10 and {(r["model"], r["task"], r["split"]) for r in rows} == {("teacher", "FT", "train")}
     assert (run / "run.json").read_text() == record and (run / "evaluate" / "returns.csv").read_text() == shipped
@@ -400,8 +424,11 @@ def test_no_ablation_figure_without_an_ablation_and_legends_stay_off_the_curves(
     task = profile.transfer.tasks[0]
 
     def curve(arm: str) -> None:
-        rows = [{"timesteps": t, "split": split, "robot": "train-000", "episode": 0, "return": float(t), "length": 10}
-                for t in (0, 100, 200) for split in ("train", "novel")]
+        rows = [
+            {"timesteps": t, "split": split, "robot": "train-000", "episode": 0, "return": float(t), "length": 10}
+            for t in (0, 100, 200)
+            for split in ("train", "novel")
+        ]
         write_eval(tmp_path / "transfer" / task / arm / "seed-0" / "eval.csv", rows)
 
     curve("divmorph")

@@ -17,8 +17,14 @@ REPO = Path(__file__).resolve().parents[1]
 
 def _run(command: list[str], cwd: Path, site: Path, timeout: int = 300) -> subprocess.CompletedProcess:
     # Only the installed copy on the path (not this checkout); one torch thread (small models, busy CPUs).
-    env = {**os.environ, "PYTHONPATH": str(site), "MUJOCO_GL": "egl", "OMP_NUM_THREADS": "1",
-           "HF_HUB_OFFLINE": "1", "TRANSFORMERS_OFFLINE": "1"}
+    env = {
+        **os.environ,
+        "PYTHONPATH": str(site),
+        "MUJOCO_GL": "egl",
+        "OMP_NUM_THREADS": "1",
+        "HF_HUB_OFFLINE": "1",
+        "TRANSFORMERS_OFFLINE": "1",
+    }
     return subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
 
 
@@ -29,15 +35,39 @@ def installed(tmp_path_factory) -> tuple[Path, Path]:
     # Build from a clean copy: pip builds in the source folder, and a build/ left there would both
     # litter the checkout and carry files into later wheels after they are deleted here.
     source = root / "source"
-    shutil.copytree(REPO, source, ignore=shutil.ignore_patterns(
-        ".git", ".venv", "build", "runs", "logs", "results", "tests", "benchmarks", "*.egg-info", "__pycache__", ".*cache", ".hypothesis"))
-    build = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(root / "dist"), str(source)],
-                           capture_output=True, text=True, timeout=300)
+    shutil.copytree(
+        REPO,
+        source,
+        ignore=shutil.ignore_patterns(
+            ".git",
+            ".venv",
+            "build",
+            "runs",
+            "logs",
+            "results",
+            "tests",
+            "benchmarks",
+            "*.egg-info",
+            "__pycache__",
+            ".*cache",
+            ".hypothesis",
+        ),
+    )
+    build = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(root / "dist"), str(source)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert build.returncode == 0, build.stderr[-3000:]
     wheel = next((root / "dist").glob("divmorph-*.whl"))
     site = root / "site"
-    install = subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--target", str(site), str(wheel)],
-                             capture_output=True, text=True, timeout=300)
+    install = subprocess.run(
+        [sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--target", str(site), str(wheel)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert install.returncode == 0, install.stderr[-3000:]
     elsewhere = root / "elsewhere"
     elsewhere.mkdir()
@@ -56,8 +86,10 @@ def test_installed_cli_finds_its_profiles_from_any_folder(installed):
     assert str(site / "sb3_divmorph" / "zoo_configs" / "divmorph.yml") in listed.stdout
     assert {"demo", "gpu", "cpu"} <= set(listed.stdout.split())
     # the profile's `hyperparams: zoo_configs/ppo.yml` resolves to the installed file
-    code = ("from sb3_divmorph.pipeline.config import load_profile, load_zoo_entry, resolve_path; p = load_profile('demo'); "
-            "print(resolve_path(p.teachers.hyperparams), load_zoo_entry(p.teachers.hyperparams, 'Unimal-FT-v0').n_envs)")
+    code = (
+        "from sb3_divmorph.pipeline.config import load_profile, load_zoo_entry, resolve_path; p = load_profile('demo'); "
+        "print(resolve_path(p.teachers.hyperparams), load_zoo_entry(p.teachers.hyperparams, 'Unimal-FT-v0').n_envs)"
+    )
     entry = _run([sys.executable, "-c", code], elsewhere, site)
     assert entry.returncode == 0, entry.stderr
     assert entry.stdout.split() == [str(site / "sb3_divmorph" / "zoo_configs" / "ppo.yml"), "4"]
@@ -70,16 +102,60 @@ def test_installed_cli_finds_its_profiles_from_any_folder(installed):
 def test_installed_rl_zoo_trains_with_the_shipped_entries_and_record_films_it(installed):
     site, elsewhere = installed
     tiny = "policy_kwargs:dict(d_model=16, n_layers=1, ff_dim=32, exteroception={})"
-    train = _run([sys.executable, "-m", "rl_zoo3.train", "--algo", "ppo", "--env", "Unimal-FT-v0", "--gym-packages", "unimal_envs",
-                  "sb3_divmorph", "--conf-file", "sb3_divmorph.zoo", "-n", "64", "-f", "logs", "--seed", "0",
-                  "-params", "n_envs:1", "n_steps:64", "batch_size:64", "n_epochs:1", tiny], elsewhere, site)
+    train = _run(
+        [
+            sys.executable,
+            "-m",
+            "rl_zoo3.train",
+            "--algo",
+            "ppo",
+            "--env",
+            "Unimal-FT-v0",
+            "--gym-packages",
+            "unimal_envs",
+            "sb3_divmorph",
+            "--conf-file",
+            "sb3_divmorph.zoo",
+            "-n",
+            "64",
+            "-f",
+            "logs",
+            "--seed",
+            "0",
+            "-params",
+            "n_envs:1",
+            "n_steps:64",
+            "batch_size:64",
+            "n_epochs:1",
+            tiny,
+        ],
+        elsewhere,
+        site,
+    )
     assert train.returncode == 0, train.stderr[-3000:]
     run = elsewhere / "logs" / "ppo" / "Unimal-FT-v0_1"
     assert (run / "Unimal-FT-v0.zip").is_file() and (run / "Unimal-FT-v0" / "vecnormalize.pkl").is_file()
 
     video = elsewhere / "ft.mp4"
-    record = _run([sys.executable, str(site / "bin" / "divmorph"), "record", str(run), "--steps", "10", "--width", "64",
-                   "--height", "64", "--out", str(video), "--no-progress"], elsewhere, site)
+    record = _run(
+        [
+            sys.executable,
+            str(site / "bin" / "divmorph"),
+            "record",
+            str(run),
+            "--steps",
+            "10",
+            "--width",
+            "64",
+            "--height",
+            "64",
+            "--out",
+            str(video),
+            "--no-progress",
+        ],
+        elsewhere,
+        site,
+    )
     assert record.returncode == 0, record.stderr[-3000:]
     assert "no statistics" not in record.stdout  # the run's vecnormalize.pkl was found and used
     frames = iio.imread(video)

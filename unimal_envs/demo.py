@@ -134,14 +134,25 @@ def main(argv: list[str] | None = None) -> None:
         (gait_return, gait_dist, gait_len, gait_fell) = best[0]
         rows.append((robot, random_return, random_dist, random_len, random_fell, gait_return, gait_dist, gait_len, gait_fell))
 
-    table = Table(title=f"Unimal-FT-v0, {len(robots)} robots of '{args.morphologies}' (seed {args.seed}): random actions vs best of {args.gaits} sine gaits")
+    table = Table(
+        title=f"Unimal-FT-v0, {len(robots)} robots of '{args.morphologies}' (seed {args.seed}): random actions vs best of {args.gaits} sine gaits"
+    )
     headers = ["morphology", "limbs", "dof", "random return", "random dx (m)", "random steps", "gait return", "gait dx (m)", "gait steps"]
     for header in headers:
         table.add_column(header, justify="right", no_wrap=header == "morphology")
     markdown = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
     for robot, rr, rd, rl, rf, gr, gd, gl, gf in rows:
-        cells = [robot.name, str(robot.num_limbs), str(robot.dof), f"{rr:.1f}", f"{rd:+.2f}", f"{rl}{' (fell)' if rf else ''}",
-                 f"{gr:.1f}", f"{gd:+.2f}", f"{gl}{' (fell)' if gf else ''}"]
+        cells = [
+            robot.name,
+            str(robot.num_limbs),
+            str(robot.dof),
+            f"{rr:.1f}",
+            f"{rd:+.2f}",
+            f"{rl}{' (fell)' if rf else ''}",
+            f"{gr:.1f}",
+            f"{gd:+.2f}",
+            f"{gl}{' (fell)' if gf else ''}",
+        ]
         table.add_row(*cells)
         markdown.append("| " + " | ".join(cells) + " |")
     console.print(table)
@@ -161,7 +172,9 @@ def main(argv: list[str] | None = None) -> None:
 
     import matplotlib.pyplot as plt
 
-    figure = robot_figure(pictures, labels, f"{len(robots)} robots of '{args.morphologies}' (seed {args.seed}) at their Unimal-FT-v0 start pose")
+    figure = robot_figure(
+        pictures, labels, f"{len(robots)} robots of '{args.morphologies}' (seed {args.seed}) at their Unimal-FT-v0 start pose"
+    )
     figure.savefig(args.out / "robots.png", dpi=100)
     plt.close(figure)
     write_video(frames, args.out / "gaits.mp4", fps=50)

@@ -159,8 +159,10 @@ class UnimalEnv(gym.Env):
         height_reference: str = "world",
     ):
         if height_reference not in C.HEIGHT_REFERENCES:
-            raise ValueError(f"height_reference must be one of {C.HEIGHT_REFERENCES} (what body heights in "
-                             f"'proprioceptive' are measured from), got {height_reference!r}")
+            raise ValueError(
+                f"height_reference must be one of {C.HEIGHT_REFERENCES} (what body heights in "
+                f"'proprioceptive' are measured from), got {height_reference!r}"
+            )
         self.height_reference = height_reference
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")

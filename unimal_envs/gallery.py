@@ -18,6 +18,7 @@ import unimal_envs
 import unimal_envs.morphology
 from unimal_envs.tasks import TASKS
 
+
 def _place(env, x: float, y: float, heading: float) -> None:
     """Put the robot at (x, y) on the ground (its spawn height above it), facing ``heading`` (deg)."""
     base = env.unwrapped
@@ -78,8 +79,9 @@ def stage(env, task: str) -> None:
     base.robot.sync()
 
 
-def render_tasks(morphology: str, width: int = 400, height: int = 300, seed: int = 0,
-                 morphologies: str = "train") -> list[tuple[str, np.ndarray]]:
+def render_tasks(
+    morphology: str, width: int = 400, height: int = 300, seed: int = 0, morphologies: str = "train"
+) -> list[tuple[str, np.ndarray]]:
     """One frame per task, staged by :func:`stage` to show the task's arena and props.
 
     :param morphology: the robot's name in ``morphologies``.
@@ -117,7 +119,7 @@ def main(argv: list[str] | None = None) -> None:
         ax.imshow(frame)
         ax.set_title(f"Unimal-{task}-v0", fontsize=10)
         ax.axis("off")
-    for ax in list(axes.flat)[len(frames):]:
+    for ax in list(axes.flat)[len(frames) :]:
         ax.axis("off")
     fig.suptitle(f"The ten UNIMAL tasks (robot {args.morphology}; `python -m unimal_envs.gallery`)", fontsize=11)
     fig.tight_layout()

@@ -185,9 +185,7 @@ class Robot:
         # ctrl[k] <- action[slot of actuator k's hinge]
         actuated = [int(model.actuator_trnid[a, 0]) for a in range(model.nu)]
         self._robot_actuators = np.array([a for a, j in enumerate(actuated) if j in hinge_ids], dtype=np.intp)
-        self._ctrl_slots = np.array(
-            [hinge_slots[hinge_ids.index(actuated[a])] for a in self._robot_actuators], dtype=np.intp
-        )
+        self._ctrl_slots = np.array([hinge_slots[hinge_ids.index(actuated[a])] for a in self._robot_actuators], dtype=np.intp)
         self._ctrl_all = len(self._robot_actuators) == model.nu
         # The proprioception sensors (see _add_proprioception_sensors) fill one block of
         # sensordata: n rows of the 13 body columns, then the hinge angles, then hinge velocities.
@@ -226,11 +224,17 @@ class Robot:
         model, dof = self.model, self.dof
         ids = [model.joint(h).id for h in self._slot_of_hinge]
         return RobotIndices(
-            qpos=slice(self._qpos_root, self._qpos_hinges.stop), qvel=slice(self._qvel_root, self._qvel_hinges.stop),
-            hinge_qpos=model.jnt_qposadr[ids].copy(), hinge_qvel=model.jnt_dofadr[ids].copy(),
-            hinge_scale=self._hinge_scale[:dof].copy(), hinge_offset=self._hinge_offset[:dof].copy(),
-            hinge_angle_columns=self._hinge_targets[:dof].copy(), hinge_velocity_columns=self._hinge_targets[dof:].copy(),
-            static=self._static.copy(), actuators=self._robot_actuators.copy(), action_slots=self._ctrl_slots.copy(),
+            qpos=slice(self._qpos_root, self._qpos_hinges.stop),
+            qvel=slice(self._qvel_root, self._qvel_hinges.stop),
+            hinge_qpos=model.jnt_qposadr[ids].copy(),
+            hinge_qvel=model.jnt_dofadr[ids].copy(),
+            hinge_scale=self._hinge_scale[:dof].copy(),
+            hinge_offset=self._hinge_offset[:dof].copy(),
+            hinge_angle_columns=self._hinge_targets[:dof].copy(),
+            hinge_velocity_columns=self._hinge_targets[dof:].copy(),
+            static=self._static.copy(),
+            actuators=self._robot_actuators.copy(),
+            action_slots=self._ctrl_slots.copy(),
         )
 
     # ------------------------------------------------------------------ state

@@ -37,7 +37,7 @@ class Arm:
     :param name: the name on the command line and in folders.
     :param label: the name in plots and tables.
     :param student: the distilled student it starts from (a key of
-        :data:`sb3_divmorph.pipeline.distill.STUDENTS`), or ``None``.
+        :data:`sb3_divmorph.pipeline.students.STUDENTS`), or ``None``.
     :param divmorph_transfer: transferred the DivMorph way (fixed gates, per-unit learning rates).
     :param ablation: one of the paper's ablations (plotted in the ablation figure).
     """

@@ -81,9 +81,18 @@ def branch(source: Path, out: Path, stages: Sequence[str] = REUSABLE_STAGES, com
     record = json.loads((source / RECORD).read_text())
     # the branch's own stages (transfer and after) run under today's rules, not a legacy record's
     record["configuration"] = with_current_values(record["configuration"])
-    record["history"] = [*record.get("history", []), {
-        "command": command, "time": time.strftime("%Y-%m-%d %H:%M:%S"), "changed": [], "forced": False,
-        "retrained": [], "superseded": None,
-        "branched_from": str(source), "linked": [str(link.relative_to(out)) for link in links]}]
+    record["history"] = [
+        *record.get("history", []),
+        {
+            "command": command,
+            "time": time.strftime("%Y-%m-%d %H:%M:%S"),
+            "changed": [],
+            "forced": False,
+            "retrained": [],
+            "superseded": None,
+            "branched_from": str(source),
+            "linked": [str(link.relative_to(out)) for link in links],
+        },
+    ]
     atomic_write_json(out / RECORD, record)
     return links

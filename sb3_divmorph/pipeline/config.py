@@ -1,4 +1,4 @@
-"""Pipeline profiles (``zoo_configs/divmorph.yml``) and rl-zoo hyperparameter entries, validated.
+"""Pipeline profiles (``zoo_configs/divmorph.yml``), validated (rl-zoo entries: :mod:`sb3_divmorph.zoo`).
 
 A profile is plain YAML; every section maps onto a dataclass below, and a key the dataclass does
 not have is an error that names it and lists the valid ones (a typo must never be silently
@@ -9,42 +9,29 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import inspect
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import yaml
-from stable_baselines3 import PPO
-from stable_baselines3.common.utils import LinearSchedule
 
+from sb3_divmorph.zoo import (  # noqa: F401 -- the rl-zoo entries are read in sb3_divmorph.zoo; re-exported here
+    BALANCED_SAMPLER,
+    PPO_HYPERPARAMETERS,
+    REPO_ROOT,
+    ZOO_KEYS,
+    ConfigError,
+    ZooEntry,
+    check_ppo_keys,
+    load_zoo_entry,
+    resolve_path,
+    zoo_configs_dir,
+)
+from unimal_envs import env_id
 from unimal_envs.contract import HEIGHT_REFERENCES, NOVEL_TASKS, TASK_NAMES, TRAIN_TASKS
 
-#: Where profiles and zoo files are looked up when a relative path is given.
-REPO_ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_PROFILES = Path("zoo_configs") / "divmorph.yml"
-
-
-class ConfigError(ValueError):
-    """A profile or hyperparameter file is invalid (unknown key, bad value, missing file)."""
-
-
-def resolve_path(path: str | Path) -> Path:
-    """``path`` as given if it exists; else a ``zoo_configs/...`` path among the shipped
-    configuration files (found from any working directory, installed or not); else relative to
-    the repository root."""
-    path = Path(path)
-    if path.exists() or path.is_absolute():
-        return path
-    if path.parts and path.parts[0] == "zoo_configs":
-        from sb3_divmorph.zoo import zoo_configs_dir
-
-        shipped = zoo_configs_dir().joinpath(*path.parts[1:])
-        if shipped.exists():
-            return shipped
-    candidate = REPO_ROOT / path
-    return candidate if candidate.exists() else path
 
 
 def _from_dict(cls: type, values: dict[str, Any] | None, where: str):
@@ -310,7 +297,9 @@ class Profile:
             "evaluate": EvaluateConfig,
         }
         values = dict(values)
-        parsed = {key: _from_dict(section, values.pop(key, None), f"profile {name!r}, section {key!r}") for key, section in sections.items()}
+        parsed = {
+            key: _from_dict(section, values.pop(key, None), f"profile {name!r}, section {key!r}") for key, section in sections.items()
+        }
         if values.get("grl") is not None:
             parsed["grl"] = _from_dict(GRLConfig, values.pop("grl"), f"profile {name!r}, section 'grl'")
         else:
@@ -321,32 +310,46 @@ class Profile:
         _check_tasks(profile.teachers.tasks, TRAIN_TASKS, f"profile {name!r}, teachers.tasks")
         _check_tasks(profile.transfer.tasks, NOVEL_TASKS, f"profile {name!r}, transfer.tasks")
         _check_tasks(profile.export.tasks, TASK_NAMES, f"profile {name!r}, export.tasks")
-        for where, policy in (("teachers.policy", profile.teachers.policy),
-                              ("hyperdistill.teacher_policy", profile.hyperdistill.teacher_policy if profile.hyperdistill else None)):
+        for where, policy in (
+            ("teachers.policy", profile.teachers.policy),
+            ("hyperdistill.teacher_policy", profile.hyperdistill.teacher_policy if profile.hyperdistill else None),
+        ):
             if policy is not None and policy not in TEACHER_POLICIES:
                 raise ConfigError(f"profile {name!r}: unknown teacher policy {policy!r} in {where}; choose from {list(TEACHER_POLICIES)}")
         if profile.hyperdistill is not None and profile.hyperdistill.loss not in ("nll", "kl"):
             raise ConfigError(f"profile {name!r}: hyperdistill.loss must be 'nll' or 'kl', got {profile.hyperdistill.loss!r}")
         if profile.hyperdistill is not None and profile.hyperdistill.task_input not in ("none", "index"):
-            raise ConfigError(f"profile {name!r}: hyperdistill.task_input must be 'index' or 'none', got {profile.hyperdistill.task_input!r}")
+            raise ConfigError(
+                f"profile {name!r}: hyperdistill.task_input must be 'index' or 'none', got {profile.hyperdistill.task_input!r}"
+            )
         if profile.hyperdistill is not None and profile.hyperdistill.observation_statistics not in ("teachers", "own"):
-            raise ConfigError(f"profile {name!r}: hyperdistill.observation_statistics must be 'teachers' or 'own', "
-                              f"got {profile.hyperdistill.observation_statistics!r}")
+            raise ConfigError(
+                f"profile {name!r}: hyperdistill.observation_statistics must be 'teachers' or 'own', "
+                f"got {profile.hyperdistill.observation_statistics!r}"
+            )
         for key in ("task_input", "observation_statistics", "normalized_keys"):
             if profile.hyperdistill is not None and key in profile.hyperdistill.policy_kwargs:
-                raise ConfigError(f"profile {name!r}: hyperdistill.policy_kwargs.{key} is set by the pipeline; "
-                                  f"use hyperdistill.{key if key != 'normalized_keys' else 'observation_statistics'}")
+                raise ConfigError(
+                    f"profile {name!r}: hyperdistill.policy_kwargs.{key} is set by the pipeline; "
+                    f"use hyperdistill.{key if key != 'normalized_keys' else 'observation_statistics'}"
+                )
         if profile.height_reference not in HEIGHT_REFERENCES:
-            raise ConfigError(f"profile {name!r}: height_reference must be one of {list(HEIGHT_REFERENCES)}, got {profile.height_reference!r}")
+            raise ConfigError(
+                f"profile {name!r}: height_reference must be one of {list(HEIGHT_REFERENCES)}, got {profile.height_reference!r}"
+            )
         for section in ("teachers", "distill", "transfer"):
             cfg = getattr(profile, section)
             if profile.height_reference != "world" and cfg.env_backend == "batched":
-                raise ConfigError(f"profile {name!r}: height_reference {profile.height_reference!r} is not implemented by the batched "
-                                  f"backend ({section}.env_backend); use env_backend: single or height_reference: world")
+                raise ConfigError(
+                    f"profile {name!r}: height_reference {profile.height_reference!r} is not implemented by the batched "
+                    f"backend ({section}.env_backend); use env_backend: single or height_reference: world"
+                )
             if cfg.env_backend not in ENV_BACKENDS or cfg.worlds_per_robot < 1 or cfg.terrain_variants < 1:
-                raise ConfigError(f"profile {name!r}: {section}.env_backend must be one of {list(ENV_BACKENDS)}, "
-                                  f"{section}.worlds_per_robot >= 1 and {section}.terrain_variants >= 1, got "
-                                  f"{cfg.env_backend!r}, {cfg.worlds_per_robot}, {cfg.terrain_variants}")
+                raise ConfigError(
+                    f"profile {name!r}: {section}.env_backend must be one of {list(ENV_BACKENDS)}, "
+                    f"{section}.worlds_per_robot >= 1 and {section}.terrain_variants >= 1, got "
+                    f"{cfg.env_backend!r}, {cfg.worlds_per_robot}, {cfg.terrain_variants}"
+                )
         for section in ("teachers", "distill", "transfer"):
             for key in ("n_timesteps", "checkpoint_every"):
                 value = getattr(getattr(profile, section), key)
@@ -361,7 +364,9 @@ class Profile:
             raise ConfigError(f"profile {name!r}: grl.population, generations, learngene_layers and tournament must be >= 1")
         stray = sorted(set(profile.transfer.instructions) - set(profile.transfer.tasks))
         if stray:
-            raise ConfigError(f"profile {name!r}: transfer.instructions for {stray}, which are not in transfer.tasks {profile.transfer.tasks}")
+            raise ConfigError(
+                f"profile {name!r}: transfer.instructions for {stray}, which are not in transfer.tasks {profile.transfer.tasks}"
+            )
         if not 0 <= profile.distill.beta_start <= 1 or not 0 <= profile.distill.beta_end <= 1:
             raise ConfigError(f"profile {name!r}: distill.beta_start/beta_end must be in [0, 1]")
         if profile.distill.ppo_loss and max(profile.distill.beta_start, profile.distill.beta_end) > 0:
@@ -416,8 +421,6 @@ def load_profiles(path: str | Path = DEFAULT_PROFILES) -> dict[str, dict[str, An
     """The raw profile entries of a profiles file."""
     resolved = resolve_path(path)
     if not resolved.is_file():
-        from sb3_divmorph.zoo import zoo_configs_dir
-
         raise ConfigError(f"profiles file {path} not found (looked in {Path.cwd()}, in the shipped {zoo_configs_dir()} and in {REPO_ROOT})")
     with open(resolved) as f:
         data = yaml.safe_load(f) or {}
@@ -467,129 +470,20 @@ def load_profile(name: str, path: str | Path = DEFAULT_PROFILES, overrides: Mapp
         raise ConfigError(f"{resolve_path(path)}: {error}") from None
 
 
-# -- rl-zoo hyperparameter entries -----------------------------------------------------------
-#: Keys of an rl-zoo entry that are not PPO constructor arguments.
-_ZOO_ONLY = {"n_timesteps", "policy", "n_envs", "normalize", "env_wrapper", "frame_stack", "callback", "vec_env_wrapper"}
-_PPO_ARGS = set(inspect.signature(PPO.__init__).parameters) - {"self", "env", "policy"}
-#: PPO arguments the pipeline sets itself (from the profile's ``seed`` and ``device``, or not at all)
-_SET_BY_PIPELINE = {"seed", "device", "verbose", "tensorboard_log", "_init_setup_model"}
-#: What an entry or a profile's ``overrides`` may hold: PPO's hyperparameters and the rl-zoo keys
-#: the pipeline reads.
-PPO_HYPERPARAMETERS = sorted(_PPO_ARGS - _SET_BY_PIPELINE)
-ZOO_KEYS = sorted(_ZOO_ONLY - {"env_wrapper", "frame_stack", "vec_env_wrapper"})
+def grl_policy_kwargs(profile: Profile) -> dict[str, Any]:
+    """Every GRL agent's (and the ``grl`` arm's) MetaMorph kwargs: ``teachers.policy_kwargs`` on the
+    policy's preset, not the tasks' zoo entries, whose exteroception differs per task: one
+    architecture for all tasks, so that any agent's layers fit into any other."""
+    return dict(profile.teachers.policy_kwargs)
 
 
-def check_ppo_keys(keys, where: str) -> None:
-    """Refuse keys that are neither PPO hyperparameters nor rl-zoo keys the pipeline reads.
-
-    :param keys: the keys of a zoo entry or of a profile's ``overrides``.
-    :param where: what holds them, for the message (file, profile, section).
-    :raises ConfigError: naming the unknown keys and listing only the valid ones.
-    """
-    managed = sorted(set(keys) & _SET_BY_PIPELINE)
-    if managed:
-        raise ConfigError(f"{where}: {managed} are set by the pipeline (the profile's seed and device), not by a zoo entry or overrides")
-    unknown = sorted(set(keys) - set(PPO_HYPERPARAMETERS) - _ZOO_ONLY)
-    if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {unknown}; PPO hyperparameters: {PPO_HYPERPARAMETERS}; rl-zoo keys: {ZOO_KEYS}")
+def zoo_entry_id(profile: Profile, task: str) -> str:
+    """The rl-zoo entry of ``task``'s teacher: ``Unimal-<task>-v0``, or its ``-<recipe>`` variant."""
+    env_name = env_id(task)
+    return f"{env_name}-{profile.teachers.recipe}" if profile.teachers.recipe else env_name
 
 
-@dataclass
-class ZooEntry:
-    """One env's PPO setup from an rl-zoo YAML, with strings turned into values."""
-
-    policy: str
-    n_timesteps: int
-    n_envs: int
-    policy_kwargs: dict[str, Any]
-    normalize: dict[str, Any] | None
-    ppo_kwargs: dict[str, Any]
-    #: ``(class path, kwargs)`` of rl-zoo callbacks (only MetaMorph's balanced robot sampler)
-    callbacks: list[tuple[str, dict[str, Any]]] = field(default_factory=list)
-
-
-def _zoo_eval(text: str, where: str) -> Any:
-    try:
-        return eval(text, {"__builtins__": {}}, {"dict": dict, "list": list, "True": True, "False": False, "None": None})  # noqa: S307
-    except Exception as error:  # noqa: BLE001
-        raise ConfigError(f"{where}: cannot evaluate {text!r}: {error}") from None
-
-
-def _schedule(value: Any, where: str) -> Any:
-    if isinstance(value, str) and value.startswith("lin_"):
-        start = float(value[4:])
-        return LinearSchedule(start, 0.0, 1.0)
-    if isinstance(value, str) and value.startswith("cosine_"):
-        # MetaMorph's recipe: cosine decay to 0 with a short linear warm-up (sb3_divmorph.recipe).
-        from sb3_divmorph.recipe import CosineWarmupSchedule
-
-        try:
-            return CosineWarmupSchedule(float(value[7:]))
-        except ValueError as error:
-            raise ConfigError(f"{where}: bad cosine schedule {value!r}: {error}") from None
-    if isinstance(value, str):
-        raise ConfigError(f"{where}: only numbers, 'lin_<value>' and 'cosine_<value>' schedules are supported, got {value!r}")
-    return value
-
-
-#: The one rl-zoo ``callback`` the pipeline understands: MetaMorph's balanced robot sampler.
-BALANCED_SAMPLER = "sb3_divmorph.recipe.BalancedRobotSampler"
-
-
-def _callbacks(value: Any, where: str) -> list[tuple[str, dict[str, Any]]]:
-    """rl-zoo's ``callback`` value (a class path, a ``{path: kwargs}`` dict, or a list of them)."""
-    items = value if isinstance(value, list) else [value]
-    parsed = []
-    for item in items:
-        path, kwargs = (next(iter(item.items())) if isinstance(item, dict) and len(item) == 1 else (item, {}))
-        if path != BALANCED_SAMPLER:
-            raise ConfigError(f"{where}: the divmorph pipeline supports only callback {BALANCED_SAMPLER!r}, got {item!r}")
-        parsed.append((path, dict(kwargs or {})))
-    return parsed
-
-
-def load_zoo_entry(path: str | Path, env_id: str, overrides: dict[str, Any] | None = None) -> ZooEntry:
-    """Read ``env_id``'s entry of an rl-zoo hyperparameter file and apply ``overrides``.
-
-    :raises ConfigError: missing file or entry, unknown keys (neither rl-zoo nor PPO arguments).
-    """
-    resolved = resolve_path(path)
-    if not resolved.is_file():
-        raise ConfigError(f"rl-zoo hyperparameter file {path} not found")
-    with open(resolved) as f:
-        data = yaml.safe_load(f) or {}
-    if env_id not in data:
-        raise ConfigError(f"{resolved} has no entry for {env_id}; entries: {sorted(data)}")
-    entry = {**data[env_id], **(overrides or {})}
-    where = f"{resolved} [{env_id}]"
-    check_ppo_keys(data[env_id], where)
-    check_ppo_keys(overrides or {}, f"overrides of {where}")
-    callbacks = _callbacks(entry.pop("callback"), where) if "callback" in entry else []
-    for key in ("env_wrapper", "frame_stack", "vec_env_wrapper"):
-        if key in entry:
-            raise ConfigError(f"{where}: {key!r} is not supported by the divmorph pipeline")
-    policy_kwargs = entry.pop("policy_kwargs", {}) or {}
-    if isinstance(policy_kwargs, str):
-        policy_kwargs = _zoo_eval(policy_kwargs, where)
-    normalize = entry.pop("normalize", None)
-    if isinstance(normalize, str):
-        normalize = _zoo_eval(normalize, where)
-    elif normalize is True:
-        normalize = {}
-    elif normalize is False:
-        normalize = None
-    if "n_timesteps" not in entry:
-        raise ConfigError(f"{where}: n_timesteps is required")
-    ppo_kwargs = {k: v for k, v in entry.items() if k in _PPO_ARGS}
-    for key in ("learning_rate", "clip_range"):
-        if key in ppo_kwargs:
-            ppo_kwargs[key] = _schedule(ppo_kwargs[key], f"{where} {key}")
-    return ZooEntry(
-        policy=str(entry.get("policy", "MetaMorphPolicy")),
-        n_timesteps=int(float(entry["n_timesteps"])),
-        n_envs=int(entry.get("n_envs", 1)),
-        policy_kwargs=dict(policy_kwargs),
-        normalize=normalize,
-        ppo_kwargs=ppo_kwargs,
-        callbacks=callbacks,
-    )
+def teacher_policy(profile: Profile, task: str) -> str:
+    """The policy of the run's teacher of ``task``: ``teachers.policy``, else the zoo entry's."""
+    cfg = profile.teachers
+    return cfg.policy or load_zoo_entry(cfg.hyperparams, zoo_entry_id(profile, task), cfg.overrides).policy

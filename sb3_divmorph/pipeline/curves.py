@@ -7,6 +7,7 @@ deterministic episodes on the run's task, with the observation statistics the mo
 moment (not updated by the evaluation). Rows go to ``<run>/eval.csv``
 (``timesteps, split, robot, episode, return, length``), rewritten atomically after every
 evaluation; a resumed run first drops the rows its killed attempt wrote after the checkpoint.
+A task's ``transfer/<task>/metrics.csv`` is made from these curves (:func:`write_metrics`).
 """
 
 from __future__ import annotations
@@ -21,17 +22,19 @@ import gymnasium as gym
 import numpy as np
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
-from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecMonitor
+from stable_baselines3 import PPO
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecMonitor, VecNormalize
 
-from sb3_divmorph.pipeline.runs import atomic_write_text
+from sb3_divmorph.pipeline.arms import ARMS
+from sb3_divmorph.pipeline.config import Profile
+from sb3_divmorph.pipeline.metrics import ArmMetrics, RobotCurves, task_metrics_from_curves
+from sb3_divmorph.pipeline.runs import MODEL, atomic_write_text, stage_normalizer, task_env_name, write_csv
 
 EVAL_FILE = "eval.csv"
 EVAL_COLUMNS = ["timesteps", "split", "robot", "episode", "return", "length"]
 
 
-def rollout_returns(
-    model: BaseAlgorithm, venv: VecEnv, robots: list[Path], episodes: int, normalize=None
-) -> list[dict[str, Any]]:
+def rollout_returns(model: BaseAlgorithm, venv: VecEnv, robots: list[Path], episodes: int, normalize=None) -> list[dict[str, Any]]:
     """Deterministic episode returns of ``model`` on ``venv`` (one env per robot, monitored).
 
     :param normalize: ``obs -> obs`` applied before the policy (e.g. ``VecNormalize.normalize_obs``).
@@ -44,17 +47,25 @@ def rollout_returns(
         obs, _, dones, infos = venv.step(actions)
         for i in np.flatnonzero(dones):
             if finished[i] < episodes:
-                rows.append({"robot": robots[i].stem, "episode": int(finished[i]),
-                             "return": float(infos[i]["episode"]["r"]), "length": int(infos[i]["episode"]["l"])})
+                rows.append(
+                    {
+                        "robot": robots[i].stem,
+                        "episode": int(finished[i]),
+                        "return": float(infos[i]["episode"]["r"]),
+                        "length": int(infos[i]["episode"]["l"]),
+                    }
+                )
                 finished[i] += 1
     return rows
 
 
 def robot_venv(env_name: str, robots: list[Path], max_steps: int, seed: int, **env_kwargs: Any) -> VecEnv:
     """One monitored env per robot, seeded ``seed``."""
-    venv = VecMonitor(DummyVecEnv([
-        (lambda robot=robot: gym.make(env_name, morphologies=[robot], max_episode_steps=max_steps, **env_kwargs)) for robot in robots
-    ]))
+    venv = VecMonitor(
+        DummyVecEnv(
+            [(lambda robot=robot: gym.make(env_name, morphologies=[robot], max_episode_steps=max_steps, **env_kwargs)) for robot in robots]
+        )
+    )
     venv.seed(seed)
     return venv
 
@@ -64,8 +75,16 @@ def read_eval(path: Path) -> list[dict[str, Any]]:
     if not path.is_file():
         return []
     with open(path) as f:
-        return [{**row, "timesteps": int(row["timesteps"]), "episode": int(row["episode"]), "return": float(row["return"]),
-                 "length": int(row["length"])} for row in csv.DictReader(f)]
+        return [
+            {
+                **row,
+                "timesteps": int(row["timesteps"]),
+                "episode": int(row["episode"]),
+                "return": float(row["return"]),
+                "length": int(row["length"]),
+            }
+            for row in csv.DictReader(f)
+        ]
 
 
 def write_eval(path: Path, rows: list[dict[str, Any]]) -> None:
@@ -99,8 +118,17 @@ class EvalCurveCallback(BaseCallback):
     :param env_kwargs: further env arguments (e.g. a custom ``instruction``).
     """
 
-    def __init__(self, path: Path, env_name: str, splits: dict[str, list[Path]], every: int, episodes: int,
-                 max_steps: int, seed: int, **env_kwargs: Any):
+    def __init__(
+        self,
+        path: Path,
+        env_name: str,
+        splits: dict[str, list[Path]],
+        every: int,
+        episodes: int,
+        max_steps: int,
+        seed: int,
+        **env_kwargs: Any,
+    ):
         super().__init__()
         self.path = Path(path)
         self.env_name = env_name
@@ -147,7 +175,117 @@ class EvalCurveCallback(BaseCallback):
                 self._rows.append({"timesteps": self.num_timesteps, "split": split, **row})
         self._last = self.num_timesteps
         write_eval(self.path, self._rows)
-        means = {split: np.mean([r["return"] for r in self._rows if r["split"] == split and r["timesteps"] == self.num_timesteps])
-                 for split in self.splits}
+        means = {
+            split: np.mean([r["return"] for r in self._rows if r["split"] == split and r["timesteps"] == self.num_timesteps])
+            for split in self.splits
+        }
         for split, value in means.items():
             self.logger.record(f"eval/{split}_return", float(value))
+
+
+# -- a task's transfer metrics, from its runs' curves ------------------------------------------------
+def seed_curves(out: Path, task: str, arm: str, split: str) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """``{seed: (steps, mean return)}`` of every seed of an arm with an evaluation curve."""
+    base = Path(out) / "transfer" / task / arm
+    folders = {int(folder.name.split("-")[1]): folder for folder in base.glob("seed-*")}
+    folders.setdefault(0, base)  # a run from before seeds existed is seed 0
+    curves = {}
+    for seed, folder in sorted(folders.items()):
+        steps, returns = eval_curve(read_eval(folder / EVAL_FILE), split)
+        if len(steps):
+            curves[seed] = (steps, returns)
+    return curves
+
+
+def seed_robot_curves(out: Path, task: str, arm: str, split: str) -> dict[int, RobotCurves]:
+    """``{seed: RobotCurves}`` (per robot and step, mean over episodes) of every seed of an arm with an evaluation curve."""
+    base = Path(out) / "transfer" / task / arm
+    folders = {int(folder.name.split("-")[1]): folder for folder in base.glob("seed-*")}
+    folders.setdefault(0, base)  # a run from before seeds existed is seed 0
+    curves = {}
+    for seed, folder in sorted(folders.items()):
+        found = RobotCurves.from_rows(read_eval(folder / EVAL_FILE), split)
+        if len(found.steps) and found.robots:
+            curves[seed] = found
+    return curves
+
+
+def task_metrics(profile: Profile, out: Path, task: str) -> list[ArmMetrics]:
+    """Metrics of every arm with curves on ``task``, both splits (see :mod:`~sb3_divmorph.pipeline.metrics`)."""
+    metrics = []
+    for split in ("train", "novel"):
+        runs = {arm: list(curves.values()) for arm in ARMS if (curves := seed_robot_curves(out, task, arm, split))}
+        if runs:
+            metrics += task_metrics_from_curves(task, split, runs)
+    return metrics
+
+
+METRIC_COLUMNS = [
+    "task",
+    "arm",
+    "split",
+    "seeds",
+    "robots",
+    "zero_shot",
+    "zero_shot_sd",
+    "zero_shot_lo",
+    "zero_shot_hi",
+    "final",
+    "final_sd",
+    "final_lo",
+    "final_hi",
+    "auc",
+    "auc_sd",
+    "auc_lo",
+    "auc_hi",
+    "level",
+    "steps_to_level",
+    "steps_lo",
+    "steps_hi",
+    "held",
+    "sample_efficiency",
+    "budget",
+]
+
+
+def write_metrics(profile: Profile, out: Path, task: str) -> list[ArmMetrics]:
+    """Write ``transfer/<task>/metrics.csv`` (when there are runs) and return its rows.
+
+    ``steps_to_level`` is empty where the arm does not hold the level, ``steps_hi`` ``inf`` where some
+    bootstrap draws never do; ``sample_efficiency`` is the speed-up vs scratch in words
+    (:meth:`~sb3_divmorph.pipeline.metrics.ArmMetrics.efficiency_text`).
+    """
+    metrics = task_metrics(profile, out, task)
+    if not metrics:
+        return []  # no runs of this task: no file (a run folder without transfers stays without them)
+    rows = [{**{k: getattr(m, k) for k in METRIC_COLUMNS if hasattr(m, k)}, "sample_efficiency": m.efficiency_text()} for m in metrics]
+    write_csv(Path(out) / "transfer" / task / "metrics.csv", rows, METRIC_COLUMNS)
+    return metrics
+
+
+def evaluate_model(
+    folder: Path,
+    task: str,
+    robots: list[Path],
+    episodes: int,
+    max_steps: int,
+    seed: int,
+    instruction: str | None = None,
+    env_kwargs: dict[str, Any] | None = None,
+) -> list[dict[str, Any]]:
+    """Deterministic returns of the model saved in ``folder`` on each robot doing ``task``.
+
+    :param instruction: the task's instruction in other words (default: the built-in one).
+    :param env_kwargs: further env arguments (the run's :func:`~sb3_divmorph.pipeline.runs.profile_env_kwargs`).
+    """
+    venv = robot_venv(
+        task_env_name(task), robots, max_steps, seed, **({"instruction": instruction} if instruction else {}), **(env_kwargs or {})
+    )
+    statistics = stage_normalizer(folder)
+    if statistics is not None:
+        venv = VecNormalize.load(str(statistics), venv)
+        venv.training, venv.norm_reward = False, False
+    model = PPO.load(folder / MODEL, device="cpu")
+    rows = rollout_returns(model, venv, robots, episodes)
+    venv.close()
+    return [{"morphology": row.pop("robot"), **row} for row in rows]

@@ -8,7 +8,7 @@ minimises ``KL(teacher || student)`` (see :mod:`sb3_divmorph.distillation`). Wit
 teacher's action is executed with probability beta, annealed from ``beta_start`` to ``beta_end``;
 with ``ppo_loss: true`` the distillation steps run alongside PPO's own update.
 
-Every student (:data:`STUDENTS`) is distilled by the same callback with the same ``distill``
+Every student (:data:`~sb3_divmorph.pipeline.students.STUDENTS`) is distilled by the same callback with the same ``distill``
 settings and budget; only its policy differs:
 
 * ``divmorph``: :class:`~sb3_divmorph.policies.DivMorphPolicy` with ``student.policy_kwargs``
@@ -30,88 +30,25 @@ The other students live in ``students/<name>/``.
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 from stable_baselines3 import PPO
-from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.utils import LinearSchedule
 from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_divmorph.distillation import DAggerCallback, ImitationPPO, TeacherMixingVecEnv
-from sb3_divmorph.extractors import TASK_EMBEDDING
 from sb3_divmorph.pipeline.config import ConfigError, Profile, load_zoo_entry
 from sb3_divmorph.pipeline.runs import TrainingRun, is_done, make_vec_env, profile_env_kwargs, profile_robots, resolve_device
-from sb3_divmorph.pipeline.teachers import load_teachers
-from sb3_divmorph.policies import DIVERSIONS, PRESETS, DivMorphPolicy, MetaMorphPolicy
+from sb3_divmorph.pipeline.folders import load_teachers, student_folder
+from sb3_divmorph.pipeline.students import STUDENTS, StudentSpec, dense_student_kwargs  # noqa: F401 -- re-exported
 from unimal_envs.contract import TASK_NAMES
 
 #: Observation keys the student normalises (masks, context and embeddings must reach it as they are).
 NORM_OBS_KEYS = ["proprioceptive"]
 
 
-@dataclass(frozen=True)
-class StudentSpec:
-    """A distilled student: its policy and how its ``policy_kwargs`` follow from the profile."""
-
-    name: str
-    policy: type[BasePolicy]
-    policy_kwargs: Callable[[Profile], dict[str, Any]]
-    description: str
-
-
-def dense_student_kwargs(profile: Profile) -> dict[str, Any]:
-    """The teachers' MetaMorph kwargs, with ``task_embedding`` as one more late-fused input."""
-    kwargs = dict(profile.teachers.policy_kwargs)
-    preset = PRESETS[kwargs.get("preset", "small")]
-    exteroception = dict(kwargs.get("exteroception") or preset["exteroception"])
-    exteroception[TASK_EMBEDDING] = [int(kwargs.get("d_model") or preset["d_model"])]
-    kwargs["exteroception"] = exteroception
-    return kwargs
-
-
-def _ablated(**switch: bool) -> Callable[[Profile], dict[str, Any]]:
-    return lambda profile: {**profile.student.policy_kwargs, **switch}
-
-
-#: Keys a named diversion decides (the profile's own values would override it, see DivMorphPolicy).
-_DIVERSION_KEYS = ("n_morph_tailors", "n_task_tailors", "top_k_morph", "top_k_task", "n_learngenes", "divert_exteroception")
-
-
-def _diverted(diversion: str) -> Callable[[Profile], dict[str, Any]]:
-    def kwargs(profile: Profile) -> dict[str, Any]:
-        sizes = {k: v for k, v in profile.student.policy_kwargs.items() if k not in _DIVERSION_KEYS}
-        return {**sizes, "diversion": diversion}
-
-    return kwargs
-
-
-#: Every student the transfer arms start from.
-STUDENTS: dict[str, StudentSpec] = {
-    spec.name: spec
-    for spec in (
-        StudentSpec("divmorph", DivMorphPolicy, lambda profile: dict(profile.student.policy_kwargs), "DivMorph student"),
-        StudentSpec("distilled", MetaMorphPolicy, dense_student_kwargs, "dense MetaMorph student (reads the task embedding)"),
-        StudentSpec("no-kdiv-transformer", DivMorphPolicy, _ablated(divert_transformer=False), "DivMorph student, no diversion in the Transformer"),
-        StudentSpec("no-kdiv-decoder", DivMorphPolicy, _ablated(divert_decoder=False), "DivMorph student, no diversion in the decoder"),
-        StudentSpec("no-orthogonality", DivMorphPolicy, _ablated(orthogonal=False), "DivMorph student, free square factors"),
-        *(StudentSpec(name, DivMorphPolicy, _diverted(name), f"DivMorph student with the {name} diversion")
-          for name in DIVERSIONS if name != "default"),
-    )
-}
-
-
-def student_folder(out: Path, name: str = "divmorph") -> Path:
-    """``student/`` for the DivMorph student, ``students/<name>/`` for the others."""
-    if name not in STUDENTS:
-        raise ConfigError(f"unknown student {name!r}; students: {list(STUDENTS)}")
-    return Path(out) / "student" if name == "divmorph" else Path(out) / "students" / name
-
-
-def distill_run(profile: Profile, out: Path, progress_bar: bool = True, name: str = "divmorph") -> TrainingRun:
-    """The (resumable) DAgger run of student ``name`` (see :data:`STUDENTS`)."""
+def distill_run(profile: Profile, out: Path, name: str = "divmorph", progress_bar: bool = True) -> TrainingRun:
+    """The (resumable) DAgger run of student ``name`` (see :data:`~sb3_divmorph.pipeline.students.STUDENTS`)."""
     spec = STUDENTS[name]
     cfg = profile.distill
     teachers = load_teachers(profile, out)
@@ -127,8 +64,17 @@ def distill_run(profile: Profile, out: Path, progress_bar: bool = True, name: st
 
     def make_env():
         venv = make_vec_env(
-            "Unimal-MultiTask-v0", cfg.n_envs, seed, profile.max_episode_steps, cfg.env_backend, cfg.worlds_per_robot,
-            device, cfg.terrain_variants, tasks=list(profile.teachers.tasks), morphologies=robots, **profile_env_kwargs(profile),
+            "Unimal-MultiTask-v0",
+            cfg.n_envs,
+            seed,
+            profile.max_episode_steps,
+            cfg.env_backend,
+            cfg.worlds_per_robot,
+            device,
+            cfg.terrain_variants,
+            tasks=list(profile.teachers.tasks),
+            morphologies=robots,
+            **profile_env_kwargs(profile),
         )
         return TeacherMixingVecEnv(venv, teachers, beta=cfg.beta_start, seed=seed) if mixing else venv
 
@@ -148,8 +94,15 @@ def distill_run(profile: Profile, out: Path, progress_bar: bool = True, name: st
         load_balance=cfg.load_balance,
     )
     return TrainingRun(
-        student_folder(out, name), cfg.n_timesteps, cfg.checkpoint_every, make_model, make_env,
-        algo=algo, callbacks=[callback], device=device, progress_bar=progress_bar,
+        student_folder(out, name),
+        cfg.n_timesteps,
+        cfg.checkpoint_every,
+        make_model,
+        make_env,
+        algo=algo,
+        callbacks=[callback],
+        device=device,
+        progress_bar=progress_bar,
     )
 
 
@@ -160,7 +113,7 @@ def distill_student(profile: Profile, out: Path, name: str = "divmorph", progres
         print(f"[distill] {name}: skipped, already distilled in {folder}")
     else:
         print(f"[distill] DAgger into the {STUDENTS[name].description} for {profile.distill.n_timesteps} steps -> {folder}")
-        distill_run(profile, out, progress_bar, name).run()
+        distill_run(profile, out, name, progress_bar=progress_bar).run()
     return folder
 
 
@@ -168,7 +121,7 @@ def distill(profile: Profile, out: Path, progress_bar: bool = True, students: li
     """Distil the profile's teachers into the DivMorph student and, by default, into the students
     the profile's transfer arms need (resumes; skips the ones done).
 
-    :param students: these students instead (names of :data:`STUDENTS`).
+    :param students: these students instead (names of :data:`~sb3_divmorph.pipeline.students.STUDENTS`).
     :param backend: a :mod:`~sb3_divmorph.pipeline.grid` backend (the students are independent runs).
     :raises FileNotFoundError: the teachers are missing.
     :raises GridError: some students failed (the others finished).
@@ -180,7 +133,7 @@ def distill(profile: Profile, out: Path, progress_bar: bool = True, students: li
     unknown = [n for n in names if n not in STUDENTS]
     if unknown:
         raise ConfigError(f"unknown student(s) {unknown}; students: {list(STUDENTS)}")
-    jobs = [Job("student", (name,), student_folder(out, name), f"student {name}") for name in names]
+    jobs = [Job(f"{__name__}:distill_run", (name,), student_folder(out, name), f"student {name}") for name in names]
     if not all(is_done(job.folder) for job in jobs):
         load_teachers(profile, out)  # a missing teacher is an error before anything starts
     for job in jobs:

@@ -22,12 +22,12 @@ from typing import Any
 
 import numpy as np
 from stable_baselines3 import PPO
-from stable_baselines3.common.vec_env import VecNormalize
 from tqdm import tqdm
 
 from sb3_divmorph.distillation import load_normalizer
 from sb3_divmorph.pipeline.config import Profile
-from sb3_divmorph.pipeline.distill import STUDENTS, student_folder
+from sb3_divmorph.pipeline.folders import TEACHER_RUN, student_folder, teacher_folder, transfer_folder, transfer_seeds, transfer_tasks
+from sb3_divmorph.pipeline.students import STUDENTS
 from sb3_divmorph.pipeline.runs import (
     MODEL,
     atomic_save,
@@ -36,42 +36,25 @@ from sb3_divmorph.pipeline.runs import (
     mark_done,
     profile_env_kwargs,
     profile_robots,
+    robot_observations,
     stage_normalizer,
     task_env_name,
 )
-from sb3_divmorph.pipeline.teachers import teacher_folder, teacher_run
 from sb3_divmorph.pipeline.arms import ARMS
-from sb3_divmorph.pipeline.curves import EVAL_FILE, read_eval, robot_venv, rollout_returns
-from sb3_divmorph.pipeline.transfer import robot_observations, transfer_folder, transfer_seeds, transfer_tasks
+from sb3_divmorph.pipeline.curves import EVAL_FILE, evaluate_model, read_eval, robot_venv, rollout_returns  # noqa: F401 -- evaluate_model re-exported
+from sb3_divmorph.pipeline.grid import job_builder
 from unimal_envs.contract import TASK_NAMES
 from unimal_envs.instructions import shipped_embeddings
 
 COLUMNS = ["model", "task", "split", "morphology", "episode", "return", "length"]
 
 
-def evaluate_model(folder: Path, task: str, robots: list[Path], episodes: int, max_steps: int, seed: int,
-                   instruction: str | None = None, env_kwargs: dict[str, Any] | None = None) -> list[dict[str, Any]]:
-    """Deterministic returns of the model saved in ``folder`` on each robot doing ``task``.
-
-    :param instruction: the task's instruction in other words (default: the built-in one).
-    :param env_kwargs: further env arguments (the run's :func:`~sb3_divmorph.pipeline.runs.profile_env_kwargs`).
-    """
-    venv = robot_venv(task_env_name(task), robots, max_steps, seed, **({"instruction": instruction} if instruction else {}),
-                      **(env_kwargs or {}))
-    statistics = stage_normalizer(folder)
-    if statistics is not None:
-        venv = VecNormalize.load(str(statistics), venv)
-        venv.training, venv.norm_reward = False, False
-    model = PPO.load(folder / MODEL, device="cpu")
-    rows = rollout_returns(model, venv, robots, episodes)
-    venv.close()
-    return [{"morphology": row.pop("robot"), **row} for row in rows]
-
-
-def evaluate_untrained_teacher(profile: Profile, out: Path, task: str, robots: list[Path], episodes: int, seed: int) -> list[dict[str, Any]]:
+def evaluate_untrained_teacher(
+    profile: Profile, out: Path, task: str, robots: list[Path], episodes: int, seed: int
+) -> list[dict[str, Any]]:
     """Deterministic returns of ``task``'s teacher *before training*: the model its run starts from
     (same seed, hence the same initial weights, and its fresh observation normaliser)."""
-    model = teacher_run(profile, out, task, progress_bar=False).make_model()
+    model = job_builder(TEACHER_RUN)(profile, out, task, progress_bar=False).make_model()
     normalizer = model.get_vec_normalize_env()
     venv = robot_venv(task_env_name(task), robots, profile.max_episode_steps, seed, **profile_env_kwargs(profile))
     rows = rollout_returns(model, venv, robots, episodes, normalizer.normalize_obs if normalizer is not None else None)
@@ -130,13 +113,19 @@ def student_gates(out: Path, robots: list[Path], seed: int, **env_kwargs: Any) -
     one = {k: np.repeat(v[:1], len(TASK_NAMES), axis=0) for k, v in obs.items()}
     one["task_embedding"] = np.stack([embeddings[t] for t in TASK_NAMES]).astype(np.float32)
     task = model.policy.get_gates(one).task.cpu().numpy()
-    return {"task_gates": task, "tasks": np.array(TASK_NAMES), "morphology_gates": morphology,
-            "robots": np.array([r.stem for r in robots])}
+    return {"task_gates": task, "tasks": np.array(TASK_NAMES), "morphology_gates": morphology, "robots": np.array([r.stem for r in robots])}
 
 
-def evaluate(profile: Profile, out: Path, progress_bar: bool = True, models: list[str] | None = None,
-             tasks: list[str] | None = None, splits: list[str] | None = None, episodes: int | None = None,
-             into: Path | None = None) -> Path:
+def evaluate(
+    profile: Profile,
+    out: Path,
+    progress_bar: bool = True,
+    models: list[str] | None = None,
+    tasks: list[str] | None = None,
+    splits: list[str] | None = None,
+    episodes: int | None = None,
+    into: Path | None = None,
+) -> Path:
     """Evaluate every finished model of the run; writes ``evaluate/returns.csv`` and ``gates.npz``.
 
     With a selection, only what is selected is evaluated, into a folder of its own (never the run's
@@ -174,8 +163,10 @@ def evaluate(profile: Profile, out: Path, progress_bar: bool = True, models: lis
     if models is not None or tasks is not None:
         chosen = [job for job in plan if (models is None or job[0] in models) and (tasks is None or job[2] in tasks)]
         if not chosen:
-            raise ValueError(f"no finished model matches models={models}, tasks={tasks} in {out}; there are "
-                             f"models {sorted({j[0] for j in plan})} on tasks {sorted({j[2] for j in plan})}")
+            raise ValueError(
+                f"no finished model matches models={models}, tasks={tasks} in {out}; there are "
+                f"models {sorted({j[0] for j in plan})} on tasks {sorted({j[2] for j in plan})}"
+            )
         plan = chosen
     rows: list[dict] = []
     jobs = [(label, model, task, split) for label, model, task in plan for split in splits_robots]
@@ -198,8 +189,9 @@ def evaluate(profile: Profile, out: Path, progress_bar: bool = True, models: lis
         else:
             found = final_evaluation(model, split, splits[split], episodes) if label.startswith("transfer-") else None
             if found is None:
-                found = evaluate_model(model, task, splits[split], episodes, profile.max_episode_steps, profile.seed,
-                                       env_kwargs=profile_env_kwargs(profile))
+                found = evaluate_model(
+                    model, task, splits[split], episodes, profile.max_episode_steps, profile.seed, env_kwargs=profile_env_kwargs(profile)
+                )
         rows += [{"model": label, "task": task, "split": split, **row} for row in found]
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=COLUMNS)

@@ -11,7 +11,7 @@ pruning only (folding is reported on its own); and its batch-1 CPU latency again
 
 For a novel task the transferred student (``transfer/<task>/divmorph``) is exported when it
 exists, else the distilled student itself (zero-shot). The students distilled with a deployment
-diversion (``students/deploy-*``, see :data:`~sb3_divmorph.pipeline.distill.STUDENTS`) are exported
+diversion (``students/deploy-*``, see :data:`~sb3_divmorph.pipeline.students.STUDENTS`) are exported
 beside the default one, into ``export/<student>/<robot>-<task>``.
 
 Each report also holds the return of one deterministic episode of the compact actor and of the
@@ -44,7 +44,8 @@ from sb3_divmorph.compact import (
 )
 from sb3_divmorph.distillation import load_normalizer
 from sb3_divmorph.pipeline.config import ConfigError, Profile
-from sb3_divmorph.pipeline.distill import STUDENTS, student_folder
+from sb3_divmorph.pipeline.folders import export_reports, student_folder, transfer_folder  # noqa: F401 -- export_reports re-exported
+from sb3_divmorph.pipeline.students import STUDENTS
 from sb3_divmorph.pipeline.runs import (
     DONE,
     MODEL,
@@ -58,7 +59,6 @@ from sb3_divmorph.pipeline.runs import (
     stage_normalizer,
     task_env_name,
 )
-from sb3_divmorph.pipeline.transfer import transfer_folder
 from sb3_divmorph.policies import DivMorphPolicy
 from unimal_envs.contract import NOVEL_TASKS, TASK_NAMES
 from unimal_envs.tasks import TASKS
@@ -89,7 +89,9 @@ def source_model(out: Path, task: str, student: str = "divmorph") -> tuple[Path,
         return transfer_folder(out, task, "divmorph"), "transferred student"
     folder = student_folder(out, student)
     if not is_done(folder):
-        raise FileNotFoundError(f"no distilled student {student!r} in {folder}; run `divmorph distill --out {out} --students {student}` first")
+        raise FileNotFoundError(
+            f"no distilled student {student!r} in {folder}; run `divmorph distill --out {out} --students {student}` first"
+        )
     label = "distilled student" if student == "divmorph" else f"distilled {student} student"
     return folder, label + (" (zero-shot)" if task in NOVEL_TASKS else "")
 
@@ -136,7 +138,12 @@ def _onnx_runner(path: Path):
 
 
 def export_actor(
-    profile: Profile, out: Path, robot_file: Path, task: str, steps: int = 64, formats: tuple[str, ...] = FORMATS,
+    profile: Profile,
+    out: Path,
+    robot_file: Path,
+    task: str,
+    steps: int = 64,
+    formats: tuple[str, ...] = FORMATS,
     student: str = "divmorph",
 ) -> dict[str, Any]:
     """Export one robot x task actor of ``student`` in ``formats``; returns (and writes) its report."""
@@ -163,8 +170,9 @@ def export_actor(
     statistics = stage_normalizer(source)
     normalizer: VecNormalize | None = None if statistics is None else load_normalizer(statistics)
 
-    env = gym.make(task_env_name(task), morphologies=[robot_file], max_episode_steps=profile.max_episode_steps,
-                   **profile_env_kwargs(profile))
+    env = gym.make(
+        task_env_name(task), morphologies=[robot_file], max_episode_steps=profile.max_episode_steps, **profile_env_kwargs(profile)
+    )
     try:
         first, _ = env.reset(seed=profile.seed)
         actor = CompactActor.from_policy(policy, first, TASKS[task].observation_keys, normalizer)
@@ -206,7 +214,7 @@ def export_actor(
     repeats = profile.export.latency_repeats
     files: dict[str, Any] = {}
     writers = {
-        "torchscript": ("actor.pt", export_torchscript, lambda p: (lambda obs, m=th.jit.load(str(p)): m(*actor_inputs(obs, batch=True)))),
+        "torchscript": ("actor.pt", export_torchscript, lambda p: lambda obs, m=th.jit.load(str(p)): m(*actor_inputs(obs, batch=True))),
         "onnx": ("actor.onnx", export_onnx, _onnx_runner),
     }
     allowed = TOLERANCE * max(1.0, float(reference.abs().max()))
@@ -219,10 +227,16 @@ def export_actor(
             max_diff = float((reference - run(observations)).abs().max())
         if not max_diff <= allowed:
             path.unlink()
-            raise RuntimeError(f"exported {fmt} actor differs from the student by {max_diff:.2e} > {allowed:.2e} "
-                               f"({TOLERANCE} x max(1, largest |action mean| {float(reference.abs().max()):.2f})) ({robot_file.stem}, {task})")
-        files[fmt] = {"file": name, "bytes": path.stat().st_size, "max_abs_diff": max_diff,
-                      "latency_ms": batch1_latency(run, (one_raw,), repeats) * 1e3}
+            raise RuntimeError(
+                f"exported {fmt} actor differs from the student by {max_diff:.2e} > {allowed:.2e} "
+                f"({TOLERANCE} x max(1, largest |action mean| {float(reference.abs().max()):.2f})) ({robot_file.stem}, {task})"
+            )
+        files[fmt] = {
+            "file": name,
+            "bytes": path.stat().st_size,
+            "max_abs_diff": max_diff,
+            "latency_ms": batch1_latency(run, (one_raw,), repeats) * 1e3,
+        }
 
     one_obs, _ = policy.obs_to_tensor(one_raw if normalizer is None else normalizer.normalize_obs(one_raw))
 
@@ -262,14 +276,12 @@ def export_actor(
     return report
 
 
-def export_reports(out: Path) -> list[Path]:
-    """Every ``report.json`` of the run's exports (all students)."""
-    folder = Path(out) / "export"
-    return sorted([*folder.glob("*/report.json"), *folder.glob("*/*/report.json")])
-
-
 def export_all(
-    profile: Profile, out: Path, tasks: list[str] | None = None, robots: list[Path] | None = None, formats: tuple[str, ...] = FORMATS,
+    profile: Profile,
+    out: Path,
+    tasks: list[str] | None = None,
+    robots: list[Path] | None = None,
+    formats: tuple[str, ...] = FORMATS,
     students: list[str] | None = None,
 ) -> list[dict[str, Any]]:
     """Export every (robot, task) pair of the profile (or the given ones) in ``formats`` and write
@@ -291,8 +303,10 @@ def export_all(
     students = students or deployment_students(out)
     unknown = [name for name in students if name not in STUDENTS or STUDENTS[name].policy is not DivMorphPolicy]
     if unknown:
-        raise ConfigError(f"cannot deploy {unknown}: not DivMorph students; choose from "
-                          f"{[n for n, spec in STUDENTS.items() if spec.policy is DivMorphPolicy]}")
+        raise ConfigError(
+            f"cannot deploy {unknown}: not DivMorph students; choose from "
+            f"{[n for n, spec in STUDENTS.items() if spec.policy is DivMorphPolicy]}"
+        )
     reports = []
     for student in students:
         for task in tasks:

@@ -38,12 +38,20 @@ import numpy as np  # noqa: E402
 
 from sb3_divmorph.pipeline.arms import ABLATION_ARMS, ARMS, MAIN_ARMS  # noqa: E402
 from sb3_divmorph.pipeline.config import ConfigError, Profile  # noqa: E402
-from sb3_divmorph.pipeline.curves import EVAL_FILE, eval_curve, read_eval  # noqa: E402
-from sb3_divmorph.pipeline.metrics import ArmMetrics, RobotCurves, mean_curve, task_metrics_from_curves  # noqa: E402
-from sb3_divmorph.pipeline.runs import atomic_save, atomic_write_text, profile_robots  # noqa: E402
-from sb3_divmorph.pipeline.distill import STUDENTS  # noqa: E402
-from sb3_divmorph.pipeline.export import export_reports  # noqa: E402
-from sb3_divmorph.pipeline.transfer import transfer_tasks  # noqa: E402
+from sb3_divmorph.pipeline.curves import (  # noqa: E402, F401 -- the metrics are written in curves; re-exported
+    EVAL_FILE,
+    METRIC_COLUMNS,
+    eval_curve,
+    read_eval,
+    seed_curves,
+    seed_robot_curves,
+    task_metrics,
+    write_metrics,
+)
+from sb3_divmorph.pipeline.metrics import ArmMetrics, mean_curve  # noqa: E402
+from sb3_divmorph.pipeline.runs import atomic_save, profile_robots, write_csv  # noqa: E402
+from sb3_divmorph.pipeline.folders import export_reports, transfer_tasks  # noqa: E402
+from sb3_divmorph.pipeline.students import STUDENTS  # noqa: E402
 
 #: Resolution of every report PNG (figures and report/*.png): legible at the sizes they are drawn, and
 #: small enough, with a 256-colour palette (:func:`save_png`), that the recorded runs' reports fit the
@@ -52,10 +60,10 @@ DPI = 80
 #: Each figure's caption: what its lines, bands, bars and error bars are.
 CAPTIONS = {
     "transfer-train": "deterministic return on the training robots during transfer; line = mean over seeds (each seed: mean "
-                      "over robots), band = ±1 sd over seeds",
+    "over robots), band = ±1 sd over seeds",
     "transfer-novel": "the same on the novel robots (never trained on); band = ±1 sd over seeds",
     "deployment": "bars = mean over robots of deterministic episodes, error bars = sd over robots; sizes: stored actor "
-                  "weights, mean over exported robots (log scale)",
+    "weights, mean over exported robots (log scale)",
     "ablation": "DivMorph and its ablations, deterministic return; line = mean over seeds, band = ±1 sd over seeds",
     "gates": "Pearson correlation of the gate vectors of two tasks (left) or two robots (right)",
 }
@@ -65,14 +73,6 @@ SPLIT_WORDS = {"train": "training robots", "novel": "novel robots"}
 
 def figures_folder(out: Path) -> Path:
     return Path(out) / "report" / "figures"
-
-
-def _write_csv(path: Path, rows: list[dict[str, Any]], columns: list[str]) -> None:
-    buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=columns)
-    writer.writeheader()
-    writer.writerows(rows)
-    atomic_write_text(path, buffer.getvalue())
 
 
 def save_png(fig, path: Path) -> None:
@@ -103,72 +103,20 @@ def _save(fig, path: Path, rect: tuple[float, float, float, float] = (0, 0, 1, 1
     save_png(fig, path)
 
 
-def seed_curves(out: Path, task: str, arm: str, split: str) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-    """``{seed: (steps, mean return)}`` of every seed of an arm with an evaluation curve."""
-    base = Path(out) / "transfer" / task / arm
-    folders = {int(folder.name.split("-")[1]): folder for folder in base.glob("seed-*")}
-    folders.setdefault(0, base)  # a run from before seeds existed is seed 0
-    curves = {}
-    for seed, folder in sorted(folders.items()):
-        steps, returns = eval_curve(read_eval(folder / EVAL_FILE), split)
-        if len(steps):
-            curves[seed] = (steps, returns)
-    return curves
-
-
-def seed_robot_curves(out: Path, task: str, arm: str, split: str) -> dict[int, RobotCurves]:
-    """``{seed: RobotCurves}`` (per robot and step, mean over episodes) of every seed of an arm with an evaluation curve."""
-    base = Path(out) / "transfer" / task / arm
-    folders = {int(folder.name.split("-")[1]): folder for folder in base.glob("seed-*")}
-    folders.setdefault(0, base)  # a run from before seeds existed is seed 0
-    curves = {}
-    for seed, folder in sorted(folders.items()):
-        found = RobotCurves.from_rows(read_eval(folder / EVAL_FILE), split)
-        if len(found.steps) and found.robots:
-            curves[seed] = found
-    return curves
-
-
-def task_metrics(profile: Profile, out: Path, task: str) -> list[ArmMetrics]:
-    """Metrics of every arm with curves on ``task``, both splits (see :mod:`~sb3_divmorph.pipeline.metrics`)."""
-    metrics = []
-    for split in ("train", "novel"):
-        runs = {arm: list(curves.values()) for arm in ARMS if (curves := seed_robot_curves(out, task, arm, split))}
-        if runs:
-            metrics += task_metrics_from_curves(task, split, runs)
-    return metrics
-
-
-METRIC_COLUMNS = ["task", "arm", "split", "seeds", "robots", "zero_shot", "zero_shot_sd", "zero_shot_lo", "zero_shot_hi",
-                  "final", "final_sd", "final_lo", "final_hi", "auc", "auc_sd", "auc_lo", "auc_hi", "level",
-                  "steps_to_level", "steps_lo", "steps_hi", "held", "sample_efficiency", "budget"]
-
-
-def write_metrics(profile: Profile, out: Path, task: str) -> list[ArmMetrics]:
-    """Write ``transfer/<task>/metrics.csv`` (when there are runs) and return its rows.
-
-    ``steps_to_level`` is empty where the arm does not hold the level, ``steps_hi`` ``inf`` where some
-    bootstrap draws never do; ``sample_efficiency`` is the speed-up vs scratch in words
-    (:meth:`~sb3_divmorph.pipeline.metrics.ArmMetrics.efficiency_text`).
-    """
-    metrics = task_metrics(profile, out, task)
-    if not metrics:
-        return []  # no runs of this task: no file (a run folder without transfers stays without them)
-    rows = [{**{k: getattr(m, k) for k in METRIC_COLUMNS if hasattr(m, k)}, "sample_efficiency": m.efficiency_text()} for m in metrics]
-    _write_csv(Path(out) / "transfer" / task / "metrics.csv", rows, METRIC_COLUMNS)
-    return metrics
-
-
 def metrics_table(metrics: list[ArmMetrics]) -> list[str]:
     """Markdown table of transfer metrics: means with their 95% bootstrap intervals."""
-    lines = ["| task | arm | robots | seeds x robots | zero-shot return | final return | AUC (mean return) | level | "
-             "steps to hold the level | speed-up vs scratch |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| task | arm | robots | seeds x robots | zero-shot return | final return | AUC (mean return) | level | "
+        "steps to hold the level | speed-up vs scratch |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for m in metrics:
         level = "-" if m.level is None else f"{m.level:.1f}"
-        lines.append(f"| {m.task} | {ARMS[m.arm].label} | {m.split} | {m.seeds} x {m.robots} | "
-                     f"{m.zero_shot:.1f} [{m.zero_shot_lo:.1f}, {m.zero_shot_hi:.1f}] | {m.final:.1f} [{m.final_lo:.1f}, {m.final_hi:.1f}] | "
-                     f"{m.auc:.1f} [{m.auc_lo:.1f}, {m.auc_hi:.1f}] | {level} | {m.steps_text()} | {m.efficiency_text()} |")
+        lines.append(
+            f"| {m.task} | {ARMS[m.arm].label} | {m.split} | {m.seeds} x {m.robots} | "
+            f"{m.zero_shot:.1f} [{m.zero_shot_lo:.1f}, {m.zero_shot_hi:.1f}] | {m.final:.1f} [{m.final_lo:.1f}, {m.final_hi:.1f}] | "
+            f"{m.auc:.1f} [{m.auc_lo:.1f}, {m.auc_hi:.1f}] | {level} | {m.steps_text()} | {m.efficiency_text()} |"
+        )
     return lines
 
 
@@ -189,9 +137,20 @@ def _curves_figure(profile: Profile, out: Path, name: str, arms: tuple[str, ...]
                 steps, mean, sd = mean_curve(list(curves.values()))
                 line = ax.plot(steps, mean, marker="o", markersize=3, label=f"{ARMS[arm].label} (n={len(curves)})")[0]
                 ax.fill_between(steps, mean - sd, mean + sd, color=line.get_color(), alpha=0.2)
-                rows += [{"figure": name, "task": task, "split": split, "arm": arm, "timesteps": int(x), "mean_return": m,
-                          "sd_return": s, "seeds": " ".join(map(str, sorted(curves))), "robots": n_robots}
-                         for x, m, s in zip(steps, mean, sd)]
+                rows += [
+                    {
+                        "figure": name,
+                        "task": task,
+                        "split": split,
+                        "arm": arm,
+                        "timesteps": int(x),
+                        "mean_return": m,
+                        "sd_return": s,
+                        "seeds": " ".join(map(str, sorted(curves))),
+                        "robots": n_robots,
+                    }
+                    for x, m, s in zip(steps, mean, sd)
+                ]
             ax.set_xlabel("env steps")
             ax.set_ylabel(f"episode return (deterministic, mean of {n_robots} robots)")
             ax.set_title(f"{task}: {n_robots} {SPLIT_WORDS[split]}, seeds {sorted(seeds) or '-'}", fontsize=9)
@@ -202,7 +161,7 @@ def _curves_figure(profile: Profile, out: Path, name: str, arms: tuple[str, ...]
         return None
     fig.suptitle(title)
     folder = figures_folder(out)
-    _write_csv(folder / f"{name}.csv", rows, ["figure", "task", "split", "arm", "timesteps", "mean_return", "sd_return", "seeds", "robots"])
+    write_csv(folder / f"{name}.csv", rows, ["figure", "task", "split", "arm", "timesteps", "mean_return", "sd_return", "seeds", "robots"])
     _save(fig, folder / f"{name}.png")
     return folder / f"{name}.png"
 
@@ -256,8 +215,10 @@ def deployment_figure(profile: Profile, out: Path) -> Path | None:
             sds = [np.std(v) if v else np.nan for v in values]
             colors = [f"C{i}" for i in range(len(models))]
             ax.bar(x, means, 0.7, yerr=sds, capsize=2, color=colors)
-            rows += [{"panel": f"returns ({split} robots)", "model": model, "task": task, "value": m, "sd": sd, "n": len(v)}
-                     for model, m, sd, v in zip(models, means, sds, values)]
+            rows += [
+                {"panel": f"returns ({split} robots)", "model": model, "task": task, "value": m, "sd": sd, "n": len(v)}
+                for model, m, sd, v in zip(models, means, sds, values)
+            ]
             ax.set_xticks(x, [str(i + 1) for i in range(len(models))])
             ax.set_title(f"{task}, {n_robots} {SPLIT_WORDS[split]}", fontsize=8)
             if c == 0:
@@ -265,33 +226,64 @@ def deployment_figure(profile: Profile, out: Path) -> Path | None:
             if r == 1:
                 ax.set_xlabel("model (legend)")
     handles = [plt.Rectangle((0, 0), 1, 1, color=f"C{i}") for i in range(len(models))]
-    fig.legend(handles, [f"{i + 1}: {deployed[m]}" for i, m in enumerate(models)], loc="lower center",
-               ncol=min(len(models), 3), fontsize=8)
+    fig.legend(handles, [f"{i + 1}: {deployed[m]}" for i, m in enumerate(models)], loc="lower center", ncol=min(len(models), 3), fontsize=8)
     ax = fig.add_subplot(grid[:, -1])
     size_tasks = [t for t in tasks if any((m, t) in sizes for m in models)]
     width = 0.8 / len(models)
     for i, model in enumerate(models):
         values = [np.mean(sizes[(model, t)]) if (model, t) in sizes else np.nan for t in size_tasks]
         ax.bar(np.arange(len(size_tasks)) + (i - (len(models) - 1) / 2) * width, values, width, color=f"C{i}")
-        rows += [{"panel": "parameters (actor, one robot)", "model": model, "task": t, "value": v, "sd": "", "n": len(sizes.get((model, t), []))}
-                 for t, v in zip(size_tasks, values)]
+        rows += [
+            {"panel": "parameters (actor, one robot)", "model": model, "task": t, "value": v, "sd": "", "n": len(sizes.get((model, t), []))}
+            for t, v in zip(size_tasks, values)
+        ]
     ax.set_xticks(np.arange(len(size_tasks)), size_tasks, rotation=45)
     ax.set_yscale("log")
     ax.set_xlabel("training task (exported robots)")
     ax.set_ylabel("actor parameters (count, log scale)")
     ax.set_title("deployed actor size\n(MetaMorph folded like the compact actor)" + ("" if size_tasks else ": no exports"), fontsize=8)
-    fig.suptitle(f"Single-agent deployment (profile {profile.name}, seed {profile.seed}): bars = mean over robots of "
-                 f"{profile.evaluate.episodes} deterministic episode(s) each, error bars = sd over robots", fontsize=10)
+    fig.suptitle(
+        f"Single-agent deployment (profile {profile.name}, seed {profile.seed}): bars = mean over robots of "
+        f"{profile.evaluate.episodes} deterministic episode(s) each, error bars = sd over robots",
+        fontsize=10,
+    )
     folder = figures_folder(out)
-    _write_csv(folder / "deployment.csv", rows, ["panel", "model", "task", "value", "sd", "n"])
+    write_csv(folder / "deployment.csv", rows, ["panel", "model", "task", "value", "sd", "n"])
     _save(fig, folder / "deployment.png", rect=(0, 0.07, 1, 0.95))
     return folder / "deployment.png"
 
 
+def _correlation(gates: np.ndarray) -> np.ndarray:
+    centred = gates - gates.mean(1, keepdims=True)
+    norms = np.linalg.norm(centred, axis=1, keepdims=True)
+    norms[norms == 0] = 1
+    unit = centred / norms
+    return unit @ unit.T
+
+
+def distinct_selections(gates: np.ndarray) -> int:
+    return len({tuple(row) for row in (gates > 0)})
+
+
+def plot_gates(gates: dict[str, np.ndarray], target: Path) -> None:
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5.2))
+    for ax, key, labels, title in (
+        (axes[0], "task_gates", gates["tasks"], "task-gate correlation across tasks"),
+        (axes[1], "morphology_gates", gates["robots"], "morphology-gate correlation across robots"),
+    ):
+        corr = _correlation(gates[key])
+        image = ax.imshow(corr, vmin=-1, vmax=1, cmap="RdBu_r")
+        ax.set_xticks(range(len(labels)), labels, rotation=90, fontsize=7)
+        ax.set_yticks(range(len(labels)), labels, fontsize=7)
+        ax.set_title(f"{title} ({len(labels)})")
+        bar = fig.colorbar(image, ax=ax, fraction=0.046)
+        bar.set_label("correlation of the gate vectors (Pearson)")
+    fig.tight_layout()
+    save_png(fig, target)
+
+
 def gates_figure(profile: Profile, out: Path) -> Path | None:
     """Figs 7-8: correlation of task gates across the ten tasks and of morphology gates across robots."""
-    from sb3_divmorph.pipeline.report import _correlation, plot_gates
-
     gates_file = Path(out) / "evaluate" / "gates.npz"
     if not gates_file.is_file():
         return None
@@ -301,9 +293,12 @@ def gates_figure(profile: Profile, out: Path) -> Path | None:
     rows = []
     for key, labels in (("task_gates", gates["tasks"]), ("morphology_gates", gates["robots"])):
         corr = _correlation(gates[key])
-        rows += [{"gates": key, "row": labels[i], "column": labels[j], "correlation": float(corr[i, j])}
-                 for i in range(len(labels)) for j in range(len(labels))]
-    _write_csv(folder / "gates.csv", rows, ["gates", "row", "column", "correlation"])
+        rows += [
+            {"gates": key, "row": labels[i], "column": labels[j], "correlation": float(corr[i, j])}
+            for i in range(len(labels))
+            for j in range(len(labels))
+        ]
+    write_csv(folder / "gates.csv", rows, ["gates", "row", "column", "correlation"])
     plot_gates(gates, folder / "gates.png")
     return folder / "gates.png"
 
@@ -320,8 +315,9 @@ def make_figure(profile: Profile, out: Path, name: str) -> Path | None:
         return _curves_figure(profile, out, name, MAIN_ARMS, ("novel",), f"Transfer to novel tasks on novel robots (seeds {seeds})")
     if name == "ablation":
         ablations = [arm for arm in ABLATION_ARMS if arm != "divmorph"]
-        if not any(seed_curves(out, task, arm, split) for task in transfer_tasks(profile, out) for arm in ablations
-                   for split in ("train", "novel")):
+        if not any(
+            seed_curves(out, task, arm, split) for task in transfer_tasks(profile, out) for arm in ablations for split in ("train", "novel")
+        ):
             return None  # DivMorph alone is no ablation figure
         return _curves_figure(profile, out, name, ABLATION_ARMS, ("train", "novel"), f"Ablations of DivMorph (seeds {seeds})")
     if name == "deployment":

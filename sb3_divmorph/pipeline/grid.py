@@ -18,13 +18,14 @@ checkpoint.
 
 from __future__ import annotations
 
+import importlib
 import json
 import os
 import socket
 import sys
 import time
 import traceback
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -43,39 +44,44 @@ class GridError(RuntimeError):
 
 @dataclass(frozen=True)
 class Job:
-    """One independent training.
+    """One independent training, named by the importable function that builds it.
 
-    :param stage: ``teacher`` (args: task), ``student`` (name), ``grl-agent`` (generation, index) or
-        ``transfer`` (task, arm, seed).
-    :param args: the stage's arguments.
+    The runner knows jobs, not stages: ``builder`` is ``"module:function"``, called as
+    ``function(profile, out, *args, progress_bar=..., **options)`` and returning a resumable
+    :class:`~sb3_divmorph.pipeline.runs.TrainingRun` (a string, so that a Ray worker imports it itself).
+
+    :param builder: e.g. ``"sb3_divmorph.pipeline.teachers:teacher_run"``.
+    :param args: the builder's arguments after ``profile`` and ``out``.
     :param folder: its run folder.
     :param label: its name in the progress display.
+    :param options: keyword arguments of the builder (besides ``progress_bar``).
     """
 
-    stage: str
+    builder: str
     args: tuple
     folder: Path
     label: str
+    options: dict[str, Any] = field(default_factory=dict)
+
+
+def job_builder(path: str) -> Callable[..., Any]:
+    """The function a job names (``"module:function"``).
+
+    :raises ValueError: not of the form ``module:function``, or no such function.
+    """
+    module_name, _, function_name = path.partition(":")
+    function = getattr(importlib.import_module(module_name), function_name, None) if function_name else None
+    if not callable(function):
+        raise ValueError(f"job builder {path!r} is not an importable 'module:function'")
+    return function
 
 
 def run_job(profile: Profile, out: Path, job: Job, progress_bar: bool = False) -> dict[str, Any]:
     """Build and run one job here (resuming; a no-op when done); returns its ``done.json``."""
-    from sb3_divmorph.pipeline.distill import distill_run
-    from sb3_divmorph.pipeline.grl import agent_run
-    from sb3_divmorph.pipeline.teachers import teacher_run
-    from sb3_divmorph.pipeline.transfer import transfer_run
-
     if not is_done(job.folder):
+        build = job_builder(job.builder)
         atomic_write_json(job.folder / RUNNING, {"pid": os.getpid(), "host": socket.gethostname(), "started": time.time()})
-        builders = {
-            "teacher": lambda: teacher_run(profile, out, *job.args, progress_bar=progress_bar),
-            "student": lambda: distill_run(profile, out, progress_bar, *job.args),
-            "grl-agent": lambda: agent_run(profile, out, *job.args, progress_bar=progress_bar),
-            "transfer": lambda: transfer_run(profile, out, *job.args, progress_bar=progress_bar),
-        }
-        if job.stage not in builders:
-            raise ValueError(f"unknown job stage {job.stage!r}; stages: {sorted(builders)}")
-        builders[job.stage]().run()
+        build(profile, out, *job.args, progress_bar=progress_bar, **job.options).run()
         (job.folder / RUNNING).unlink(missing_ok=True)
     return read_done(job.folder)
 
@@ -150,8 +156,11 @@ class _Display:
             except (OSError, ValueError, KeyError):
                 steps = 0
             running.append(f"{job.label} @ {steps} steps")
-        print(f"[grid] {self.finished}/{self.total} finished ({self.failed} failed), {len(running)} running "
-              f"[{'; '.join(running)}], {queued} queued, {time.perf_counter() - self.start:.0f} s", flush=True)
+        print(
+            f"[grid] {self.finished}/{self.total} finished ({self.failed} failed), {len(running)} running "
+            f"[{'; '.join(running)}], {queued} queued, {time.perf_counter() - self.start:.0f} s",
+            flush=True,
+        )
 
 
 class LocalBackend:
@@ -189,8 +198,10 @@ def check_address(address: str, timeout: float = 5.0) -> None:
         with socket.create_connection((host, int(port)), timeout=timeout):
             pass
     except OSError as error:
-        raise ConfigError(f"Ray address {address!r} does not answer ({error or type(error).__name__}); "
-                          "start the cluster (`ray start --head`) or leave --address out for a local Ray") from None
+        raise ConfigError(
+            f"Ray address {address!r} does not answer ({error or type(error).__name__}); "
+            "start the cluster (`ray start --head`) or leave --address out for a local Ray"
+        ) from None
 
 
 def _remote_job(profile: Profile, out: Path, job: Job, threads: int) -> dict[str, Any]:
@@ -213,8 +224,14 @@ class RayBackend:
 
     name = "ray"
 
-    def __init__(self, address: str | None = None, cpus_per_run: float = 1, gpus_per_run: float = 0,
-                 num_cpus: int | None = None, status_every: float = 30.0):
+    def __init__(
+        self,
+        address: str | None = None,
+        cpus_per_run: float = 1,
+        gpus_per_run: float = 0,
+        num_cpus: int | None = None,
+        status_every: float = 30.0,
+    ):
         if cpus_per_run <= 0 or gpus_per_run < 0:
             raise ConfigError(f"--cpus-per-run must be > 0 and --gpus-per-run >= 0, got {cpus_per_run} and {gpus_per_run}")
         try:
@@ -275,8 +292,9 @@ class RayBackend:
         return results
 
 
-def make_backend(name: str = "local", address: str | None = None, cpus_per_run: float = 1, gpus_per_run: float = 0,
-                 num_cpus: int | None = None):
+def make_backend(
+    name: str = "local", address: str | None = None, cpus_per_run: float = 1, gpus_per_run: float = 0, num_cpus: int | None = None
+):
     """The backend called ``name`` (``local`` or ``ray``; the other arguments: see :class:`RayBackend`).
 
     :raises ConfigError: unknown backend, Ray options without ``ray``, Ray missing or not answering.
@@ -302,8 +320,10 @@ def run_grid(profile: Profile, out: Path, jobs: Sequence[Job], backend=None, pro
     report = GridReport([JobResult(job, "skipped") for job in jobs if is_done(job.folder)])
     if todo:
         if len(jobs) > 1:
-            print(f"[grid] {len(todo)} of {len(jobs)} runs to train on the {backend.name} backend "
-                  f"({len(jobs) - len(todo)} already done)", flush=True)
+            print(
+                f"[grid] {len(todo)} of {len(jobs)} runs to train on the {backend.name} backend ({len(jobs) - len(todo)} already done)",
+                flush=True,
+            )
         display = _Display(todo, enabled=True)
         report.results += backend.run(profile, Path(out), todo, display, progress_bar and backend.name == "local")
     if len(jobs) > 1 or report.failed:

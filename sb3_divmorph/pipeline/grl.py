@@ -38,20 +38,17 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch as th
 from stable_baselines3 import PPO
-from stable_baselines3.common.running_mean_std import RunningMeanStd
-from stable_baselines3.common.vec_env import VecEnv, VecNormalize
-from torch import nn
 
-from sb3_divmorph.finetune import freeze_observation_statistics
-from sb3_divmorph.pipeline.config import Profile, load_zoo_entry
+from sb3_divmorph.learngene import inherit, layer_units, unit_tensors  # noqa: F401 -- re-exported
+from sb3_divmorph.pipeline.config import Profile, grl_policy_kwargs, load_zoo_entry  # noqa: F401 -- re-exported
+from sb3_divmorph.pipeline.folders import agent_folder, grl_folder, learngene_file, read_learngene  # noqa: F401 -- re-exported
 from sb3_divmorph.pipeline.runs import (
     MODEL,
-    NORMALIZER,
     TrainingRun,
     atomic_write_json,
     is_done,
+    inherited_normalizer,
     make_vec_env,
     mark_done,
     normalizer_for,
@@ -63,73 +60,6 @@ from sb3_divmorph.pipeline.runs import (
 )
 
 POLICY = "MetaMorphPolicy"
-
-
-def grl_folder(out: Path) -> Path:
-    return Path(out) / "grl"
-
-
-def agent_folder(out: Path, generation: int, index: int) -> Path:
-    return grl_folder(out) / f"gen-{generation}" / f"agent-{index}"
-
-
-def grl_policy_kwargs(profile: Profile) -> dict[str, Any]:
-    """Every GRL agent's (and the ``grl`` arm's) MetaMorph kwargs: ``teachers.policy_kwargs`` on the
-    policy's preset, not the tasks' zoo entries, whose exteroception differs per task: one
-    architecture for all tasks, so that any agent's layers fit into any other."""
-    return dict(profile.teachers.policy_kwargs)
-
-
-def layer_units(policy: nn.Module) -> dict[str, list[nn.Module]]:
-    """The inheritable whole layers of a MetaMorph actor, by name (see the module docstring)."""
-    extractor = policy.features_extractor if policy.share_features_extractor else policy.pi_features_extractor
-    units: dict[str, list[nn.Module]] = {"embedding": [extractor.embedding]}
-    for i, block in enumerate(extractor.encoder.layers):
-        units[f"block.{i}"] = [block]
-    if len(extractor.exteroception):
-        units["exteroception"] = [extractor.exteroception]
-    units["decoder"] = [policy.mlp_extractor.policy_net, policy.action_net]
-    return units
-
-
-def unit_tensors(policy: nn.Module, unit: str) -> list[th.Tensor]:
-    """Parameters and buffers of one unit, in a fixed order."""
-    tensors = []
-    for module in layer_units(policy)[unit]:
-        tensors += [t for _, t in sorted(module.state_dict(keep_vars=True).items())]
-    return tensors
-
-
-@th.no_grad()
-def inherit(child: nn.Module, parent: nn.Module, units: list[str]) -> None:
-    """Copy the parent's ``units`` (whole layers) into the child, in place."""
-    for unit in units:
-        for mine, theirs in zip(unit_tensors(child, unit), unit_tensors(parent, unit), strict=True):
-            mine.copy_(theirs)
-
-
-def inherited_normalizer(source: Path, venv: VecEnv, gamma: float, freeze_observations: bool = False) -> VecEnv:
-    """``venv`` wrapped in the observation statistics saved in ``source`` (if any); rewards are
-    normalised afresh for the new task (their statistics learn).
-
-    :param source: the folder of the trained model whose ``vecnormalize.pkl`` is inherited.
-    :param venv: the new task's envs.
-    :param gamma: the new run's discount (for the reward statistics).
-    :param freeze_observations: keep the observation statistics exactly as inherited
-        (:func:`~sb3_divmorph.finetune.freeze_observation_statistics`): transfer does, so that the
-        inputs of the weights it starts from do not move under them. ``False`` (GRL's evolution,
-        where a child trains every layer on a training task) lets them go on learning.
-    """
-    if not (source / NORMALIZER).is_file():
-        return venv
-    normalizer = VecNormalize.load(str(source / NORMALIZER), venv)
-    normalizer.training, normalizer.norm_reward = True, True
-    normalizer.gamma = gamma
-    normalizer.ret_rms = RunningMeanStd(shape=())
-    normalizer.returns = np.zeros(venv.num_envs)
-    if freeze_observations:
-        freeze_observation_statistics(normalizer)
-    return normalizer
 
 
 @dataclass
@@ -166,7 +96,7 @@ def fitness(out: Path, plans: dict[int, list[AgentPlan]]) -> dict[tuple[int, int
             progress = read_progress(agent_folder(out, generation, agent.index))
             values = progress.get("rollout/ep_rew_mean", np.array([]))
             values = values[np.isfinite(values)]
-            final = float(values[-max(1, len(values) // 10):].mean()) if len(values) else float("-inf")
+            final = float(values[-max(1, len(values) // 10) :].mean()) if len(values) else float("-inf")
             raw[(generation, agent.index)] = (agent.task, final)
     scores = {}
     for key, (task, value) in raw.items():
@@ -241,21 +171,14 @@ def agent_run(profile: Profile, out: Path, generation: int, index: int, progress
         return model
 
     return TrainingRun(
-        agent_folder(out, generation, index), profile.grl.steps_per_agent, profile.teachers.checkpoint_every,
-        make_model, make_env, device=device, progress_bar=progress_bar,
+        agent_folder(out, generation, index),
+        profile.grl.steps_per_agent,
+        profile.teachers.checkpoint_every,
+        make_model,
+        make_env,
+        device=device,
+        progress_bar=progress_bar,
     )
-
-
-def learngene_file(out: Path) -> Path:
-    return grl_folder(out) / "learngene.json"
-
-
-def read_learngene(out: Path) -> dict[str, Any]:
-    """The evolved learngene: ``{"units", "agent", "generation", "task", "fitness", "folder"}``."""
-    path = learngene_file(out)
-    if not path.is_file():
-        raise FileNotFoundError(f"no evolved GRL learngene in {path}; run `divmorph grl --out {out}` first")
-    return json.loads(path.read_text())
 
 
 def evolve(profile: Profile, out: Path, backend=None, progress_bar: bool = True) -> dict[str, Any]:
@@ -273,20 +196,35 @@ def evolve(profile: Profile, out: Path, backend=None, progress_bar: bool = True)
     plans: dict[int, list[AgentPlan]] = {}
     for generation in range(cfg.generations):
         plans[generation] = plan_generation(profile, out, generation, plans)
-        print(f"[grl] generation {generation + 1}/{cfg.generations}: {len(plans[generation])} agents x "
-              f"{cfg.steps_per_agent} steps -> {grl_folder(out) / f'gen-{generation}'}")
-        jobs = [Job("grl-agent", (generation, a.index), agent_folder(out, generation, a.index),
-                    f"grl gen {generation} agent {a.index} ({a.task}, learngene {'+'.join(a.learngene)})")
-                for a in plans[generation]]
+        print(
+            f"[grl] generation {generation + 1}/{cfg.generations}: {len(plans[generation])} agents x "
+            f"{cfg.steps_per_agent} steps -> {grl_folder(out) / f'gen-{generation}'}"
+        )
+        jobs = [
+            Job(
+                f"{__name__}:agent_run",
+                (generation, a.index),
+                agent_folder(out, generation, a.index),
+                f"grl gen {generation} agent {a.index} ({a.task}, learngene {'+'.join(a.learngene)})",
+            )
+            for a in plans[generation]
+        ]
         run_grid(profile, out, jobs, backend, progress_bar=progress_bar).raise_on_failure()
     scores = fitness(out, plans)
     last = cfg.generations - 1
     best = max(plans[last], key=lambda a: (scores[(last, a.index)], -a.index))
-    learngene = {"units": best.learngene, "generation": last, "agent": best.index, "task": best.task,
-                 "fitness": scores[(last, best.index)], "folder": str(agent_folder(out, last, best.index).relative_to(out))}
+    learngene = {
+        "units": best.learngene,
+        "generation": last,
+        "agent": best.index,
+        "task": best.task,
+        "fitness": scores[(last, best.index)],
+        "folder": str(agent_folder(out, last, best.index).relative_to(out)),
+    }
     atomic_write_json(learngene_file(out), learngene)
     mark_done(grl_folder(out), learngene=learngene)
-    print(f"[grl] learngene: {'+'.join(best.learngene)} of agent {best.index} (generation {last}, {best.task}, "
-          f"fitness {learngene['fitness']:.2f})")
+    print(
+        f"[grl] learngene: {'+'.join(best.learngene)} of agent {best.index} (generation {last}, {best.task}, "
+        f"fitness {learngene['fitness']:.2f})"
+    )
     return learngene
-

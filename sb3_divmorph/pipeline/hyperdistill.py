@@ -36,7 +36,9 @@ from sb3_divmorph.compact import actor_inputs, actor_parameter_count, batch1_lat
 from sb3_divmorph.deployment import export_onnx
 from sb3_divmorph.distillation import DAggerCallback, ImitationPPO, Teacher, load_normalizer
 from sb3_divmorph.hyperdistill import HyperDistillMLP, HyperDistillPolicy, collect_teacher_rollouts, fit_offline, load_student
-from sb3_divmorph.pipeline.config import ConfigError, Profile
+from sb3_divmorph.pipeline.config import ConfigError, Profile, teacher_policy
+from sb3_divmorph.pipeline.folders import TEACHER_RUN, load_teachers, teacher_folder
+from sb3_divmorph.pipeline.grid import Job, run_grid
 from sb3_divmorph.pipeline.runs import (
     MODEL,
     NORMALIZER,
@@ -51,7 +53,6 @@ from sb3_divmorph.pipeline.runs import (
     stage_normalizer,
     task_env_name,
 )
-from sb3_divmorph.pipeline.teachers import load_teachers, teacher_policy, train_teachers
 from unimal_envs.contract import TASK_NAMES, observation_space
 from unimal_envs.tasks import TASKS
 
@@ -78,11 +79,16 @@ def _any_task(cfg) -> bool:
 def hyperdistill_teachers(profile: Profile, out: Path, progress_bar: bool = True) -> dict[int, Teacher]:
     """The teachers to distil: the run's own if they are ``teacher_policy``, else trained for it."""
     wanted = _config(profile).teacher_policy
-    if all(teacher_policy(profile, task) == wanted for task in profile.teachers.tasks):
-        train_teachers(profile, out, progress_bar=progress_bar)
-        return load_teachers(profile, out)
-    train_teachers(profile, out, progress_bar=progress_bar, policy=wanted, root="hyperdistill/teachers")
-    return load_teachers(profile, out, root="hyperdistill/teachers")
+    own = all(teacher_policy(profile, task) == wanted for task in profile.teachers.tasks)
+    root, options = ("teachers", {}) if own else ("hyperdistill/teachers", {"policy": wanted, "root": "hyperdistill/teachers"})
+    jobs = [
+        Job(TEACHER_RUN, (task,), teacher_folder(out, task, root), f"{wanted} teacher {task}", options) for task in profile.teachers.tasks
+    ]
+    for job in jobs:
+        if not (job.folder / "done.json").is_file():
+            print(f"[hyperdistill] {job.label}: PPO for {profile.teachers.n_timesteps} steps -> {job.folder}")
+    run_grid(profile, out, jobs, progress_bar=progress_bar).raise_on_failure()
+    return load_teachers(profile, out, root=root)
 
 
 def train_student(profile: Profile, out: Path, progress_bar: bool = True) -> Path:
@@ -95,8 +101,15 @@ def train_student(profile: Profile, out: Path, progress_bar: bool = True) -> Pat
     teachers = hyperdistill_teachers(profile, out, progress_bar)
     robots = profile_robots(profile, "train")
     seed = profile.seed + 7
-    venv = make_vec_env("Unimal-MultiTask-v0", cfg.n_envs, seed, profile.max_episode_steps,
-                        tasks=list(profile.teachers.tasks), morphologies=robots, **profile_env_kwargs(profile))
+    venv = make_vec_env(
+        "Unimal-MultiTask-v0",
+        cfg.n_envs,
+        seed,
+        profile.max_episode_steps,
+        tasks=list(profile.teachers.tasks),
+        morphologies=robots,
+        **profile_env_kwargs(profile),
+    )
     own_statistics = cfg.observation_statistics == "own"
     if own_statistics:
         venv = VecNormalize(venv, norm_obs_keys=NORM_OBS_KEYS, norm_reward=False)
@@ -104,30 +117,52 @@ def train_student(profile: Profile, out: Path, progress_bar: bool = True) -> Pat
     else:  # raw observations in; the policy normalises each state with its task's teacher's statistics
         keys = {tuple(sorted(t.normalizer.norm_obs_keys or ())) for t in teachers.values() if t.normalizer is not None}
         if len(keys) > 1:
-            raise ConfigError(f"the teachers normalise different observations {sorted(keys)}; "
-                              "hyperdistill.observation_statistics: teachers needs them alike (or use 'own')")
+            raise ConfigError(
+                f"the teachers normalise different observations {sorted(keys)}; "
+                "hyperdistill.observation_statistics: teachers needs them alike (or use 'own')"
+            )
         statistics = dict(observation_statistics="teachers", normalized_keys=list(next(iter(keys), NORM_OBS_KEYS)))
     th.manual_seed(seed)
-    model = ImitationPPO(HyperDistillPolicy, venv, policy_kwargs=dict(cfg.policy_kwargs, task_input=cfg.task_input, **statistics), n_steps=cfg.n_steps,
-                         batch_size=min(cfg.batch_size, cfg.n_steps * cfg.n_envs), seed=seed, device=resolve_device(profile.device))
+    model = ImitationPPO(
+        HyperDistillPolicy,
+        venv,
+        policy_kwargs=dict(cfg.policy_kwargs, task_input=cfg.task_input, **statistics),
+        n_steps=cfg.n_steps,
+        batch_size=min(cfg.batch_size, cfg.n_steps * cfg.n_envs),
+        seed=seed,
+        device=resolve_device(profile.device),
+    )
     model.set_logger(configure(str(folder / "logs"), ["csv", "tensorboard"]))
     if not own_statistics:
         for index, teacher in teachers.items():
             model.policy.set_teacher_statistics(index, teacher.normalizer)
-    info: dict[str, Any] = {"teacher_policy": cfg.teacher_policy, "loss": cfg.loss, "task_input": cfg.task_input,
-                            "observation_statistics": cfg.observation_statistics}
+    info: dict[str, Any] = {
+        "teacher_policy": cfg.teacher_policy,
+        "loss": cfg.loss,
+        "task_input": cfg.task_input,
+        "observation_statistics": cfg.observation_statistics,
+    }
     if cfg.rollout_samples > 0:
         print(f"[hyperdistill] {cfg.rollout_samples} teacher-rollout states, {cfg.epochs} epochs of {cfg.loss} -> {folder}")
         dataset = collect_teacher_rollouts(teachers, venv, cfg.rollout_samples, seed=seed)
-        history = fit_offline(model.policy, dataset, venv if own_statistics else None, cfg.loss, cfg.epochs, cfg.batch_size, cfg.learning_rate, seed=seed)
+        history = fit_offline(
+            model.policy, dataset, venv if own_statistics else None, cfg.loss, cfg.epochs, cfg.batch_size, cfg.learning_rate, seed=seed
+        )
         info.update(offline_loss_first=history[0], offline_loss_last=history[-1], offline_samples=dataset.size)
         for epoch, value in enumerate(history):
             model.logger.record("hyperdistill/offline_loss", value)
             model.logger.dump(epoch)
     if cfg.dagger_timesteps > 0:
         print(f"[hyperdistill] DAgger for {cfg.dagger_timesteps} steps")
-        callback = DAggerCallback(teachers, TASK_NAMES, learning_rate=cfg.learning_rate, epochs=cfg.dagger_epochs,
-                                  batch_size=cfg.batch_size, buffer_size=cfg.buffer_size, seed=seed)
+        callback = DAggerCallback(
+            teachers,
+            TASK_NAMES,
+            learning_rate=cfg.learning_rate,
+            epochs=cfg.dagger_epochs,
+            batch_size=cfg.batch_size,
+            buffer_size=cfg.buffer_size,
+            seed=seed,
+        )
         model.learn(cfg.dagger_timesteps, callback=callback, progress_bar=progress_bar)
     atomic_save(folder / MODEL, model.save)
     if own_statistics:
@@ -143,8 +178,10 @@ def export_mlp(profile: Profile, out: Path, robot_file: Path, task: str, steps: 
     if task not in TASK_NAMES:
         raise ConfigError(f"unknown task {task!r}; choose from {list(TASK_NAMES)}")
     if not _any_task(_config(profile)) and task not in profile.teachers.tasks:
-        raise ConfigError(f"the HyperDistill student has no teacher for {task!r} (task input / teachers' statistics: it "
-                          f"is written for its teachers' tasks {list(profile.teachers.tasks)})")
+        raise ConfigError(
+            f"the HyperDistill student has no teacher for {task!r} (task input / teachers' statistics: it "
+            f"is written for its teachers' tasks {list(profile.teachers.tasks)})"
+        )
     robot_file = Path(robot_file)
     folder = hyperdistill_folder(out) / "export" / f"{robot_file.stem}-{task}"
     if is_done(folder):
@@ -156,7 +193,9 @@ def export_mlp(profile: Profile, out: Path, robot_file: Path, task: str, steps: 
     policy = load_student(source / MODEL, observation_space())
     statistics = stage_normalizer(source)  # none when the student holds its teachers' statistics
     normalizer = None if statistics is None else load_normalizer(statistics)
-    env = gym.make(task_env_name(task), morphologies=[robot_file], max_episode_steps=profile.max_episode_steps, **profile_env_kwargs(profile))
+    env = gym.make(
+        task_env_name(task), morphologies=[robot_file], max_episode_steps=profile.max_episode_steps, **profile_env_kwargs(profile)
+    )
     rng = np.random.default_rng(profile.seed)
     try:
         first, _ = env.reset(seed=profile.seed)
@@ -173,26 +212,37 @@ def export_mlp(profile: Profile, out: Path, robot_file: Path, task: str, steps: 
         env.close()
     batch = {k: np.stack([o[k] for o in observations]) for k in first}
     folder.mkdir(parents=True, exist_ok=True)
-    metadata = {"robot": robot_file.stem, "task": task, "source": str(source / MODEL),
-                "inputs": ["proprioceptive (B,12,52)", "hfield (B,1410)", "goal (B,3)", "object (B,12)"],
-                "output": "action means (B,24), 0 on padded slots; clip to [-1, 1] before env.step"}
+    metadata = {
+        "robot": robot_file.stem,
+        "task": task,
+        "source": str(source / MODEL),
+        "inputs": ["proprioceptive (B,12,52)", "hfield (B,1410)", "goal (B,3)", "object (B,12)"],
+        "output": "action means (B,24), 0 on padded slots; clip to [-1, 1] before env.step",
+    }
     path = export_torchscript(mlp, first, folder / "mlp.pt", metadata)
     try:
         onnx_path: Path | None = export_onnx(mlp, first, folder / "mlp.onnx", metadata)
     except ImportError:  # the optional "deploy" extra (onnx) is not installed
         onnx_path = None
     with th.no_grad():
-        reference = policy.get_distribution(policy.obs_to_tensor(batch if normalizer is None else normalizer.normalize_obs(batch))[0]).distribution.mean
+        reference = policy.get_distribution(
+            policy.obs_to_tensor(batch if normalizer is None else normalizer.normalize_obs(batch))[0]
+        ).distribution.mean
         exported = th.jit.load(str(path))(*actor_inputs(batch, batch=True))
     max_diff = float((reference - exported).abs().max())
     if not max_diff <= TOLERANCE:
         path.unlink()
         if onnx_path is not None:
             onnx_path.unlink()
-        raise RuntimeError(f"exported MLP differs from the student by {max_diff:.2e} > {TOLERANCE} ({robot_file.stem}, {task}; "
-                           f"largest action mean {float(reference.abs().max()):.3g})")
-    teacher_folder = next(p for p in (Path(out) / "hyperdistill" / "teachers" / task, Path(out) / "teachers" / task) if (p / MODEL).is_file()) \
-        if task in profile.teachers.tasks else None
+        raise RuntimeError(
+            f"exported MLP differs from the student by {max_diff:.2e} > {TOLERANCE} ({robot_file.stem}, {task}; "
+            f"largest action mean {float(reference.abs().max()):.3g})"
+        )
+    teacher_folder = (
+        next(p for p in (Path(out) / "hyperdistill" / "teachers" / task, Path(out) / "teachers" / task) if (p / MODEL).is_file())
+        if task in profile.teachers.tasks
+        else None
+    )
     teacher_actor = None
     if teacher_folder is not None:
         from stable_baselines3 import PPO
@@ -226,8 +276,10 @@ def hyperdistill(profile: Profile, out: Path, progress_bar: bool = True) -> list
     if not _any_task(_config(profile)):
         untaught = [t for t in tasks if t not in profile.teachers.tasks]
         if untaught:
-            print(f"[hyperdistill] no MLP for {', '.join(untaught)}: the student is written per task from its teachers "
-                  f"(task input / teachers' statistics) and has no teacher for them")
+            print(
+                f"[hyperdistill] no MLP for {', '.join(untaught)}: the student is written per task from its teachers "
+                f"(task input / teachers' statistics) and has no teacher for them"
+            )
         tasks = [t for t in tasks if t in profile.teachers.tasks]
     for task in tasks:
         for robot in robots:

@@ -242,8 +242,9 @@ class ArmMetrics:
         return f"{self.efficiency:.2f}x"
 
 
-def task_metrics_from_curves(task: str, split: str, runs: Mapping[str, list[RobotCurves]],
-                             fraction: float = EFFICIENCY_FRACTION, draws: int = BOOTSTRAP) -> list[ArmMetrics]:
+def task_metrics_from_curves(
+    task: str, split: str, runs: Mapping[str, list[RobotCurves]], fraction: float = EFFICIENCY_FRACTION, draws: int = BOOTSTRAP
+) -> list[ArmMetrics]:
     """Metrics of every arm on one task and split.
 
     :param runs: ``{arm: [one RobotCurves per seed]}`` (arms without runs are left out).
@@ -270,12 +271,29 @@ def task_metrics_from_curves(task: str, split: str, runs: Mapping[str, list[Robo
         a_lo, a_hi = interval(_areas(steps, boot))
         s_lo, s_hi = interval(boot_steps)
         results[arm] = dict(
-            task=task, arm=arm, split=split, seeds=values.shape[0], robots=values.shape[1],
-            zero_shot=zero[arm], zero_shot_sd=float(per_seed[:, 0].std()), zero_shot_lo=z_lo, zero_shot_hi=z_hi,
-            final=final[arm], final_sd=float(per_seed[:, -1].std()), final_lo=f_lo, final_hi=f_hi,
-            auc=float(_areas(steps, per_seed).mean()), auc_sd=float(_areas(steps, per_seed).std()), auc_lo=a_lo, auc_hi=a_hi,
-            level=level, steps_to_level=held_steps[arm], steps_lo=s_lo, steps_hi=s_hi,
-            held=float(np.isfinite(boot_steps).mean()), budget=int(steps[-1]),
+            task=task,
+            arm=arm,
+            split=split,
+            seeds=values.shape[0],
+            robots=values.shape[1],
+            zero_shot=zero[arm],
+            zero_shot_sd=float(per_seed[:, 0].std()),
+            zero_shot_lo=z_lo,
+            zero_shot_hi=z_hi,
+            final=final[arm],
+            final_sd=float(per_seed[:, -1].std()),
+            final_lo=f_lo,
+            final_hi=f_hi,
+            auc=float(_areas(steps, per_seed).mean()),
+            auc_sd=float(_areas(steps, per_seed).std()),
+            auc_lo=a_lo,
+            auc_hi=a_hi,
+            level=level,
+            steps_to_level=held_steps[arm],
+            steps_lo=s_lo,
+            steps_hi=s_hi,
+            held=float(np.isfinite(boot_steps).mean()),
+            budget=int(steps[-1]),
         )
     reference = held_steps.get(REFERENCE_ARM)
     metrics = []

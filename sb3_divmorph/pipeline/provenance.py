@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from sb3_divmorph.pipeline.config import ConfigError, Profile, apply_overrides
+from sb3_divmorph.pipeline.folders import DOWNSTREAM, STAGE_FOLDERS  # noqa: F401 -- re-exported
 from sb3_divmorph.pipeline.runs import atomic_write_json, resolve_device, robot_set_record
 
 RECORD = "run.json"
@@ -42,21 +43,6 @@ STAGE_KEYS: dict[str, tuple[str, ...]] = {
     "export": (*_BASE, *_NOVEL, "teachers", "student", "distill", "transfer", "export"),
     "evaluate": (*_BASE, *_NOVEL, "teachers", "student", "distill", "hyperdistill", "grl", "transfer", "evaluate"),
 }
-#: Each stage's folders in a run.
-STAGE_FOLDERS: dict[str, tuple[str, ...]] = {
-    "teachers": ("teachers",), "distill": ("student", "students"), "hyperdistill": ("hyperdistill",), "grl": ("grl",),
-    "transfer": ("transfer",), "export": ("export",), "evaluate": ("evaluate",),
-}
-#: The stages built on each stage's outputs (retrained with it).
-DOWNSTREAM: dict[str, tuple[str, ...]] = {
-    "teachers": ("distill", "hyperdistill", "grl", "transfer", "export", "evaluate"),
-    "distill": ("transfer", "export", "evaluate"),
-    "hyperdistill": ("evaluate",),
-    "grl": ("transfer", "evaluate"),
-    "transfer": ("export", "evaluate"),
-    "export": (),
-    "evaluate": (),
-}
 #: packages whose versions a result depends on
 PACKAGES = ("divmorph", "torch", "stable-baselines3", "gymnasium", "mujoco", "numpy")
 
@@ -66,7 +52,9 @@ def _git_commit() -> str | None:
     if not (root / ".git").exists():
         return None
     try:
-        return subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5, check=True).stdout.strip()
+        return subprocess.run(
+            ["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5, check=True
+        ).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         return None
 
@@ -150,8 +138,7 @@ def _differences(old: Any, new: Any, prefix: str = "") -> list[str]:
 def begun_stages(out: Path) -> list[str]:
     """The stages that have begun in run folder ``out`` (a folder of theirs holds anything)."""
     out = Path(out)
-    return [stage for stage, folders in STAGE_FOLDERS.items()
-            if any((out / f).is_dir() and any((out / f).iterdir()) for f in folders)]
+    return [stage for stage, folders in STAGE_FOLDERS.items() if any((out / f).is_dir() and any((out / f).iterdir()) for f in folders)]
 
 
 def stage_changes(old: dict[str, Any], new: dict[str, Any], stage: str) -> list[str]:
@@ -197,7 +184,9 @@ def restore_superseded(out: Path, record: dict[str, Any], previous_record: str |
     return failed if failed.exists() else None
 
 
-def check_and_record(out: Path, profile: Profile, command: str, force: bool = False, redo: tuple[str, ...] | list[str] = ()) -> dict[str, Any]:
+def check_and_record(
+    out: Path, profile: Profile, command: str, force: bool = False, redo: tuple[str, ...] | list[str] = ()
+) -> dict[str, Any]:
     """Compare ``profile`` with the configuration recorded in ``out/run.json``, retrain what must be
     retrained, and (re)write the record.
 
@@ -229,8 +218,7 @@ def check_and_record(out: Path, profile: Profile, command: str, force: bool = Fa
             + f"\nUse another --out for the new settings, or retrain: --redo {' --redo '.join(blocked)} (or --force for all of "
             f"them); the old folders are kept in {Path(out) / SUPERSEDED}/."
         )
-    retrain = [stage for stage in begun if stage in redo or stage in changed or any(
-        stage in DOWNSTREAM[s] for s in (*redo, *changed))]
+    retrain = [stage for stage in begun if stage in redo or stage in changed or any(stage in DOWNSTREAM[s] for s in (*redo, *changed))]
     moved = supersede(out, retrain)
     if moved is not None:
         print(f"[provenance] retraining {', '.join(retrain)}: their previous folders moved to {moved}")
@@ -241,10 +229,17 @@ def check_and_record(out: Path, profile: Profile, command: str, force: bool = Fa
         "versions": _versions(),
         "git_commit": _git_commit(),
         "machine": f"{platform.node()} ({platform.machine()}, {platform.system()})",
-        "history": [*(previous or {}).get("history", []), {
-            "command": command, "time": time.strftime("%Y-%m-%d %H:%M:%S"),
-            "changed": _differences(recorded, config) if previous else [],
-            "forced": bool(force and changed), "retrained": retrain, "superseded": str(moved) if moved else None}],
+        "history": [
+            *(previous or {}).get("history", []),
+            {
+                "command": command,
+                "time": time.strftime("%Y-%m-%d %H:%M:%S"),
+                "changed": _differences(recorded, config) if previous else [],
+                "forced": bool(force and changed),
+                "retrained": retrain,
+                "superseded": str(moved) if moved else None,
+            },
+        ],
     }
     atomic_write_json(path, record)
     return record

@@ -24,13 +24,22 @@ import numpy as np  # noqa: E402
 
 from sb3_divmorph.pipeline.arms import ARMS  # noqa: E402
 from sb3_divmorph.pipeline.config import Profile  # noqa: E402
-from sb3_divmorph.pipeline.distill import STUDENTS  # noqa: E402
-from sb3_divmorph.pipeline.export import export_reports  # noqa: E402
+from sb3_divmorph.pipeline.folders import export_reports, transfer_folder, transfer_seeds, transfer_tasks  # noqa: E402
+from sb3_divmorph.pipeline.students import STUDENTS  # noqa: E402
 from sb3_divmorph.pipeline.provenance import RECORD, SUPERSEDED  # noqa: E402
-from sb3_divmorph.pipeline.figures import CAPTIONS, make_figures, metrics_table, outside_legend, save_png, write_metrics  # noqa: E402
+from sb3_divmorph.pipeline.figures import (  # noqa: E402, F401 -- _correlation, plot_gates re-exported
+    CAPTIONS,
+    _correlation,
+    distinct_selections,
+    make_figures,
+    metrics_table,
+    outside_legend,
+    plot_gates,
+    save_png,
+    write_metrics,
+)
 from sb3_divmorph.pipeline.metrics import EFFICIENCY_FRACTION  # noqa: E402
 from sb3_divmorph.pipeline.runs import atomic_write_text, read_progress  # noqa: E402
-from sb3_divmorph.pipeline.transfer import transfer_folder, transfer_seeds, transfer_tasks  # noqa: E402
 
 
 def _curve(ax, progress: dict[str, np.ndarray], key: str, label: str) -> bool:
@@ -54,7 +63,9 @@ def plot_curves(profile: Profile, out: Path, target: Path) -> None:
     teachers, tasks = list(profile.teachers.tasks), transfer_tasks(profile, out)
     n = len(teachers) + 1 + len(tasks)
     columns = min(n, 4)
-    fig, axes = plt.subplots((n + columns - 1) // columns, columns, figsize=(4.6 * columns, 3.6 * ((n + columns - 1) // columns)), squeeze=False)
+    fig, axes = plt.subplots(
+        (n + columns - 1) // columns, columns, figsize=(4.6 * columns, 3.6 * ((n + columns - 1) // columns)), squeeze=False
+    )
     axes = list(axes.flat)
     for ax, task in zip(axes, teachers):
         _curve(ax, read_progress(out / "teachers" / task), "rollout/ep_rew_mean", "MetaMorph teacher")
@@ -79,37 +90,11 @@ def plot_curves(profile: Profile, out: Path, target: Path) -> None:
             outside_legend(ax)
     for ax in axes[n:]:
         ax.axis("off")
-    fig.suptitle(f"profile {profile.name}: learning curves on {_robots_phrase(profile)}, seed {profile.seed} "
-                 "(stochastic training episodes, one run each)", fontsize=10)
-    fig.tight_layout()
-    save_png(fig, target)
-
-
-def _correlation(gates: np.ndarray) -> np.ndarray:
-    centred = gates - gates.mean(1, keepdims=True)
-    norms = np.linalg.norm(centred, axis=1, keepdims=True)
-    norms[norms == 0] = 1
-    unit = centred / norms
-    return unit @ unit.T
-
-
-def _distinct(gates: np.ndarray) -> int:
-    return len({tuple(row) for row in (gates > 0)})
-
-
-def plot_gates(gates: dict[str, np.ndarray], target: Path) -> None:
-    fig, axes = plt.subplots(1, 2, figsize=(12, 5.2))
-    for ax, key, labels, title in (
-        (axes[0], "task_gates", gates["tasks"], "task-gate correlation across tasks"),
-        (axes[1], "morphology_gates", gates["robots"], "morphology-gate correlation across robots"),
-    ):
-        corr = _correlation(gates[key])
-        image = ax.imshow(corr, vmin=-1, vmax=1, cmap="RdBu_r")
-        ax.set_xticks(range(len(labels)), labels, rotation=90, fontsize=7)
-        ax.set_yticks(range(len(labels)), labels, fontsize=7)
-        ax.set_title(f"{title} ({len(labels)})")
-        bar = fig.colorbar(image, ax=ax, fraction=0.046)
-        bar.set_label("correlation of the gate vectors (Pearson)")
+    fig.suptitle(
+        f"profile {profile.name}: learning curves on {_robots_phrase(profile)}, seed {profile.seed} "
+        "(stochastic training episodes, one run each)",
+        fontsize=10,
+    )
     fig.tight_layout()
     save_png(fig, target)
 
@@ -151,7 +136,7 @@ def plot_returns(groups: dict[tuple[str, str, str], list[float]], target: Path, 
         ax.set_title(task, fontsize=9)
         ax.set_ylabel("episode return (deterministic)")
         ax.legend(fontsize=7)
-    for ax in list(axes.flat)[len(tasks):]:
+    for ax in list(axes.flat)[len(tasks) :]:
         ax.axis("off")
     fig.suptitle(title or "returns per model: mean over robots, error bars = sd over robots", fontsize=10)
     fig.tight_layout()
@@ -176,35 +161,50 @@ def findings(profile: Profile, groups: dict[tuple[str, str, str], list[float]], 
     teachers against the same policy before training, the student against its teachers, zero-shot on
     the novel robots, and the deployed actors' sizes against the return they keep."""
     hyperdistill = any(model == "hyperdistill" for model, _, _ in groups)
-    lines = ["## Findings", "",
-             "Means over robots of deterministic returns (`evaluate/returns.csv`); *untrained*: the teacher's run "
-             "before its first update (same seed, same initial weights).", "",
-             f"| task | untrained | teacher | DivMorph student (% of teacher, >= {STUDENT_SHARE:.0%}?) | dense MetaMorph⚗ student "
-             + ("| HyperDistill student " if hyperdistill else "")
-             + "| zero-shot novel robots: teacher / student" + (" / HyperDistill |" if hyperdistill else " |"),
-             "|---|---|---|---|---|---|" + ("---|" if hyperdistill else "")]
+    lines = [
+        "## Findings",
+        "",
+        "Means over robots of deterministic returns (`evaluate/returns.csv`); *untrained*: the teacher's run "
+        "before its first update (same seed, same initial weights).",
+        "",
+        f"| task | untrained | teacher | DivMorph student (% of teacher, >= {STUDENT_SHARE:.0%}?) | dense MetaMorph⚗ student "
+        + ("| HyperDistill student " if hyperdistill else "")
+        + "| zero-shot novel robots: teacher / student"
+        + (" / HyperDistill |" if hyperdistill else " |"),
+        "|---|---|---|---|---|---|" + ("---|" if hyperdistill else ""),
+    ]
     for task in profile.teachers.tasks:
         untrained, teacher = _mean(groups, ("teacher-untrained", task, "train")), _mean(groups, ("teacher", task, "train"))
         student, dense = _mean(groups, ("student", task, "train")), _mean(groups, ("student-distilled", task, "train"))
         share = _percent(student, teacher)
         verdict = "n/a" if share == "n/a" else ("yes" if student >= STUDENT_SHARE * teacher else "no")
-        zero_shot = [_mean(groups, (model, task, "novel")) for model in ("teacher", "student", *(("hyperdistill",) if hyperdistill else ()))]
-        lines.append(f"| {task} | {untrained:.1f} | {teacher:.1f} | {student:.1f} ({share}, {verdict}) | {dense:.1f} "
-                     + (f"| {_mean(groups, ('hyperdistill', task, 'train')):.1f} " if hyperdistill else "")
-                     + "| " + " / ".join(f"{value:.1f}" for value in zero_shot) + " |")
+        zero_shot = [
+            _mean(groups, (model, task, "novel")) for model in ("teacher", "student", *(("hyperdistill",) if hyperdistill else ()))
+        ]
+        lines.append(
+            f"| {task} | {untrained:.1f} | {teacher:.1f} | {student:.1f} ({share}, {verdict}) | {dense:.1f} "
+            + (f"| {_mean(groups, ('hyperdistill', task, 'train')):.1f} " if hyperdistill else "")
+            + "| "
+            + " / ".join(f"{value:.1f}" for value in zero_shot)
+            + " |"
+        )
     reductions: dict[tuple[str, str], list[float]] = defaultdict(list)
     for r in exports:
         reductions[(r.get("student", "divmorph"), r["task"])].append(r["reduction_vs_metamorph"])
     students = list(dict.fromkeys(name for name, _ in reductions))
     if not students:
         return lines
-    lines += ["", f"Deployment: like-for-like size reduction of each student's compact actor (mean over exported robots) and the "
-              f"return its student keeps of the DivMorph student's on the training robots (the compact actor computes the "
-              f"student's actions to within 1e-5 x the largest action mean; `return compact / student` below plays one episode "
-              f"of each per robot: equal until contacts amplify the last digits). Best: the "
-              f"largest reduction keeping >= {DEPLOYED_SHARE:.0%}.", "",
-              f"| task | {' | '.join(students)} | best (>= {DEPLOYED_SHARE:.0%} of the student's return) |",
-              "|---|" + "---|" * (len(students) + 1)]
+    lines += [
+        "",
+        f"Deployment: like-for-like size reduction of each student's compact actor (mean over exported robots) and the "
+        f"return its student keeps of the DivMorph student's on the training robots (the compact actor computes the "
+        f"student's actions to within 1e-5 x the largest action mean; `return compact / student` below plays one episode "
+        f"of each per robot: equal until contacts amplify the last digits). Best: the "
+        f"largest reduction keeping >= {DEPLOYED_SHARE:.0%}.",
+        "",
+        f"| task | {' | '.join(students)} | best (>= {DEPLOYED_SHARE:.0%} of the student's return) |",
+        "|---|" + "---|" * (len(students) + 1),
+    ]
     reference_label = {name: "student" if name == "divmorph" else f"student-{name}" for name in students}
     for task in profile.teachers.tasks:
         base = _mean(groups, ("student", task, "train"))
@@ -252,9 +252,15 @@ def _run_record_lines(out: Path) -> list[str]:
     record = json.loads(path.read_text())
     commands = list(dict.fromkeys(entry["command"] for entry in record.get("history", [])))
     versions = ", ".join(f"{k} {v}" for k, v in record.get("versions", {}).items() if v)
-    return [f"- run record (`{RECORD}`): machine {record.get('machine')}, device used `{record.get('device_used')}`, "
-            f"commit `{record.get('git_commit')}`, {versions}",
-            "- commands run in this folder, in order (`run.json` history):", "", "```bash", *commands, "```"]
+    return [
+        f"- run record (`{RECORD}`): machine {record.get('machine')}, device used `{record.get('device_used')}`, "
+        f"commit `{record.get('git_commit')}`, {versions}",
+        "- commands run in this folder, in order (`run.json` history):",
+        "",
+        "```bash",
+        *commands,
+        "```",
+    ]
 
 
 def report(profile: Profile, out: Path, command: str = "") -> str:
@@ -291,12 +297,16 @@ def report(profile: Profile, out: Path, command: str = "") -> str:
     lines.append(_stage_row("DAgger distillation (DivMorph student)", out / "student", "student/model.zip"))
     for name in STUDENTS:
         if name != "divmorph" and (out / "students" / name / "done.json").is_file():
-            lines.append(_stage_row(f"DAgger distillation ({STUDENTS[name].description})", out / "students" / name, f"students/{name}/model.zip"))
+            lines.append(
+                _stage_row(f"DAgger distillation ({STUDENTS[name].description})", out / "students" / name, f"students/{name}/model.zip")
+            )
     if (out / "grl" / "done.json").is_file():
         learngene = json.loads((out / "grl" / "learngene.json").read_text())
-        lines.append(f"| GRL evolution ({profile.grl.generations} generations x {profile.grl.population} agents x "
-                     f"{profile.grl.steps_per_agent} steps); learngene {'+'.join(learngene['units'])} | `grl/learngene.json` | "
-                     f"{profile.grl.generations * profile.grl.population * profile.grl.steps_per_agent} | ? |")
+        lines.append(
+            f"| GRL evolution ({profile.grl.generations} generations x {profile.grl.population} agents x "
+            f"{profile.grl.steps_per_agent} steps); learngene {'+'.join(learngene['units'])} | `grl/learngene.json` | "
+            f"{profile.grl.generations * profile.grl.population * profile.grl.steps_per_agent} | ? |"
+        )
     for task in transfer_tasks(profile, out):
         for arm in ARMS:
             for seed in transfer_seeds(profile, out, task, arm):
@@ -309,54 +319,91 @@ def report(profile: Profile, out: Path, command: str = "") -> str:
     metrics = [m for task in transfer_tasks(profile, out) for m in write_metrics(profile, out, task)]
     if metrics:
         closest = [json.loads(p.read_text()) for p in sorted((out / "transfer").glob("*/closest-by-*.json"))]
-        lines += ["## Transfer metrics", "",
-                  f"Deterministic evaluations every {profile.transfer.eval_every} env steps on the training and the novel robots "
-                  f"({profile.transfer.eval_episodes} episode(s) per robot); mean over seeds and robots [95% bootstrap interval, "
-                  "seeds and robots resampled]. AUC: area under the curve / steps (the mean return over training). Level: "
-                  f"{EFFICIENCY_FRACTION:.0%} of the way from scratch's zero-shot return to the best arm's final return; steps to "
-                  "hold the level: the env step from which the arm's mean curve stays at or above it to the end (not held: its last "
-                  "evaluation is below; >budget: some bootstrap draws never hold it). Speed-up vs scratch: scratch's steps / the "
-                  "arm's, only where both hold the level (>=: scratch never does, a lower bound).", "",
-                  *metrics_table(metrics), ""]
-        lines += [f"- closest training task to {c['task']} by {c['criterion']}: {c['closest']} "
-                  f"({', '.join(f'{t} {v:.3f}' for t, v in c['scores'].items())})" for c in closest]
+        lines += [
+            "## Transfer metrics",
+            "",
+            f"Deterministic evaluations every {profile.transfer.eval_every} env steps on the training and the novel robots "
+            f"({profile.transfer.eval_episodes} episode(s) per robot); mean over seeds and robots [95% bootstrap interval, "
+            "seeds and robots resampled]. AUC: area under the curve / steps (the mean return over training). Level: "
+            f"{EFFICIENCY_FRACTION:.0%} of the way from scratch's zero-shot return to the best arm's final return; steps to "
+            "hold the level: the env step from which the arm's mean curve stays at or above it to the end (not held: its last "
+            "evaluation is below; >budget: some bootstrap draws never hold it). Speed-up vs scratch: scratch's steps / the "
+            "arm's, only where both hold the level (>=: scratch never does, a lower bound).",
+            "",
+            *metrics_table(metrics),
+            "",
+        ]
+        lines += [
+            f"- closest training task to {c['task']} by {c['criterion']}: {c['closest']} "
+            f"({', '.join(f'{t} {v:.3f}' for t, v in c['scores'].items())})"
+            for c in closest
+        ]
     figures = make_figures(profile, out)
     if figures:
-        lines += ["", "## Figures", "", *[f"- {name}: `{path.relative_to(out)}` (numbers: `{path.with_suffix('.csv').relative_to(out)}`): "
-                                          f"{CAPTIONS[name]}" for name, path in figures.items()], ""]
+        lines += [
+            "",
+            "## Figures",
+            "",
+            *[
+                f"- {name}: `{path.relative_to(out)}` (numbers: `{path.with_suffix('.csv').relative_to(out)}`): {CAPTIONS[name]}"
+                for name, path in figures.items()
+            ],
+            "",
+        ]
 
     returns_file = out / "evaluate" / "returns.csv"
     if returns_file.is_file():
         table, groups = returns_table(read_returns(returns_file))
         episodes = profile.evaluate.episodes
-        plot_returns(groups, folder / "returns.png",
-                     f"profile {profile.name}, seed {profile.seed}: deterministic return, mean over robots "
-                     f"({_robots_phrase(profile)} / novel robots), {episodes} episode(s) each; error bars = sd over robots")
-        lines += ["", "## Per-morphology evaluation (deterministic actions)", "", *table, "",
-                  f"Mean ± sd over robots ({episodes} deterministic episode(s) per robot; n = robots x episodes); "
-                  "the error bars of the figure are the same sd. Per-robot rows: `evaluate/returns.csv`.", "",
-                  "![returns](report/returns.png)", "",
-                  *findings(profile, groups, [json.loads(p.read_text()) for p in export_reports(out)])]
+        plot_returns(
+            groups,
+            folder / "returns.png",
+            f"profile {profile.name}, seed {profile.seed}: deterministic return, mean over robots "
+            f"({_robots_phrase(profile)} / novel robots), {episodes} episode(s) each; error bars = sd over robots",
+        )
+        lines += [
+            "",
+            "## Per-morphology evaluation (deterministic actions)",
+            "",
+            *table,
+            "",
+            f"Mean ± sd over robots ({episodes} deterministic episode(s) per robot; n = robots x episodes); "
+            "the error bars of the figure are the same sd. Per-robot rows: `evaluate/returns.csv`.",
+            "",
+            "![returns](report/returns.png)",
+            "",
+            *findings(profile, groups, [json.loads(p.read_text()) for p in export_reports(out)]),
+        ]
     gates_file = out / "evaluate" / "gates.npz"
     if gates_file.is_file():
         with np.load(gates_file) as data:
             gates = {k: data[k] for k in data.files}
         plot_gates(gates, folder / "gates.png")
         used = (gates["task_gates"] > 0).sum(0)
-        lines += ["", "## Gates", "", "![gates](report/gates.png)", "",
-                  f"Task tailors selected by at least one of the 10 instructions: {int((used > 0).sum())} of {len(used)}; "
-                  f"distinct task-tailor selections: {_distinct(gates['task_gates'])} among {len(gates['tasks'])} tasks; "
-                  f"distinct morphology-tailor selections: {_distinct(gates['morphology_gates'])} among "
-                  f"{len(gates['robots'])} robots (the correlation of two gate vectors that select the same top-k "
-                  "tailors is close to 1 even when their weights differ)."]
+        lines += [
+            "",
+            "## Gates",
+            "",
+            "![gates](report/gates.png)",
+            "",
+            f"Task tailors selected by at least one of the 10 instructions: {int((used > 0).sum())} of {len(used)}; "
+            f"distinct task-tailor selections: {distinct_selections(gates['task_gates'])} among {len(gates['tasks'])} tasks; "
+            f"distinct morphology-tailor selections: {distinct_selections(gates['morphology_gates'])} among "
+            f"{len(gates['robots'])} robots (the correlation of two gate vectors that select the same top-k "
+            "tailors is close to 1 even when their weights differ).",
+        ]
 
     exports = [json.loads(path.read_text()) for path in export_reports(out)]
     if exports:
-        lines += ["", "## Deployment: pruned compact actors", "",
-                  "| student | robot | task | exported from | MetaMorph actor (folded) | compact DivMorph | reduction (like for like) "
-                  "| MetaMorph actor (unfolded) | folding alone | max abs diff | latency compact / student (ms, batch 1) "
-                  "| return compact / student (1 episode) |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|"]
+        lines += [
+            "",
+            "## Deployment: pruned compact actors",
+            "",
+            "| student | robot | task | exported from | MetaMorph actor (folded) | compact DivMorph | reduction (like for like) "
+            "| MetaMorph actor (unfolded) | folding alone | max abs diff | latency compact / student (ms, batch 1) "
+            "| return compact / student (1 episode) |",
+            "|---|---|---|---|---|---|---|---|---|---|---|",
+        ]
         for r in exports:
             returns = f"{r['compact_return']:.1f} / {r['student_return']:.1f}" if "compact_return" in r else "–"
             lines.append(
@@ -365,10 +412,13 @@ def report(profile: Profile, out: Path, command: str = "") -> str:
                 f"{r['folding_metamorph']:.2f}x | {r['max_abs_diff']:.1e} | {r['latency_compact_ms']:.3f} / {r['latency_student_ms']:.3f} "
                 f"({r['speedup_vs_student']:.1f}x) | {returns} |"
             )
-        lines += ["", "Like for like: the MetaMorph actor of the same task and sizes is exported through the same folding "
-                  "(context rows, position embedding, padded tokens and encoders of observations the task lacks become "
-                  "constants), so the reduction counts pruning only; 'folding alone' is what folding saves MetaMorph. "
-                  "Baked normalisation statistics are not counted (both actors need them)."]
+        lines += [
+            "",
+            "Like for like: the MetaMorph actor of the same task and sizes is exported through the same folding "
+            "(context rows, position embedding, padded tokens and encoders of observations the task lacks become "
+            "constants), so the reduction counts pruning only; 'folding alone' is what folding saves MetaMorph. "
+            "Baked normalisation statistics are not counted (both actors need them).",
+        ]
     summary = "\n".join(lines) + "\n"
     atomic_write_text(out / "summary.md", summary)
     return summary
@@ -377,6 +427,7 @@ def report(profile: Profile, out: Path, command: str = "") -> str:
 def _robots_sentence(profile: Profile) -> str:
     """Which robots train and which are novel, as a reader can check them: novel robots drawn from
     the training set are the ones after the training robots (robots 11-20, not "the first 10")."""
+
     def count(n: int | None) -> str:
         return "all" if n is None else str(n)
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import csv
 import hashlib
+import io
 import json
 import os
 import shutil
@@ -31,12 +32,14 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.save_util import load_from_zip_file
+from stable_baselines3.common.running_mean_std import RunningMeanStd
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecMonitor, VecNormalize
 
 import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
 from unimal_envs import env_id
 from unimal_envs.morphology.loader import is_set_name, morphology_files
 from sb3_divmorph.distillation import check_spaces
+from sb3_divmorph.finetune import freeze_observation_statistics
 from sb3_divmorph.pipeline.config import ConfigError, Profile, resolve_path
 
 DONE = "done.json"
@@ -142,8 +145,10 @@ def trained_robots(folder: str | Path) -> list[Path] | None:
     available = {f.stem: f for f in robot_files(entry["set"], None)}
     missing = [name for name in entry["robots"] if name not in available]
     if missing:
-        raise ConfigError(f"{record} names robots of the set {entry['set']!r} that are not there on this machine: "
-                          f"{missing[:3]}{'...' if len(missing) > 3 else ''}")
+        raise ConfigError(
+            f"{record} names robots of the set {entry['set']!r} that are not there on this machine: "
+            f"{missing[:3]}{'...' if len(missing) > 3 else ''}"
+        )
     return [available[name] for name in entry["robots"]]
 
 
@@ -204,8 +209,15 @@ def record_robot_sets(profile: Profile, out: Path) -> Path:
 
 
 def make_vec_env(
-    env_name: str, n_envs: int, seed: int, max_episode_steps: int, backend: str = "single",
-    worlds_per_robot: int = 16, device: str = "cpu", terrain_variants: int = 64, **env_kwargs: Any
+    env_name: str,
+    n_envs: int,
+    seed: int,
+    max_episode_steps: int,
+    backend: str = "single",
+    worlds_per_robot: int = 16,
+    device: str = "cpu",
+    terrain_variants: int = 64,
+    **env_kwargs: Any,
 ) -> VecEnv:
     """The monitored training envs of a stage.
 
@@ -218,9 +230,17 @@ def make_vec_env(
         from unimal_envs.batched import make_batched_env
 
         task = env_name.removeprefix("Unimal-").removesuffix("-v0")
-        return VecMonitor(make_batched_env(task, worlds_per_robot=worlds_per_robot, device=device, seed=seed,
-                                           terrain_variants=terrain_variants,
-                                           max_episode_steps=max_episode_steps, **env_kwargs))
+        return VecMonitor(
+            make_batched_env(
+                task,
+                worlds_per_robot=worlds_per_robot,
+                device=device,
+                seed=seed,
+                terrain_variants=terrain_variants,
+                max_episode_steps=max_episode_steps,
+                **env_kwargs,
+            )
+        )
 
     def factory(rank: int) -> Callable[[], gym.Env]:
         def make() -> gym.Env:
@@ -447,3 +467,53 @@ def _portable(path: Path) -> str:
             continue
         return str(relative if shown is None else shown / relative)
     return str(path)
+
+
+def robot_observations(
+    env_name: str, robots: list[Path], seed: int = 0, instruction: str | None = None, **env_kwargs: Any
+) -> dict[str, np.ndarray]:
+    """One reset observation per robot, batched (for gates and selections).
+
+    :param env_kwargs: further env arguments (e.g. the run's ``height_reference``).
+    """
+    import gymnasium as gym
+
+    env = gym.make(env_name, morphologies=robots, **({"instruction": instruction} if instruction else {}), **env_kwargs)
+    try:
+        observations = [env.reset(seed=seed, options={"morphology": i})[0] for i in range(len(robots))]
+    finally:
+        env.close()
+    return {key: np.stack([o[key] for o in observations]) for key in observations[0]}
+
+
+def inherited_normalizer(source: Path, venv: VecEnv, gamma: float, freeze_observations: bool = False) -> VecEnv:
+    """``venv`` wrapped in the observation statistics saved in ``source`` (if any); rewards are
+    normalised afresh for the new task (their statistics learn).
+
+    :param source: the folder of the trained model whose ``vecnormalize.pkl`` is inherited.
+    :param venv: the new task's envs.
+    :param gamma: the new run's discount (for the reward statistics).
+    :param freeze_observations: keep the observation statistics exactly as inherited
+        (:func:`~sb3_divmorph.finetune.freeze_observation_statistics`): transfer does, so that the
+        inputs of the weights it starts from do not move under them. ``False`` (GRL's evolution,
+        where a child trains every layer on a training task) lets them go on learning.
+    """
+    if not (source / NORMALIZER).is_file():
+        return venv
+    normalizer = VecNormalize.load(str(source / NORMALIZER), venv)
+    normalizer.training, normalizer.norm_reward = True, True
+    normalizer.gamma = gamma
+    normalizer.ret_rms = RunningMeanStd(shape=())
+    normalizer.returns = np.zeros(venv.num_envs)
+    if freeze_observations:
+        freeze_observation_statistics(normalizer)
+    return normalizer
+
+
+def write_csv(path: Path, rows: list[dict[str, Any]], columns: list[str]) -> None:
+    """Write ``rows`` (dicts) as a CSV with these ``columns``, atomically."""
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=columns)
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write_text(path, buffer.getvalue())

@@ -12,10 +12,8 @@ from pathlib import Path
 from stable_baselines3 import PPO
 
 from sb3_divmorph.device_ppo import DevicePPO
-from sb3_divmorph.distillation import Teacher
-from sb3_divmorph.pipeline.config import ConfigError, Profile, load_zoo_entry
+from sb3_divmorph.pipeline.config import ConfigError, Profile, load_zoo_entry, teacher_policy, zoo_entry_id  # noqa: F401 -- re-exported
 from sb3_divmorph.pipeline.runs import (
-    MODEL,
     TrainingRun,
     is_done,
     make_vec_env,
@@ -23,26 +21,10 @@ from sb3_divmorph.pipeline.runs import (
     profile_env_kwargs,
     profile_robots,
     resolve_device,
-    stage_normalizer,
     task_env_name,
 )
-from unimal_envs.contract import TASK_NAMES, observation_space
-
-
-def teacher_folder(out: Path, task: str, root: str = "teachers") -> Path:
-    return Path(out) / root / task
-
-
-def zoo_entry_id(profile: Profile, task: str) -> str:
-    """The rl-zoo entry of ``task``'s teacher: ``Unimal-<task>-v0``, or its ``-<recipe>`` variant."""
-    env_name = task_env_name(task)
-    return f"{env_name}-{profile.teachers.recipe}" if profile.teachers.recipe else env_name
-
-
-def teacher_policy(profile: Profile, task: str) -> str:
-    """The policy of the run's teacher of ``task``: ``teachers.policy``, else the zoo entry's."""
-    cfg = profile.teachers
-    return cfg.policy or load_zoo_entry(cfg.hyperparams, zoo_entry_id(profile, task), cfg.overrides).policy
+from sb3_divmorph.pipeline.folders import load_teachers, teacher_folder  # noqa: F401 -- load_teachers re-exported
+from unimal_envs.contract import TASK_NAMES
 
 
 def teacher_run(
@@ -63,8 +45,18 @@ def teacher_run(
     device = resolve_device(profile.device)
 
     def make_env():
-        return make_vec_env(env_name, entry.n_envs, seed, profile.max_episode_steps, cfg.env_backend, cfg.worlds_per_robot,
-                            device, cfg.terrain_variants, morphologies=robots, **profile_env_kwargs(profile))
+        return make_vec_env(
+            env_name,
+            entry.n_envs,
+            seed,
+            profile.max_episode_steps,
+            cfg.env_backend,
+            cfg.worlds_per_robot,
+            device,
+            cfg.terrain_variants,
+            morphologies=robots,
+            **profile_env_kwargs(profile),
+        )
 
     # On the batched backend, rollouts stay on the device (DevicePPO; the same PPO otherwise). The
     # balanced robot sampler reads per-world infos, which only SB3's VecEnv path builds.
@@ -78,14 +70,26 @@ def teacher_run(
 
     callbacks = [BalancedRobotSampler(**kwargs) for _, kwargs in entry.callbacks]
     return TrainingRun(
-        teacher_folder(out, task, root), cfg.n_timesteps, cfg.checkpoint_every, make_model, make_env,
-        algo=algo, callbacks=callbacks, device=device, progress_bar=progress_bar,
+        teacher_folder(out, task, root),
+        cfg.n_timesteps,
+        cfg.checkpoint_every,
+        make_model,
+        make_env,
+        algo=algo,
+        callbacks=callbacks,
+        device=device,
+        progress_bar=progress_bar,
     )
 
 
 def train_teachers(
-    profile: Profile, out: Path, tasks: list[str] | None = None, progress_bar: bool = True, policy: str | None = None,
-    root: str = "teachers", backend=None,
+    profile: Profile,
+    out: Path,
+    tasks: list[str] | None = None,
+    progress_bar: bool = True,
+    policy: str | None = None,
+    root: str = "teachers",
+    backend=None,
 ) -> list[Path]:
     """Train (or resume, or skip when done) the teachers of ``tasks`` (default: the profile's).
 
@@ -103,12 +107,14 @@ def train_teachers(
         raise ConfigError(f"task(s) {unknown} have no teacher in profile {profile.name!r}: {profile.teachers.tasks}")
     if policy is None and root == "teachers":
         # the run's own teachers: independent jobs of a grid (in this process, or on Ray)
-        jobs = [Job("teacher", (task,), teacher_folder(out, task), f"teacher {task}") for task in tasks]
+        jobs = [Job(f"{__name__}:teacher_run", (task,), teacher_folder(out, task), f"teacher {task}") for task in tasks]
         for job in jobs:
             if is_done(job.folder):
                 print(f"[teachers] {job.args[0]}: skipped, already trained in {job.folder}")
             else:
-                print(f"[teachers] {job.args[0]}: {teacher_policy(profile, job.args[0])} PPO for {profile.teachers.n_timesteps} steps -> {job.folder}")
+                print(
+                    f"[teachers] {job.args[0]}: {teacher_policy(profile, job.args[0])} PPO for {profile.teachers.n_timesteps} steps -> {job.folder}"
+                )
         run_grid(profile, out, jobs, backend, progress_bar).raise_on_failure()
         return [job.folder for job in jobs]
     done = []
@@ -121,18 +127,3 @@ def train_teachers(
             teacher_run(profile, out, task, progress_bar, policy, root).run()
         done.append(folder)
     return done
-
-
-def load_teachers(profile: Profile, out: Path, root: str = "teachers") -> dict[int, Teacher]:
-    """``{task index: Teacher}`` for every teacher of the profile (in ``root``); a missing one is an error."""
-    teachers = {}
-    for task in profile.teachers.tasks:
-        folder = teacher_folder(out, task, root)
-        if not is_done(folder):
-            raise FileNotFoundError(
-                f"teacher for {task} not found in {folder} (no done.json); run `divmorph teachers --out {out}` first"
-            )
-        teachers[TASK_NAMES.index(task)] = Teacher.load(
-            folder / MODEL, stage_normalizer(folder), name=task, observation_space=observation_space()
-        )
-    return teachers

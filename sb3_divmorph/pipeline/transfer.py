@@ -44,67 +44,36 @@ from sb3_divmorph.finetune import (
     set_adam_eps,
 )
 from sb3_divmorph.pipeline.arms import ARMS
-from sb3_divmorph.pipeline.config import ConfigError, Profile, check_arms, check_seeds, load_zoo_entry
-from sb3_divmorph.pipeline.curves import EVAL_FILE, EvalCurveCallback
-from sb3_divmorph.pipeline.distill import student_folder
+from sb3_divmorph.learngene import inherit
+from sb3_divmorph.pipeline.config import ConfigError, Profile, check_arms, check_seeds, grl_policy_kwargs, load_zoo_entry
+from sb3_divmorph.pipeline.curves import EVAL_FILE, EvalCurveCallback, evaluate_model, write_metrics
+from sb3_divmorph.pipeline.folders import (  # noqa: F401 -- transfer_folder, transfer_seeds, transfer_tasks re-exported
+    read_learngene,
+    student_folder,
+    teacher_folder,
+    transfer_folder,
+    transfer_seeds,
+    transfer_tasks,
+)
 from sb3_divmorph.pipeline.grid import GridReport, Job, run_grid
-from sb3_divmorph.pipeline.grl import grl_policy_kwargs, inherit, inherited_normalizer, read_learngene
 from sb3_divmorph.pipeline.runs import (
     MODEL,
     TrainingRun,
     atomic_write_json,
+    inherited_normalizer,
     is_done,
     make_vec_env,
     normalizer_for,
     profile_env_kwargs,
     profile_robots,
     resolve_device,
+    robot_observations,
     task_env_name,
-)
-from sb3_divmorph.pipeline.teachers import teacher_folder
+)  # robot_observations re-exported
 from sb3_divmorph.policies import PRESETS, DivMorphPolicy
 from unimal_envs.contract import NOVEL_TASKS, TASK_NAMES
 from unimal_envs.tasks import TASKS
 from unimal_envs.instructions import INSTRUCTIONS, embed_instruction, shipped_embeddings
-
-
-
-def transfer_folder(out: Path, task: str, arm: str, seed: int = 0) -> Path:
-    """``transfer/<task>/<arm>/seed-<seed>/``; a run begun before seeds existed (in the arm's folder
-    itself) stays seed 0, so an older run folder resumes rather than starting again."""
-    base = Path(out) / "transfer" / task / arm
-    if seed == 0 and ((base / "done.json").is_file() or (base / "checkpoints").is_dir()):
-        return base
-    return base / f"seed-{seed}"
-
-
-def transfer_tasks(profile: Profile, out: Path) -> list[str]:
-    """The profile's transfer tasks, then any other novel task the run folder holds transfer runs of
-    (``divmorph transfer --task PointNav`` outside the profile is evaluated and reported too)."""
-    found = sorted(p.name for p in (Path(out) / "transfer").glob("*") if p.is_dir() and p.name in NOVEL_TASKS)
-    return list(dict.fromkeys([*profile.transfer.tasks, *found]))
-
-
-def transfer_seeds(profile: Profile, out: Path, task: str, arm: str) -> list[int]:
-    """The profile's seeds, then any other seed the run folder holds a run of for ``task`` and ``arm``."""
-    found = sorted(int(p.name.split("-", 1)[1]) for p in (Path(out) / "transfer" / task / arm).glob("seed-*") if p.name.split("-", 1)[1].isdigit())
-    return list(dict.fromkeys([*profile.transfer.seeds, *found]))
-
-
-def robot_observations(env_name: str, robots: list[Path], seed: int = 0, instruction: str | None = None,
-                       **env_kwargs: Any) -> dict[str, np.ndarray]:
-    """One reset observation per robot, batched (for gates and selections).
-
-    :param env_kwargs: further env arguments (e.g. the run's ``height_reference``).
-    """
-    import gymnasium as gym
-
-    env = gym.make(env_name, morphologies=robots, **({"instruction": instruction} if instruction else {}), **env_kwargs)
-    try:
-        observations = [env.reset(seed=seed, options={"morphology": i})[0] for i in range(len(robots))]
-    finally:
-        env.close()
-    return {key: np.stack([o[key] for o in observations]) for key in observations[0]}
 
 
 def gate_selection(policy: DivMorphPolicy, raw_obs: dict[str, np.ndarray], normalizer: VecNormalize | None) -> UnitSelection:
@@ -168,13 +137,19 @@ def closest_task(profile: Profile, out: Path, task: str, by: str | None = None) 
         scores = {t: float(np.dot(target, embeddings[t]) / (np.linalg.norm(target) * np.linalg.norm(embeddings[t]))) for t in teachers}
         what = "cosine of the instruction embeddings"
     elif by == "return":
-        from sb3_divmorph.pipeline.evaluate import evaluate_model
-
         robots = profile_robots(profile, "train")
         scores = {}
         for t in teachers:
-            rows = evaluate_model(teacher_folder(out, t), task, robots, profile.transfer.eval_episodes, profile.max_episode_steps,
-                                  profile.seed, instruction=profile.transfer.instructions.get(task), env_kwargs=profile_env_kwargs(profile))
+            rows = evaluate_model(
+                teacher_folder(out, t),
+                task,
+                robots,
+                profile.transfer.eval_episodes,
+                profile.max_episode_steps,
+                profile.seed,
+                instruction=profile.transfer.instructions.get(task),
+                env_kwargs=profile_env_kwargs(profile),
+            )
             scores[t] = float(np.mean([r["return"] for r in rows]))
         what = "zero-shot return of the teacher on the novel task"
     else:
@@ -202,14 +177,16 @@ def arm_source(profile: Profile, out: Path, task: str, arm: str) -> Path | None:
     if spec.student is not None:
         folder = student_folder(out, spec.student)
         if not is_done(folder):
-            raise FileNotFoundError(f"no distilled student for arm {arm!r} in {folder}; "
-                                    f"run `divmorph distill --out {out} --arms {arm}` first")
+            raise FileNotFoundError(
+                f"no distilled student for arm {arm!r} in {folder}; run `divmorph distill --out {out} --arms {arm}` first"
+            )
         return folder
     if arm == "closest":
         missing = [t for t in profile.teachers.tasks if not is_done(teacher_folder(out, t))]
         if missing:
-            raise FileNotFoundError(f"arm 'closest' needs the teachers; {missing} not found in {out / 'teachers'}: "
-                                    f"run `divmorph teachers --out {out}` first")
+            raise FileNotFoundError(
+                f"arm 'closest' needs the teachers; {missing} not found in {out / 'teachers'}: run `divmorph teachers --out {out}` first"
+            )
         return teacher_folder(out, closest_task(profile, out, task)["closest"])
     if arm == "grl":
         return out / read_learngene(out)["folder"]
@@ -240,8 +217,10 @@ def _check_source(folder: Path, source: dict[str, Any], write: bool = True) -> N
     if path.is_file():
         recorded = json.loads(path.read_text())
         if recorded != source:
-            raise ConfigError(f"{folder} was started from {recorded['source']}, not {source['source']}; "
-                              "use another --out (or delete that folder) to start it again")
+            raise ConfigError(
+                f"{folder} was started from {recorded['source']}, not {source['source']}; "
+                "use another --out (or delete that folder) to start it again"
+            )
     elif write:
         atomic_write_json(path, source)
 
@@ -309,8 +288,9 @@ def load_widened(policy: th.nn.Module, source: th.nn.Module) -> list[str]:
     return fresh
 
 
-def finetuned_model(saved: PPO, venv, task: str, task_policy_kwargs: dict[str, Any], seed: int, device: str,
-                    ppo_kwargs: dict[str, Any]) -> PPO:
+def finetuned_model(
+    saved: PPO, venv, task: str, task_policy_kwargs: dict[str, Any], seed: int, device: str, ppo_kwargs: dict[str, Any]
+) -> PPO:
     """A PPO model on ``venv`` that starts from ``saved``'s policy and sees ``task``'s inputs.
 
     A policy without an encoder for one of the task's observations (a teacher of a task without a
@@ -332,8 +312,10 @@ def finetuned_model(saved: PPO, venv, task: str, task_policy_kwargs: dict[str, A
         wanted = resolved_exteroception(task_policy_kwargs)
         lacking = [key for key in needed if key not in wanted]
         if lacking:
-            raise ConfigError(f"{task} observes {lacking}, but neither the source policy nor {task}'s own architecture "
-                              f"(policy_kwargs {task_policy_kwargs}) has an encoder for it")
+            raise ConfigError(
+                f"{task} observes {lacking}, but neither the source policy nor {task}'s own architecture "
+                f"(policy_kwargs {task_policy_kwargs}) has an encoder for it"
+            )
         kwargs["exteroception"] = {**{key: wanted[key] for key in needed}, **saved.policy.config["exteroception"]}
     model = PPO(type(saved.policy), venv, policy_kwargs=kwargs, seed=seed, device=device, **ppo_kwargs)
     if needed:
@@ -378,17 +360,36 @@ def transfer_run(profile: Profile, out: Path, task: str, arm: str, seed: int = 0
         env_kwargs["instruction"] = cfg.instructions[task]
 
     def make_env():
-        return make_vec_env(env_name, entry.n_envs, run_seed, profile.max_episode_steps, cfg.env_backend,
-                            cfg.worlds_per_robot, device, cfg.terrain_variants, **env_kwargs)
+        return make_vec_env(
+            env_name,
+            entry.n_envs,
+            run_seed,
+            profile.max_episode_steps,
+            cfg.env_backend,
+            cfg.worlds_per_robot,
+            device,
+            cfg.terrain_variants,
+            **env_kwargs,
+        )
 
     callbacks: list[BaseCallback] = []
     if source is not None and cfg.critic_warmup > 0:
         callbacks.append(CriticWarmup(cfg.critic_warmup))
     if cfg.eval_every > 0:
         splits = {"train": robots, "novel": profile_robots(profile, "novel")}
-        callbacks.append(EvalCurveCallback(folder / EVAL_FILE, env_name, splits, cfg.eval_every, cfg.eval_episodes,
-                                           profile.max_episode_steps, profile.seed, **profile_env_kwargs(profile),
-                                           **({"instruction": cfg.instructions[task]} if task in cfg.instructions else {})))
+        callbacks.append(
+            EvalCurveCallback(
+                folder / EVAL_FILE,
+                env_name,
+                splits,
+                cfg.eval_every,
+                cfg.eval_episodes,
+                profile.max_episode_steps,
+                profile.seed,
+                **profile_env_kwargs(profile),
+                **({"instruction": cfg.instructions[task]} if task in cfg.instructions else {}),
+            )
+        )
     if source is None:
         # scratch and modumorph: the policy from random init, sized like the teachers
         policy = "ModuMorphPolicy" if arm == "modumorph" else "MetaMorphPolicy"
@@ -409,7 +410,6 @@ def transfer_run(profile: Profile, out: Path, task: str, arm: str, seed: int = 0
             return model
 
     else:
-
         task_policy_kwargs = {**entry.policy_kwargs, **profile.teachers.policy_kwargs}
 
         def make_model():
@@ -428,8 +428,9 @@ def transfer_run(profile: Profile, out: Path, task: str, arm: str, seed: int = 0
                 selection = gate_selection(model.policy, selection_obs, model.get_vec_normalize_env())
             # the hooks live on the optimiser; they are installed again whenever the run is loaded
             eps = TRANSFER_ADAM_EPS if cfg.adam_eps is None else cfg.adam_eps
-            installed["rates"] = prepare_transfer(model.policy, selection, cfg.learngene_lr_scale, adam_eps=eps,
-                                                  undiverted_scale=cfg.undiverted_lr_scale)
+            installed["rates"] = prepare_transfer(
+                model.policy, selection, cfg.learngene_lr_scale, adam_eps=eps, undiverted_scale=cfg.undiverted_lr_scale
+            )
 
         callbacks.append(UpdateRatioLogger(lambda: installed.get("rates")))
     else:
@@ -441,15 +442,26 @@ def transfer_run(profile: Profile, out: Path, task: str, arm: str, seed: int = 0
 
     _check_source(folder, _source_record(out, arm, seed, source))
     return TrainingRun(
-        folder, cfg.n_timesteps, cfg.checkpoint_every, make_model, make_env,
-        prepare=prepare, callbacks=callbacks, device=device, progress_bar=progress_bar,
+        folder,
+        cfg.n_timesteps,
+        cfg.checkpoint_every,
+        make_model,
+        make_env,
+        prepare=prepare,
+        callbacks=callbacks,
+        device=device,
+        progress_bar=progress_bar,
     )
 
 
 def transfer_jobs(profile: Profile, out: Path, tasks: list[str], arms: list[str], seeds: list[int]) -> list[Job]:
     """Arms x tasks x seeds as grid jobs."""
-    return [Job("transfer", (task, arm, seed), transfer_folder(out, task, arm, seed), f"transfer {task} {arm} seed {seed}")
-            for task in tasks for arm in arms for seed in seeds]
+    return [
+        Job(f"{__name__}:transfer_run", (task, arm, seed), transfer_folder(out, task, arm, seed), f"transfer {task} {arm} seed {seed}")
+        for task in tasks
+        for arm in arms
+        for seed in seeds
+    ]
 
 
 def transfer(
@@ -502,8 +514,6 @@ def transfer(
     report = run_grid(profile, out, jobs, backend, progress_bar)
     report.raise_on_failure()
     if cfg.eval_every > 0:
-        from sb3_divmorph.pipeline.figures import write_metrics
-
         for task in tasks:
             write_metrics(profile, out, task)
     return report

@@ -34,9 +34,14 @@ class Incline(Arena):
         # The slab's top face passes through the origin: centre = -normal x half-thickness.
         normal = (-math.sin(self.angle), 0.0, math.cos(self.angle))
         spec.worldbody.add_geom(
-            name="incline", type=mujoco.mjtGeom.mjGEOM_BOX, size=[self.half_length, self.half_width, thickness],
-            pos=[-n * thickness for n in normal], quat=self.quat, material=add_ground_material(spec),
-            condim=3, friction=[0.7, 0.1, 0.1],
+            name="incline",
+            type=mujoco.mjtGeom.mjGEOM_BOX,
+            size=[self.half_length, self.half_width, thickness],
+            pos=[-n * thickness for n in normal],
+            quat=self.quat,
+            material=add_ground_material(spec),
+            condim=3,
+            friction=[0.7, 0.1, 0.1],
         )
 
     def ground_height(self, x: float, y: float) -> float:

@@ -149,15 +149,19 @@ class ObstacleCourse(Arena):
 
     def build(self, spec: mujoco.MjSpec) -> None:
         spec.worldbody.add_geom(
-            name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[self.length, self.half_width + 10, 0.1],
-            pos=[self.length / 2 - self.start_flat, 0, 0], material=add_ground_material(spec),
+            name="floor",
+            type=mujoco.mjtGeom.mjGEOM_PLANE,
+            size=[self.length, self.half_width + 10, 0.1],
+            pos=[self.length / 2 - self.start_flat, 0, 0],
+            material=add_ground_material(spec),
         )
         add_walls(spec, *self.bounds)
         spec.add_material(name="divmorph_obstacle", rgba=[0.35, 0.45, 0.6, 1.0])
         for i in range(self.count):
             body = spec.worldbody.add_body(name=f"obstacle/{i}", mocap=True, pos=list(PARKED))
-            body.add_geom(name=f"obstacle/{i}", type=mujoco.mjtGeom.mjGEOM_BOX, size=list(self.largest_half_size()),
-                          material="divmorph_obstacle")
+            body.add_geom(
+                name=f"obstacle/{i}", type=mujoco.mjtGeom.mjGEOM_BOX, size=list(self.largest_half_size()), material="divmorph_obstacle"
+            )
 
     def bind(self, model: mujoco.MjModel, data: mujoco.MjData) -> None:
         super().bind(model, data)
@@ -196,8 +200,7 @@ class ObstacleCourse(Arena):
 PARKED = (0.0, 0.0, -10.0)
 
 
-def apply_block_layout(model: mujoco.MjModel, data: mujoco.MjData, geoms: np.ndarray, mocap: np.ndarray,
-                       layout: np.ndarray) -> None:
+def apply_block_layout(model: mujoco.MjModel, data: mujoco.MjData, geoms: np.ndarray, mocap: np.ndarray, layout: np.ndarray) -> None:
     """Put box blocks in place: mocap body ``mocap[i]`` at ``layout[i, :3]``, its box geom
     ``geoms[i]`` resized to half-sizes ``layout[i, 3:]`` (with consistent collision bounds).
     Call ``mj_forward`` (or step) afterwards so the new poses reach the kinematics."""

@@ -45,8 +45,11 @@ class _TaskBlock:
         dev = self.groups[0].torch_device
         self.n, self.worlds, self.device, self.generator = worlds * len(self.groups), worlds, dev, generator
         self.heightmaps = HeightMaps(self.pool, dev) if self.pool is not None else None
-        self.layout = torch.as_tensor(self.pool.obstacle_layout, dtype=torch.float32, device=dev) \
-            if self.pool is not None and self.pool.obstacle_layout is not None else None
+        self.layout = (
+            torch.as_tensor(self.pool.obstacle_layout, dtype=torch.float32, device=dev)
+            if self.pool is not None and self.pool.obstacle_layout is not None
+            else None
+        )
         self.task = make_batched_task(env.task, self.n, dev, self.heightmaps, generator)
         # The buffers every robot's physics program reads (actions) and writes (observations).
         self.actions = torch.zeros(self.n, C.ACTION_DIM, device=dev)
@@ -165,8 +168,9 @@ class BatchedUnimalEnv(VecEnv):
     Build it with :func:`unimal_envs.batched.make_batched_env`.
     """
 
-    def __init__(self, blocks: list[_TaskBlock], device: str, seed: int, max_episode_steps: int,
-                 ctrl_cost_weight: float, reset_noise_scale: float):
+    def __init__(
+        self, blocks: list[_TaskBlock], device: str, seed: int, max_episode_steps: int, ctrl_cost_weight: float, reset_noise_scale: float
+    ):
         self.blocks = blocks
         self.warp_device = device
         self.torch_device = blocks[0].device
@@ -224,10 +228,10 @@ class BatchedUnimalEnv(VecEnv):
         truncated = (self.steps >= self.max_episode_steps) & ~terminated
         final = self._observe(readings)
         done = terminated | truncated
-        info = {"final_observation": final, "termination": reason, "physics_fault": reason == PHYSICS_FAULT,
-                "overflow": overflow, **terms}
-        info["metrics"] = {k: v for block, r in zip(self.blocks, readings) for k, v in block.task.metrics(r).items()} \
-            if len(self.blocks) == 1 else {}
+        info = {"final_observation": final, "termination": reason, "physics_fault": reason == PHYSICS_FAULT, "overflow": overflow, **terms}
+        info["metrics"] = (
+            {k: v for block, r in zip(self.blocks, readings) for k, v in block.task.metrics(r).items()} if len(self.blocks) == 1 else {}
+        )
         if bool(done.any()):
             self.steps.masked_fill_(done, 0)
             for block, rows in self._rows():
@@ -280,8 +284,9 @@ class BatchedUnimalEnv(VecEnv):
             metrics = {k: v[index].cpu().numpy() for k, v in info["metrics"].items()}
             for j, i in enumerate(ended):
                 terminal = {k: np.nan_to_num(v[j]) if faults[j] else v[j] for k, v in final.items()}
-                infos[i].update(terminal_observation=terminal, physics_fault=bool(faults[j]),
-                                **{k: float(v[j]) for k, v in metrics.items()})
+                infos[i].update(
+                    terminal_observation=terminal, physics_fault=bool(faults[j]), **{k: float(v[j]) for k, v in metrics.items()}
+                )
                 infos[i]["TimeLimit.truncated"] = bool(truncated_np[i])
                 if reasons[j]:
                     infos[i]["termination"] = REASONS[reasons[j]]
@@ -340,8 +345,10 @@ def _warp_device(device: str) -> str:
         device = "cuda:0"
     available = [str(d) for d in wp.get_devices()]
     if device not in available:
-        raise ValueError(f"device {device!r} does not exist here; available Warp devices: {available}"
-                         + ("" if wp.is_cuda_available() else " (no CUDA driver found)"))
+        raise ValueError(
+            f"device {device!r} does not exist here; available Warp devices: {available}"
+            + ("" if wp.is_cuda_available() else " (no CUDA driver found)")
+        )
     return device
 
 
@@ -421,8 +428,17 @@ def make_batched_env(
     if task == "MultiTask" and instruction is not None:
         raise ValueError("MultiTask uses each task's own instruction; 'instruction' is not accepted")
     robots = load_morphologies(morphologies)
-    envs = [UnimalEnv(name, robots, instruction=instruction, text_encoder=text_encoder, ctrl_cost_weight=ctrl_cost_weight,
-                      reset_noise_scale=reset_noise_scale) for name in names]
+    envs = [
+        UnimalEnv(
+            name,
+            robots,
+            instruction=instruction,
+            text_encoder=text_encoder,
+            ctrl_cost_weight=ctrl_cost_weight,
+            reset_noise_scale=reset_noise_scale,
+        )
+        for name in names
+    ]
     total = len(robots) * int(worlds_per_robot) * len(envs)
     per_world, per_robot, per_task = estimate_memory(envs[0], warp_device, int(terrain_variants))
     needed = per_world * total + (per_robot * len(robots) + per_task) * len(envs)
@@ -435,6 +451,5 @@ def make_batched_env(
             f"{max(1, int(MEMORY_SHARE * free / max(per_world, 1) / (len(robots) * len(envs))))}"
         )
     generator = torch.Generator(device=torch.device(warp_device))
-    blocks = [_TaskBlock(env, int(worlds_per_robot), warp_device, int(terrain_variants), seed + k, generator)
-              for k, env in enumerate(envs)]
+    blocks = [_TaskBlock(env, int(worlds_per_robot), warp_device, int(terrain_variants), seed + k, generator) for k, env in enumerate(envs)]
     return BatchedUnimalEnv(blocks, warp_device, seed, max_episode_steps, ctrl_cost_weight, reset_noise_scale)

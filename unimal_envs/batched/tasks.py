@@ -249,8 +249,7 @@ class EscapeTask(BatchedTask):
     def reward_terms(self, r, torso_before):
         radius = torch.hypot(r.torso[:, 0], r.torso[:, 1])
         before = torch.hypot(torso_before[:, 0], torso_before[:, 1])
-        return {"radial": radius - before,
-                "escape": torch.where(radius >= self.task.escape_radius, self.task.escape_bonus, 0.0)}
+        return {"radial": radius - before, "escape": torch.where(radius >= self.task.escape_radius, self.task.escape_bonus, 0.0)}
 
     def termination(self, r):
         radius = torch.hypot(r.torso[:, 0], r.torso[:, 1])
@@ -329,14 +328,19 @@ class BoxTask(BatchedTask):
         return out
 
 
-def make_batched_task(task: Task, n: int, device: torch.device, heightmaps: HeightMaps | None,
-                      generator: torch.Generator) -> BatchedTask:
+def make_batched_task(task: Task, n: int, device: torch.device, heightmaps: HeightMaps | None, generator: torch.Generator) -> BatchedTask:
     """The batched twin of a single task object.
 
     :raises NotImplementedError: a task class without a batched twin (e.g. a user's own task).
     """
-    for single, batched in ((FlatTerrain, Forward), (Patrol, PatrolTask), (PointNav, PointNavTask),
-                            (Exploration, ExplorationTask), (Escape, EscapeTask), (_BoxTask, BoxTask)):
+    for single, batched in (
+        (FlatTerrain, Forward),
+        (Patrol, PatrolTask),
+        (PointNav, PointNavTask),
+        (Exploration, ExplorationTask),
+        (Escape, EscapeTask),
+        (_BoxTask, BoxTask),
+    ):
         if isinstance(task, single):
             return batched(task, n, device, heightmaps, generator)
     raise NotImplementedError(f"task {task.name!r} ({type(task).__name__}) has no batched implementation")

@@ -56,8 +56,7 @@ class TerrainPool:
         return len(self.padded)
 
     @classmethod
-    def draw(cls, arena: Arena, model: mujoco.MjModel, data: mujoco.MjData, variants: int,
-             rng: np.random.Generator) -> TerrainPool | None:
+    def draw(cls, arena: Arena, model: mujoco.MjModel, data: mujoco.MjData, variants: int, rng: np.random.Generator) -> TerrainPool | None:
         """Draw ``variants`` arenas with the arena's own :meth:`~Arena.reset`, in a compiled world
         of that arena (``None`` for arenas without random terrain)."""
         grid: HeightGrid | None = getattr(arena, "grid", None)

@@ -39,37 +39,73 @@ CONSTRAINTS_PER_WORLD = 4 * CONTACTS_PER_WORLD + 64
 #: MuJoCo Warp's capacity overflows (``data.overflow`` bits) that silently drop contacts or
 #: constraint rows: a world that hits one is simulated with less than its physics. Solver
 #: iteration limits (also flagged there) are not capacity problems and are not counted.
-OVERFLOWS = {kind.name: int(kind) for kind in (
-    mjw.OverflowType.NEFC, mjw.OverflowType.NJMAX_NNZ, mjw.OverflowType.BROADPHASE, mjw.OverflowType.NARROWPHASE,
-    mjw.OverflowType.CCD, mjw.OverflowType.HFIELD, mjw.OverflowType.NVMAX, mjw.OverflowType.EPA_HORIZON)}
+OVERFLOWS = {
+    kind.name: int(kind)
+    for kind in (
+        mjw.OverflowType.NEFC,
+        mjw.OverflowType.NJMAX_NNZ,
+        mjw.OverflowType.BROADPHASE,
+        mjw.OverflowType.NARROWPHASE,
+        mjw.OverflowType.CCD,
+        mjw.OverflowType.HFIELD,
+        mjw.OverflowType.NVMAX,
+        mjw.OverflowType.EPA_HORIZON,
+    )
+}
 OVERFLOW_MASK = sum(OVERFLOWS.values())
 
 
 #: Columns of the per-world readings buffer the kernel fills (see :class:`~unimal_envs.batched.tasks.Readings`).
-READINGS: dict[str, slice | int] = {"torso": slice(0, 3), "torso_velocity": slice(3, 6), "torso_xmat": slice(6, 15), "fault": 15,
-                               "box": slice(16, 19), "box_velocity": slice(19, 22), "box_angular": slice(22, 25), "reach": 25}
+READINGS: dict[str, slice | int] = {
+    "torso": slice(0, 3),
+    "torso_velocity": slice(3, 6),
+    "torso_xmat": slice(6, 15),
+    "fault": 15,
+    "box": slice(16, 19),
+    "box_velocity": slice(19, 22),
+    "box_angular": slice(22, 25),
+    "reach": 25,
+}
 N_READINGS = 26
 _PROPRIO = C.MAX_TOKENS * C.PROPRIO_DIM
 
 
 @wp.kernel(enable_backward=False)
-def _apply_actions(actions: wp.array2d(dtype=float), actuators: wp.array(dtype=int), slots: wp.array(dtype=int),
-                   ctrl: wp.array2d(dtype=float)):
+def _apply_actions(
+    actions: wp.array2d(dtype=float), actuators: wp.array(dtype=int), slots: wp.array(dtype=int), ctrl: wp.array2d(dtype=float)
+):
     world, k = wp.tid()  # type: ignore[misc]  # a 2-D launch; Warp types tid() as any of 1 to 4 indices
     ctrl[world, actuators[k]] = actions[world, slots[k]]
 
 
 @wp.kernel(enable_backward=False)
 def _read_worlds(
-    qpos: wp.array2d(dtype=float), qvel: wp.array2d(dtype=float), xpos: wp.array2d(dtype=wp.vec3),
-    xquat: wp.array2d(dtype=wp.quat), xmat: wp.array2d(dtype=wp.mat33), cvel: wp.array2d(dtype=wp.spatial_vector),
-    subtree_com: wp.array2d(dtype=wp.vec3), site_xpos: wp.array2d(dtype=wp.vec3),
-    torso: int, n_tokens: int, qpos_root: int, qvel_root: int,
-    hinge_qpos: wp.array(dtype=int), hinge_qvel: wp.array(dtype=int), hinge_scale: wp.array(dtype=float),
-    hinge_offset: wp.array(dtype=float), hinge_q_column: wp.array(dtype=int), hinge_v_column: wp.array(dtype=int),
+    qpos: wp.array2d(dtype=float),
+    qvel: wp.array2d(dtype=float),
+    xpos: wp.array2d(dtype=wp.vec3),
+    xquat: wp.array2d(dtype=wp.quat),
+    xmat: wp.array2d(dtype=wp.mat33),
+    cvel: wp.array2d(dtype=wp.spatial_vector),
+    subtree_com: wp.array2d(dtype=wp.vec3),
+    site_xpos: wp.array2d(dtype=wp.vec3),
+    torso: int,
+    n_tokens: int,
+    qpos_root: int,
+    qvel_root: int,
+    hinge_qpos: wp.array(dtype=int),
+    hinge_qvel: wp.array(dtype=int),
+    hinge_scale: wp.array(dtype=float),
+    hinge_offset: wp.array(dtype=float),
+    hinge_q_column: wp.array(dtype=int),
+    hinge_v_column: wp.array(dtype=int),
     static_features: wp.array(dtype=float),
-    box: int, box_qvel: int, points: wp.array(dtype=int), points_are_sites: int, faces: wp.array(dtype=int),
-    proprio: wp.array2d(dtype=float), readings: wp.array2d(dtype=float),
+    box: int,
+    box_qvel: int,
+    points: wp.array(dtype=int),
+    points_are_sites: int,
+    faces: wp.array(dtype=int),
+    proprio: wp.array2d(dtype=float),
+    readings: wp.array2d(dtype=float),
 ):
     """One thread per world: the proprioceptive observation (as ``Robot.proprioception``) and the readings."""
     world = wp.tid()
@@ -115,7 +151,8 @@ def _read_worlds(
         box_velocity = cvel[world, box]
         box_angular = wp.vec3(box_velocity[0], box_velocity[1], box_velocity[2])
         box_linear = wp.vec3(box_velocity[3], box_velocity[4], box_velocity[5]) + wp.cross(
-            box_angular, box_position - subtree_com[world, box])
+            box_angular, box_position - subtree_com[world, box]
+        )
         nearest = float(1.0e30)  # noqa: UP018  (Warp: a variable the loop below assigns, as for fault above)
         for p in range(points.shape[0]):
             point = xpos[world, points[p]]
@@ -167,8 +204,9 @@ class RobotWorlds:
         first robot's height-field arrays (the arena geometry, and so every address, is the same).
     """
 
-    def __init__(self, env: UnimalEnv, index: int, worlds: int, device: str, pool: TerrainPool | None,
-                 terrain_from: RobotWorlds | None = None):
+    def __init__(
+        self, env: UnimalEnv, index: int, worlds: int, device: str, pool: TerrainPool | None, terrain_from: RobotWorlds | None = None
+    ):
         spec, robot = env.world_spec(index)
         name = robot.morphology.name
         shares_terrain = terrain_from is not None and pool is not None and pool.hfield is not None
@@ -254,10 +292,22 @@ class RobotWorlds:
         self._actuators, self._slots = ints(where.actuators), ints(where.action_slots)
         # The readout kernel's constant inputs, in its argument order after the data arrays.
         self._read_inputs = [
-            robot.torso_id, robot.num_tokens, where.qpos.start, where.qvel.start,
-            ints(where.hinge_qpos), ints(where.hinge_qvel), floats(where.hinge_scale), floats(where.hinge_offset),
-            ints(where.hinge_angle_columns), ints(where.hinge_velocity_columns), floats(where.static),
-            -1 if self.box is None else self.box, box_qvel, ints(sites or list(bodies)), int(bool(sites)), ints(faces),
+            robot.torso_id,
+            robot.num_tokens,
+            where.qpos.start,
+            where.qvel.start,
+            ints(where.hinge_qpos),
+            ints(where.hinge_qvel),
+            floats(where.hinge_scale),
+            floats(where.hinge_offset),
+            ints(where.hinge_angle_columns),
+            ints(where.hinge_velocity_columns),
+            floats(where.static),
+            -1 if self.box is None else self.box,
+            box_qvel,
+            ints(sites or list(bodies)),
+            int(bool(sites)),
+            ints(faces),
         ]
 
     def bind_buffers(self, actions: torch.Tensor, proprio: torch.Tensor, readings: torch.Tensor) -> None:
@@ -295,7 +345,9 @@ class RobotWorlds:
 
     def _step_physics(self) -> None:
         d = self.data
-        wp.launch(_apply_actions, dim=(self.worlds, len(self._slots)), inputs=[self._actions, self._actuators, self._slots], outputs=[d.ctrl])
+        wp.launch(
+            _apply_actions, dim=(self.worlds, len(self._slots)), inputs=[self._actions, self._actuators, self._slots], outputs=[d.ctrl]
+        )
         for _ in range(SUBSTEPS):
             mjw.step(self.model, d)
         self._sync_physics()
@@ -306,12 +358,16 @@ class RobotWorlds:
         mjw.kinematics(m, d)
         mjw.com_pos(m, d)
         mjw.com_vel(m, d)
-        wp.launch(_read_worlds, dim=self.worlds,
-                  inputs=[d.qpos, d.qvel, d.xpos, d.xquat, d.xmat, d.cvel, d.subtree_com, d.site_xpos, *self._read_inputs],
-                  outputs=[self._proprio, self._readings])
+        wp.launch(
+            _read_worlds,
+            dim=self.worlds,
+            inputs=[d.qpos, d.qvel, d.xpos, d.xquat, d.xmat, d.cvel, d.subtree_com, d.site_xpos, *self._read_inputs],
+            outputs=[self._proprio, self._readings],
+        )
 
-    def reset(self, mask: torch.Tensor, noise: float, generator: torch.Generator,
-              props_qpos: tuple[int, torch.Tensor] | None = None) -> None:
+    def reset(
+        self, mask: torch.Tensor, noise: float, generator: torch.Generator, props_qpos: tuple[int, torch.Tensor] | None = None
+    ) -> None:
         """Start new episodes in the worlds where ``mask`` (W,) is true: the spawn pose plus
         U(-noise, noise) on every robot qpos and qvel entry (as ``Robot.reset``), zero velocity
         elsewhere, time 0. ``props_qpos`` = (qpos address, (W, k) values) places a task prop.
@@ -337,9 +393,11 @@ class RobotWorlds:
         if not hasattr(self, "_terrain_indices"):  # on the device once, not copied at every reset
             self._terrain_indices = (
                 torch.as_tensor(self.variant_dataid, device=self.torch_device, dtype=self.geom_dataid.dtype)
-                if self.variant_dataid is not None else None,
+                if self.variant_dataid is not None
+                else None,
                 torch.as_tensor(self.obstacle_ids, device=self.torch_device),
-                torch.as_tensor(self.obstacle_mocap, device=self.torch_device))
+                torch.as_tensor(self.obstacle_mocap, device=self.torch_device),
+            )
         ids, g, b = self._terrain_indices
         if self.variant_dataid is not None:
             col = self.geom_dataid[:, self.terrain_geom]

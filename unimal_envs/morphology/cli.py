@@ -70,7 +70,7 @@ def _parser() -> argparse.ArgumentParser:
 def _fetch(args: argparse.Namespace) -> int:
     folders = O.fetch(args.source, args.sets, cache=args.cache, force=args.force, progress=True)
     for name, folder in folders.items():
-        print(f"{name}: {O.OFFICIAL_SETS[name].count} robots in {folder}  (morphologies=\"{name}\")")
+        print(f'{name}: {O.OFFICIAL_SETS[name].count} robots in {folder}  (morphologies="{name}")')
     return 0
 
 
@@ -97,9 +97,7 @@ def _generate(args: argparse.Namespace) -> int:
             print(f"{name}: {len(robots)} robots generated in {elapsed:.1f} s; files under {root / name}: {verdict}")
             status = status or (1 if bad else 0)
         elif args.count is not None and args.out is None:
-            raise MorphologyError(
-                "--count writes a partial set; give --out (or use --check) to keep the shipped set whole"
-            )
+            raise MorphologyError("--count writes a partial set; give --out (or use --check) to keep the shipped set whole")
         else:
             S.write_set(robots, root / name, name)
             print(f"{name}: {len(robots)} robots generated in {elapsed:.1f} s -> {root / name}")

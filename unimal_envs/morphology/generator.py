@@ -425,15 +425,11 @@ def build_spec(genome: UnimalGenome, axes: dict[str, Vec3] | None = None, torso_
     torso = spec.worldbody.add_body(name=TORSO, pos=[0.0, 0.0, torso_z])
     torso.add_joint(defaults["free"], name="root", type=mujoco.mjtJoint.mjJNT_FREE)
     torso.add_site(defaults["imu_vel"], name="root")
-    torso.add_geom(
-        name=TORSO, type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[TORSO_RADIUS, 0, 0], density=genome.torso_density
-    )
+    torso.add_geom(name=TORSO, type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[TORSO_RADIUS, 0, 0], density=genome.torso_density)
     torso.add_site(growth[False], name=TORSO, pos=[0, 0, 0])
     torso.add_site(defaults["btm_pos_site"], name="torso/btm_pos/0", pos=[0, 0, -TORSO_RADIUS])
     torso.add_site(defaults["touch_site"], name="torso/touch/0", size=[TORSO_RADIUS + 0.01, 0, 0])
-    torso.add_site(
-        defaults["torso_growth_site"], name=f"torso/{genome.torso_mode}/0", pos=list(_unused_torso_site(genome))
-    )
+    torso.add_site(defaults["torso_growth_site"], name=f"torso/{genome.torso_mode}/0", pos=list(_unused_torso_site(genome)))
     bodies: dict[int | None, Any] = {None: torso}  # by limb index, the torso's None
     for limb in genome.walk():
         lay = limb_layout(genome, limb)
@@ -765,12 +761,8 @@ def _measure(genome: UnimalGenome) -> _Finish:
             column = frame[:, 0 if hinge.axis == "x" else 1]
             x, y, z = (_clean(float(v), 4) for v in column)
             axes[f"limb{hinge.axis}/{limb.idx}"] = (x, y, z)
-    lowest = min(
-        float(data.site_xpos[s, 2]) for s in range(model.nsite) if "/btm_pos/" in model.site(s).name
-    )
-    bodies = sorted(
-        (model.geom_bodyid[c.geom1], model.geom_bodyid[c.geom2]) for c in data.contact[: data.ncon]
-    )
+    lowest = min(float(data.site_xpos[s, 2]) for s in range(model.nsite) if "/btm_pos/" in model.site(s).name)
+    bodies = sorted((model.geom_bodyid[c.geom1], model.geom_bodyid[c.geom2]) for c in data.contact[: data.ncon])
     excludes = []
     for a, b in dict.fromkeys(tuple(sorted(pair)) for pair in bodies):
         excludes.append((model.body(a).name, model.body(b).name))

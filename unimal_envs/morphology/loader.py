@@ -24,6 +24,8 @@ import mujoco
 import numpy as np
 
 from unimal_envs import contract as C
+from unimal_envs.morphology.cache import OFFICIAL_SETS, official_set_dir
+from unimal_envs.morphology.errors import MorphologyError  # noqa: F401 -- raised here, importable from here
 
 TORSO = "torso/0"
 #: Torso height above the lowest body point at spawn, added by the generator (DERL FLOOR_OFFSET).
@@ -49,10 +51,6 @@ _HINGE_CONTEXT_BOUNDS = np.array(
         [0.05, 0.05, 0.05, 0.0, math.pi / 2, 1.0, 1.0, 1.0, 300.0],
     ]
 )
-
-
-class MorphologyError(ValueError):
-    """A file or argument that does not describe a usable UNIMAL robot."""
 
 
 def _rescale(values: np.ndarray, bounds: np.ndarray) -> np.ndarray:
@@ -117,11 +115,7 @@ class Morphology:
 
     def _edges(self) -> list[tuple[str, str]]:
         root = ET.fromstring(self.xml)
-        return [
-            (parent.get("name"), child.get("name"))
-            for parent in root.iter("body")
-            for child in parent.findall("body")
-        ]
+        return [(parent.get("name"), child.get("name")) for parent in root.iter("body") for child in parent.findall("body")]
 
     def spec(self) -> mujoco.MjSpec:
         """A fresh, editable :class:`mujoco.MjSpec` of the robot file."""
@@ -341,7 +335,7 @@ def shipped_set_dir(name: str) -> Path:
 
 #: The official sets, fetched into a cache by ``python -m unimal_envs.morphology fetch``
 #: (:mod:`unimal_envs.morphology.official`).
-OFFICIAL_SET_NAMES = ("unimals100-train", "unimals100-test", "unimals100-mutants")
+OFFICIAL_SET_NAMES = tuple(OFFICIAL_SETS)
 
 
 def is_set_name(name: object) -> bool:
@@ -356,8 +350,6 @@ def set_dir(name: str) -> Path:
         gives the fetch command).
     """
     if name in OFFICIAL_SET_NAMES:
-        from unimal_envs.morphology.official import official_set_dir
-
         return official_set_dir(name)
     return shipped_set_dir(name)
 
@@ -384,7 +376,9 @@ def morphology_files(morphologies: str | Path | Iterable[str | Path]) -> list[Pa
             return files
         if path.suffix == ".xml":
             return morphology_files([path])
-        choices = f"use one of {list(SHIPPED_SETS + OFFICIAL_SET_NAMES)}, a directory of MJCF files (DIR/xml/*.xml), or a list of .xml paths"
+        choices = (
+            f"use one of {list(SHIPPED_SETS + OFFICIAL_SET_NAMES)}, a directory of MJCF files (DIR/xml/*.xml), or a list of .xml paths"
+        )
         if isinstance(morphologies, Path) or len(path.parts) > 1 or str(morphologies).startswith((".", "~")):
             # written as a path: say so, rather than calling it an unknown set name
             kind = "not a directory" if path.exists() else "no such directory"
@@ -420,8 +414,10 @@ def _robot_by_name(name: str) -> Path:
         candidate = (folder / "xml" if (folder / "xml").is_dir() else folder) / f"{name}.xml"
         if candidate.is_file():
             return candidate
-    raise MorphologyError(f"no robot named {name!r} in the sets on this machine ({', '.join(searched)}); give an .xml path, "
-                          "or fetch the official sets with `python -m unimal_envs.morphology fetch`")
+    raise MorphologyError(
+        f"no robot named {name!r} in the sets on this machine ({', '.join(searched)}); give an .xml path, "
+        "or fetch the official sets with `python -m unimal_envs.morphology fetch`"
+    )
 
 
 def load_morphologies(morphologies: str | Path | Iterable[str | Path | Morphology]) -> list[Morphology]:

@@ -43,8 +43,7 @@ class _BoxTask(Task):
         box = spec.worldbody.add_body(name=BOX, pos=[0.0, 0.0, 5.0])
         box.add_freejoint(name=BOX)
         s = self.box_half_side
-        box.add_geom(name=BOX, type=mujoco.mjtGeom.mjGEOM_BOX, size=[s, s, s], mass=self.box_mass,
-                     condim=3, rgba=[0.85, 0.65, 0.2, 1.0])
+        box.add_geom(name=BOX, type=mujoco.mjtGeom.mjGEOM_BOX, size=[s, s, s], mass=self.box_mass, condim=3, rgba=[0.85, 0.65, 0.2, 1.0])
         for i, face in enumerate(np.vstack([np.eye(3), -np.eye(3)]) * s):
             box.add_site(name=f"box/face/{i}", pos=face, size=[0.01, 0.01, 0.01])
 
@@ -67,8 +66,12 @@ class _BoxTask(Task):
         self._rows = np.zeros((4, 3))  # the object observation before rotation into the torso frame
         self._box_xpos = data.xpos[self._box]
 
-    def place(self, box_xyz: tuple[float, float, float], goal_xyz: tuple[float, float, float],
-              quat: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)) -> None:
+    def place(
+        self,
+        box_xyz: tuple[float, float, float],
+        goal_xyz: tuple[float, float, float],
+        quat: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0),
+    ) -> None:
         """Put the box (at rest) and the goal marker in place, then refresh the kinematics."""
         self._box_qpos[:3] = box_xyz
         self._box_qpos[3:] = quat

@@ -21,9 +21,7 @@ GOAL_HEIGHT = 0.1
 
 def add_goal_marker(spec: mujoco.MjSpec) -> None:
     """A visual-only goal marker (a 1 x 1 m red tile), moved by the task every episode."""
-    spec.worldbody.add_site(
-        name="goal", type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.5, 0.5, 0.01], rgba=[0.9, 0.2, 0.2, 0.6], pos=[0, 0, -1]
-    )
+    spec.worldbody.add_site(name="goal", type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.5, 0.5, 0.01], rgba=[0.9, 0.2, 0.2, 0.6], pos=[0, 0, -1])
 
 
 class _ReachGoal(Task):
