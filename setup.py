@@ -10,6 +10,6 @@ one copy of each file, in wheels and editable installs alike (``sb3_divmorph.zoo
 from setuptools import find_packages, setup
 
 setup(
-    packages=[*find_packages(include=["unimal_envs*", "sb3_divmorph*"]), "sb3_divmorph.zoo_configs"],
+    packages=[*find_packages(include=["unimal_envs*", "sb3_divmorph*", "divmorph*"]), "sb3_divmorph.zoo_configs"],
     package_dir={"sb3_divmorph.zoo_configs": "zoo_configs"},
 )

@@ -15,13 +15,13 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("unimal_envs", "sb3_divmorph")
+PACKAGES = ("unimal_envs", "sb3_divmorph", "divmorph")
 ARCHITECTURE = ROOT / "docs" / "architecture.md"
 STAGE_LAYER = "stages"
 
 
 def package_modules() -> dict[str, Path]:
-    """``{dotted module name: file}`` for every module of both packages (a package is its ``__init__``)."""
+    """``{dotted module name: file}`` for every module of the three packages (a package is its ``__init__``)."""
     modules = {}
     for package in PACKAGES:
         for path in sorted((ROOT / package).rglob("*.py")):

@@ -248,7 +248,7 @@ def test_the_pipeline_trains_its_stages_on_the_batched_backend_when_the_profile_
     import json
 
     import unimal_envs.batched as batched
-    from sb3_divmorph.cli import main as cli
+    from divmorph.cli import main as cli
     from test_pipeline import write_profiles
 
     built = []

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 from test_pipeline import write_profiles
 
-from sb3_divmorph.cli import main as cli
+from divmorph.cli import main as cli
 from sb3_divmorph.pipeline.config import ConfigError, load_profile
 from sb3_divmorph.pipeline.runs import latest_checkpoint, read_done
 from unimal_envs.instructions import INSTRUCTIONS
@@ -96,7 +96,7 @@ def test_a_ray_grid_resumes_after_one_run_is_killed(tmp_path):
     command = [
         sys.executable,
         "-m",
-        "sb3_divmorph.cli",
+        "divmorph.cli",
         "transfer",
         "--task",
         "Escape",

@@ -222,7 +222,7 @@ def test_bad_input_gives_clear_errors(trained_student, tmp_path):
 def test_pipeline_trains_modumorph_teachers_distils_and_exports(tmp_path):
     from test_pipeline import TINY, write_profiles
 
-    from sb3_divmorph.cli import main as cli
+    from divmorph.cli import main as cli
     from sb3_divmorph.pipeline.config import ConfigError, load_profile
 
     profile = json.loads(json.dumps(TINY))

@@ -17,7 +17,7 @@ import pytest
 import torch as th
 import yaml
 
-from sb3_divmorph.cli import main as cli
+from divmorph.cli import main as cli
 from sb3_divmorph.pipeline.arms import ARMS
 from sb3_divmorph.pipeline.config import ConfigError, load_profile, load_profiles, load_zoo_entry
 from sb3_divmorph.policies import DivMorphPolicy, MetaMorphPolicy
@@ -366,7 +366,7 @@ def test_a_killed_run_resumes_from_its_last_checkpoint(tmp_path):
     command = [
         sys.executable,
         "-m",
-        "sb3_divmorph.cli",
+        "divmorph.cli",
         "teachers",
         "--profile",
         "tiny",
@@ -475,7 +475,7 @@ def test_missing_stages_and_bad_arguments_give_clear_errors(tmp_path, capsys):
 def test_command_line_overrides_reach_the_profile_and_are_validated(tmp_path, capsys):
     import argparse
 
-    from sb3_divmorph.cli import _overrides
+    from divmorph.cli import _overrides
 
     profiles = write_profiles(tmp_path)
     args = argparse.Namespace(

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch as th
 
-from sb3_divmorph.cli import main as cli
+from divmorph.cli import main as cli
 
 REPO = Path(__file__).resolve().parents[1]
 README = (REPO / "README.md").read_text()

@@ -18,7 +18,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import VecNormalize
 
 import unimal_envs
-from sb3_divmorph.cli import main as cli
+from divmorph.cli import main as cli
 from sb3_divmorph.pipeline import distill, evaluate, export_all, train_teachers, transfer
 from sb3_divmorph.pipeline.config import PPO_HYPERPARAMETERS, ConfigError, Profile, load_profile, load_profiles
 from sb3_divmorph.pipeline.runs import TrainingRun, atomic_write_json, mark_done, save_checkpoint
@@ -276,7 +276,7 @@ def test_record_films_a_pipeline_stage_on_its_own_robots_outside_its_folder(tmp_
 
 
 def test_commands_that_read_a_run_name_a_missing_folder_and_transfer_help_lists_the_arms(tmp_path, capsys):
-    from sb3_divmorph.cli import main as cli
+    from divmorph.cli import main as cli
     from sb3_divmorph.pipeline.arms import ARMS
 
     missing = tmp_path / "no-such-run"
@@ -288,6 +288,23 @@ def test_commands_that_read_a_run_name_a_missing_folder_and_transfer_help_lists_
         cli(["transfer", "--help"])
     shown = "".join(capsys.readouterr().out.split())  # argparse wraps lines, also at hyphens
     assert all(name in shown for name in ARMS), shown
+
+
+def test_the_command_overview_lists_every_command_without_importing_torch():
+    import subprocess
+
+    from divmorph.cli import _parser
+
+    # in a fresh interpreter: this test process has imported torch long ago
+    code = (
+        "import sys\nfrom divmorph.cli import main\ntry:\n    main(['--help'])\nexcept SystemExit:\n    pass\n"
+        "print([name for name in ('torch', 'sb3_divmorph', 'stable_baselines3') if name in sys.modules])"
+    )
+    shown = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=REPO).stdout
+    assert shown.strip().endswith("[]"), "divmorph --help imported the library: " + shown.splitlines()[-1]
+    commands = next(action for action in _parser()._actions if action.dest == "command").choices
+    assert set(commands) >= {"pipeline", "transfer", "evaluate", "record", "plot", "branch"}
+    assert all(f"    {name}" in shown for name in commands), "the overview lists every command of the full parser"
 
 
 def test_off_policy_algorithms_say_the_policies_are_on_policy_and_robots_can_be_named():
@@ -311,7 +328,7 @@ def test_plot_draws_rl_zoo_monitor_files_and_pipeline_logs_headless(tmp_path, ca
 
     import imageio.v3 as iio
 
-    from sb3_divmorph.cli import main as cli
+    from divmorph.cli import main as cli
 
     zoo = tmp_path / "logs" / "ppo" / "Unimal-FT-v0_1"
     zoo.mkdir(parents=True)
@@ -351,7 +368,7 @@ def test_a_failed_redo_puts_the_good_results_back(tmp_path, monkeypatch, capsys)
     import zipfile
 
     from sb3_divmorph import pipeline as P
-    from sb3_divmorph.cli import main as cli
+    from divmorph.cli import main as cli
 
     run = tmp_path / "run"
     (run / "evaluate").mkdir(parents=True)
@@ -374,7 +391,7 @@ def test_a_failed_redo_puts_the_good_results_back(tmp_path, monkeypatch, capsys)
 def test_evaluate_a_selection_of_a_shipped_run_into_a_folder_of_ones_own(official_train, tmp_path, capsys):
     import csv
 
-    from sb3_divmorph.cli import main as cli
+    from divmorph.cli import main as cli
 
     run = Path(__file__).resolve().parents[1] / "results" / "cpu"
     record = (run / "run.json").read_text()

@@ -1,7 +1,7 @@
 """The knowledge-diversion pipeline: teachers -> DAgger distillation -> (GRL) -> transfer -> export -> evaluate -> report.
 
 Each stage is a function of a validated :class:`~sb3_divmorph.pipeline.config.Profile` and a run
-folder; the ``divmorph`` console script (:mod:`sb3_divmorph.cli`) calls the same functions.
+folder; the ``divmorph`` console script (:mod:`divmorph.cli`) calls the same functions.
 Stages skip work whose outputs exist, resume interrupted training from the last checkpoint, and
 write their outputs atomically.
 """

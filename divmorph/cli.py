@@ -37,7 +37,14 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
 
 
-def _parser() -> argparse.ArgumentParser:
+def _parser(overview: bool = False) -> argparse.ArgumentParser:
+    """The command line's parser.
+
+    :param overview: the parser of ``divmorph`` / ``divmorph --help`` alone: every command with its
+        one-line help but without the arguments whose help is read from the library (the arms, the
+        reusable stages, ``record``'s and ``plot``'s options), so that the overview imports neither
+        ``sb3_divmorph`` nor torch (seconds saved on every ``--help``).
+    """
     parser = argparse.ArgumentParser(prog="divmorph", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -112,15 +119,16 @@ def _parser() -> argparse.ArgumentParser:
     grid(command("grl", "GRL baseline: evolve a population of MetaMorph agents; the best learngene (whole layers) for the grl arm"))
     p = grid(command("transfer", "race the transfer arms on novel tasks (arms x tasks x seeds, one run each)"))
     p.add_argument("--task", action="append", help="novel task (repeatable; default: the profile's)")
-    from sb3_divmorph.pipeline.arms import ARMS
+    if not overview:
+        from sb3_divmorph.pipeline.arms import ARMS
 
-    p.add_argument(
-        "--arms",
-        type=arms_list,
-        default=None,
-        help="comma-separated arms (default: the profile's transfer.arms), of: "
-        + "; ".join(f"{name} ({arm.label})" for name, arm in ARMS.items()),
-    )
+        p.add_argument(
+            "--arms",
+            type=arms_list,
+            default=None,
+            help="comma-separated arms (default: the profile's transfer.arms), of: "
+            + "; ".join(f"{name} ({arm.label})" for name, arm in ARMS.items()),
+        )
     p.add_argument("--seeds", type=int, nargs="+", default=None, help="seeds, one run each (default: the profile's transfer.seeds)")
     p.add_argument(
         "--closest-by",
@@ -165,26 +173,31 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("name", help="transfer-train, transfer-novel, deployment, ablation or gates")
 
     # Commands that read no run: they take no --out and create nothing but what they write.
-    from sb3_divmorph.record import add_arguments as record_arguments
-
     help_text = "record a trained model (pipeline stage or rl-zoo run) to MP4, headless"
-    record_arguments(sub.add_parser("record", help=help_text, description=help_text))
-    from sb3_divmorph.plot import add_arguments as plot_arguments
+    p = sub.add_parser("record", help=help_text, description=help_text)
+    if not overview:
+        from sb3_divmorph.record import add_arguments as record_arguments
 
+        record_arguments(p)
     help_text = "learning curves of rl-zoo runs (Monitor files) or pipeline stages (progress.csv) as a PNG, headless"
-    plot_arguments(sub.add_parser("plot", help=help_text, description=help_text))
-    from sb3_divmorph.pipeline.branch import REUSABLE_STAGES
+    p = sub.add_parser("plot", help=help_text, description=help_text)
+    if not overview:
+        from sb3_divmorph.plot import add_arguments as plot_arguments
 
+        plot_arguments(p)
     help_text = "start a run folder that reuses another run's finished teachers, students and GRL learngene"
     p = sub.add_parser("branch", help=help_text, description=help_text)
-    p.add_argument("--from", dest="source", required=True, help="the run folder whose finished stages are reused")
-    p.add_argument("--out", "--run", required=True, help="the new run folder (must not exist or be empty)")
-    p.add_argument(
-        "--stages",
-        type=arms_list,
-        default=list(REUSABLE_STAGES),
-        help=f"comma-separated stages to reuse (default: {','.join(REUSABLE_STAGES)})",
-    )
+    if not overview:
+        from sb3_divmorph.pipeline.branch import REUSABLE_STAGES
+
+        p.add_argument("--from", dest="source", required=True, help="the run folder whose finished stages are reused")
+        p.add_argument("--out", "--run", required=True, help="the new run folder (must not exist or be empty)")
+        p.add_argument(
+            "--stages",
+            type=arms_list,
+            default=list(REUSABLE_STAGES),
+            help=f"comma-separated stages to reuse (default: {','.join(REUSABLE_STAGES)})",
+        )
     help_text = "list the profiles (or print one, validated) and the file they are read from"
     p = sub.add_parser("profiles", help=help_text, description=help_text)
     p.add_argument("--profile", help="print this profile's settings")
@@ -295,7 +308,10 @@ def _remove_if_untouched(out: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    """Run one ``divmorph`` command (``argv``: its arguments, default ``sys.argv[1:]``); the exit status."""
+    words = sys.argv[1:] if argv is None else argv
+    # the overview (no command, or --help before any command) is answered without importing the library
+    args = _parser(overview=not words or words[0] in ("-h", "--help")).parse_args(argv)
     if args.command == "record":
         from sb3_divmorph.record import run as record
 
