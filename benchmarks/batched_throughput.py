@@ -111,7 +111,8 @@ def ppo_steps_per_second(
     """End-to-end PPO samples/s (rollouts + updates) after one warm-up rollout.
 
     :param make_env: builds the (monitored) VecEnv.
-    :param preset: the MetaMorph policy's preset (``small``, ``paper``).
+    :param preset: the MetaMorph policy's preset (``small``, ``paper``); a ``+bf16`` suffix (``paper+bf16``)
+        runs its Transformer under bfloat16 autocast (``mixed_precision=True``).
     :param device: torch device of the policy.
     :param n_steps: steps per env per rollout.
     :param rollouts: timed rollouts (each followed by its update).
@@ -133,7 +134,7 @@ def ppo_steps_per_second(
         n_steps=n_steps,
         batch_size=min(rollout, 4096),
         n_epochs=2,
-        policy_kwargs={"preset": preset},
+        policy_kwargs={"preset": preset.removesuffix("+bf16"), "mixed_precision": preset.endswith("+bf16")},
         device=device,
         seed=0,
     )
@@ -353,7 +354,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seconds", type=float, default=3.0, help="timed seconds per measurement")
     parser.add_argument("--ppo-robots", type=int, default=10)
     parser.add_argument("--ppo-worlds", nargs="*", type=int, default=[8], help="worlds per robot of the PPO rows (cpu, cuda)")
-    parser.add_argument("--ppo-presets", nargs="*", default=["small", "paper"])
+    parser.add_argument(
+        "--ppo-presets",
+        nargs="*",
+        default=["small", "paper"],
+        help="policy presets of the PPO rows; a +bf16 suffix (paper+bf16) runs the Transformer under bfloat16 autocast",
+    )
     parser.add_argument(
         "--ppo-algos",
         nargs="*",

@@ -360,6 +360,8 @@ class ModuMorphPolicy(MorphologyTransformerPolicy):
     """
 
     preset_table = {name: {**PRESETS[name], **MODUMORPH_PRESETS[name]} for name in PRESETS}
+    # its extractor returns a structure (tokens, robot context) that the autocast path does not cast back
+    supports_mixed_precision = False
     _modumorph_keys = ("fixed_attention", "hypernetwork", "hypernet_dim")
     _config_keys = MorphologyTransformerPolicy._config_keys + _modumorph_keys
 

@@ -130,6 +130,11 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
     :param action_std: standard deviation of the Gaussian (MetaMorph: fixed 0.9); the initial value
         if ``learn_std``.
     :param learn_std: learn a state-independent log-std per action slot.
+    :param mixed_precision: run the token embedding, the exteroception encoders and the Transformer
+        (nearly all of a forward pass's FLOPs) under bfloat16 autocast, in rollouts and updates alike;
+        the gates, Cayley maps, per-token decoders, heads, log-probabilities, values and the optimiser
+        stay float32 (the features are cast back before the decoders). Off by default: a GPU option,
+        whose effect on actions and gradients is measured by ``benchmarks/mixed_precision.py``.
     :param kwargs: ``ActorCriticPolicy`` arguments. ``net_arch`` gives the per-token decoder's
         hidden widths, ``activation_fn`` its activation (default ``nn.ReLU``);
         ``share_features_extractor`` defaults to False (separate actor and critic Transformers,
@@ -138,6 +143,8 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
     """
 
     preset_table: dict[str, dict[str, Any]] = PRESETS
+    #: whether ``mixed_precision=True`` is implemented for this policy's feature extractors
+    supports_mixed_precision: bool = True
     #: observation keys the policy reads besides the per-token ones
     required_keys: tuple[str, ...] = ()
     _config_keys: tuple[str, ...] = (
@@ -169,8 +176,12 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
         exteroception: Mapping[str, Sequence[int]] | None = None,
         action_std: float = 0.9,
         learn_std: bool = False,
+        mixed_precision: bool = False,
         **kwargs: Any,
     ):
+        if mixed_precision and not self.supports_mixed_precision:
+            raise ValueError(f"{type(self).__name__} does not support mixed_precision=True (its extractors are not autocast-safe yet)")
+        self.mixed_precision = bool(mixed_precision)
         explicit = dict(
             d_model=d_model,
             n_layers=n_layers,
@@ -260,6 +271,7 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
             preset=self.preset,
             action_std=self.action_std,
             learn_std=self.learn_std,
+            mixed_precision=self.mixed_precision,
             share_features_extractor=self.share_features_extractor,
         )
         return data
@@ -306,12 +318,14 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
         # (and every shared weight) through the shared features, as any shared SB3 extractor does.
         critic_gates = None if gates is None else gates.detach()
         latent_pi = latent_vf = None
-        if self.share_features_extractor:
-            features = self.features_extractor(obs, gates)
-            pi_features = vf_features = features
-        else:
-            pi_features = self.pi_features_extractor(obs, gates) if actor else None
-            vf_features = self.vf_features_extractor(obs, critic_gates) if critic else None
+        with self._extractor_precision():
+            if self.share_features_extractor:
+                features = self.features_extractor(obs, gates)
+                pi_features = vf_features = features
+            else:
+                pi_features = self.pi_features_extractor(obs, gates) if actor else None
+                vf_features = self.vf_features_extractor(obs, critic_gates) if critic else None
+        pi_features, vf_features = _float32(pi_features), _float32(vf_features)
         if actor:
             latent_pi = self.mlp_extractor.forward_actor(pi_features, gates)
         if critic:
@@ -363,9 +377,15 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
         """Token features (B, L, F); a (pi, vf) tuple when the extractor is not shared (SB3's API)."""
         obs = self._preprocess(obs)
         gates = self._tailor_gates(obs)
-        if self.share_features_extractor or features_extractor is not None:
-            return (features_extractor or self.features_extractor)(obs, gates)
-        return self.pi_features_extractor(obs, gates), self.vf_features_extractor(obs, None if gates is None else gates.detach())
+        with self._extractor_precision():
+            if self.share_features_extractor or features_extractor is not None:
+                return _float32((features_extractor or self.features_extractor)(obs, gates))
+            pi, vf = self.pi_features_extractor(obs, gates), self.vf_features_extractor(obs, None if gates is None else gates.detach())
+        return _float32(pi), _float32(vf)
+
+    def _extractor_precision(self) -> th.autocast:
+        """bfloat16 autocast around the feature extractors when ``mixed_precision`` (else a no-op)."""
+        return th.autocast(self.device.type, dtype=th.bfloat16, enabled=self.mixed_precision)
 
     # -- analysis ------------------------------------------------------------------------------
     def parameter_counts(self) -> dict[str, int]:
@@ -611,3 +631,8 @@ class DivMorphPolicy(MorphologyTransformerPolicy):
             "router/morphology_encoder": count(self.router.morphology_encoder),
             "router/gates": count(self.router.morphology_gate, self.router.task_gate),
         }
+
+
+def _float32(features: th.Tensor | None) -> th.Tensor | None:
+    """Features leaving a (possibly bfloat16 autocast) extractor, as float32 for the decoders."""
+    return None if features is None else features.float()

@@ -296,6 +296,40 @@ def test_save_load_roundtrip(tmp_path, variant):
     assert np.array_equal(model.predict(obs, deterministic=True)[0], policy.predict(obs, deterministic=True)[0])
 
 
+@pytest.mark.parametrize("variant", ["metamorph", "divmorph"])
+def test_mixed_precision_runs_the_transformer_in_bfloat16_and_keeps_the_rest_float32(tmp_path, variant):
+    cls, kwargs = VARIANTS[variant]
+    model = PPO(cls.__name__, StandInEnv(), n_steps=32, batch_size=16, n_epochs=1, policy_kwargs=dict(kwargs, mixed_precision=True), seed=0)
+    obs = batch(model.policy, 16)
+    dtypes: set = set()
+    hooks = [
+        module.register_forward_hook(lambda _m, _i, out: dtypes.add(out.dtype) if isinstance(out, th.Tensor) else None)
+        for module in model.policy.pi_features_extractor.encoder.modules()
+    ]
+    with th.no_grad():
+        mixed = model.policy.get_distribution(obs).distribution.mean
+        seen_mixed, dtypes = dtypes, set()
+        model.policy.mixed_precision = False
+        full = model.policy.get_distribution(obs).distribution.mean
+    for hook in hooks:
+        hook.remove()
+    assert th.bfloat16 in seen_mixed and th.bfloat16 not in dtypes, "the Transformer's layers run in bfloat16 only when asked"
+    assert mixed.dtype == th.float32, "the heads and the distribution stay float32"
+    gap = (mixed - full).abs().max().item()
+    assert 0 < gap < 0.05, f"bfloat16 rounding moves the action means a little, not {gap}"
+    model.policy.mixed_precision = True
+    model.learn(32)
+    model.save(tmp_path / "model")
+    assert PPO.load(tmp_path / "model", device="cpu").policy.mixed_precision, "the setting is saved with the model"
+
+
+def test_mixed_precision_is_refused_where_it_is_not_implemented():
+    from sb3_divmorph import ModuMorphPolicy
+
+    with pytest.raises(ValueError, match="does not support mixed_precision"):
+        ModuMorphPolicy(SPACE, ACTION_SPACE, lambda _: 3e-4, **TINY, mixed_precision=True)
+
+
 def test_learned_std_trains():
     model = PPO(
         DivMorphPolicy,
