@@ -330,16 +330,21 @@ def transfer_seed(profile: Profile, task: str, seed: int) -> int:
     return profile.seed + 7000 + TASK_NAMES.index(task) + 100 * seed
 
 
-def transfer_run(profile: Profile, out: Path, task: str, arm: str, seed: int = 0, progress_bar: bool = True) -> TrainingRun:
+def transfer_run(
+    profile: Profile, out: Path, task: str, arm: str, seed: int = 0, progress_bar: bool = True, calibration: bool = False
+) -> TrainingRun:
     """The (resumable) PPO run of one arm and seed on a novel task (see :mod:`sb3_divmorph.pipeline.arms`).
 
     :param task: a novel task.
     :param arm: a name of :data:`~sb3_divmorph.pipeline.arms.ARMS`.
     :param seed: offsets the PPO seed (the robots, budget and evaluation are the same for every seed).
+    :param calibration: also accept a *training* task: a setting of the race (a learning rate, the
+        critic's treatment) is chosen by running the arms on a training task, never on the novel ones
+        (``benchmarks/critic_start.py``).
     :raises ConfigError: not a novel task, unknown arm, or the run folder was begun from another source.
     :raises FileNotFoundError: the arm's prerequisite stage has not run.
     """
-    if task not in NOVEL_TASKS:
+    if task not in NOVEL_TASKS and not (calibration and task in TASK_NAMES):
         raise ConfigError(f"transfer targets a novel task; {task!r} is not one of {list(NOVEL_TASKS)}")
     check_arms([arm], "transfer")
     cfg = profile.transfer

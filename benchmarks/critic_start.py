@@ -1,0 +1,129 @@
+"""Which critic should a fine-tuned student start with? A calibration on a *training* task (issue 26, item 4).
+
+A distilled student arrives at a new task with a critic that never learnt anything (DAgger distils
+the actor's means only), so PPO's first updates follow the advantages of an arbitrary value
+function. The race's rule for every arm that starts from trained weights is one of: no critic
+warm-up (the race of ``results/cpu-race``), or a critic warm-up (``transfer.critic_warmup``: the
+first N env steps train the critic only). This script measures which is better where the answer
+is known in advance -- on the training task FT, whose skill the students already have, so any
+fall of the return during fine-tuning is damage, not exploration -- never on the novel tasks.
+
+For each variant it branches the source run (``divmorph branch``: its students, read-only) into
+``<out>/<variant>/`` and runs the race's own transfer runs (:func:`sb3_divmorph.pipeline.transfer.transfer_run`,
+``calibration=True``) of the ``divmorph`` and ``distilled`` arms on FT, with the race's settings
+(fine-tuning at lin_1e-4, frozen inherited observation statistics, Adam eps 1e-10), 3 seeds,
+evaluated every ``--eval-every`` steps on the training robots (3 deterministic episodes each).
+Runs resume; finished ones are skipped. Writes ``<out>/README.md`` (and ``eval.csv`` per run).
+
+    python benchmarks/critic_start.py                      # ~70 min on one core
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch as th
+
+from sb3_divmorph.pipeline.branch import branch
+from sb3_divmorph.pipeline.folders import transfer_folder
+from sb3_divmorph.pipeline.provenance import recorded_profile
+from sb3_divmorph.pipeline.transfer import transfer_run
+
+ARMS = ("divmorph", "distilled")
+
+
+def variants(warmup: int) -> dict[str, int]:
+    """``{variant folder: critic warm-up in env steps}``."""
+    return {"no-warmup": 0, f"warmup-{warmup // 1000}k": warmup}
+
+
+def bootstrap_ci(values: np.ndarray, seed: int = 0, draws: int = 2000) -> tuple[float, float]:
+    """95% percentile interval of the mean of ``values`` (one value per robot x seed)."""
+    rng = np.random.default_rng(seed)
+    means = rng.choice(values, size=(draws, len(values))).mean(axis=1)
+    return float(np.percentile(means, 2.5)), float(np.percentile(means, 97.5))
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--source", default="results/cpu", help="the run whose students are fine-tuned")
+    parser.add_argument("--out", type=Path, default=Path("results/critic-start"))
+    parser.add_argument("--task", default="FT", help="a training task")
+    parser.add_argument("--steps", type=int, default=40_000, help="env steps per run")
+    parser.add_argument("--eval-every", type=int, default=20_000)
+    parser.add_argument("--warmup", type=int, default=16_384, help="critic-only env steps of the warm-up variant")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    args = parser.parse_args(argv)
+    th.set_num_threads(1)
+    start = time.time()
+    for variant, warmup in variants(args.warmup).items():
+        out = args.out / variant
+        if not (out / "run.json").exists():
+            branch(Path(args.source), out, ("distill",), command="python benchmarks/critic_start.py")
+        profile = recorded_profile(
+            out / "run.json",
+            {
+                "transfer.n_timesteps": args.steps,
+                "transfer.eval_every": args.eval_every,
+                "transfer.checkpoint_every": args.eval_every,
+                "transfer.eval_episodes": 3,
+                "transfer.finetune_overrides": {"learning_rate": "lin_1e-4"},
+                "transfer.critic_warmup": warmup,
+            },
+        )
+        for arm in ARMS:
+            for seed in args.seeds:
+                print(f"[critic-start] {variant}: {arm} seed {seed} on {args.task}", flush=True)
+                transfer_run(profile, out, args.task, arm, seed, progress_bar=False, calibration=True).run()
+    write_report(args, time.time() - start)
+
+
+def write_report(args: argparse.Namespace, seconds: float) -> None:
+    """``<out>/README.md``: mean return on the training robots at each evaluation, per arm and variant, with CIs."""
+    rows = []
+    for variant in variants(args.warmup):
+        for arm in ARMS:
+            for seed in args.seeds:
+                frame = pd.read_csv(transfer_folder(args.out / variant, args.task, arm, seed) / "eval.csv")
+                frame = frame[frame.split == "train"].groupby(["timesteps", "robot"], as_index=False)["return"].mean()
+                rows.append(frame.assign(variant=variant, arm=arm, seed=seed))
+    data = pd.concat(rows)
+    steps = sorted(data.timesteps.unique())
+    lines = [
+        f"# The critic a fine-tuned student starts with: a calibration on the training task {args.task}",
+        "",
+        f"`python benchmarks/critic_start.py --source {args.source} --task {args.task} --steps {args.steps} "
+        f"--eval-every {args.eval_every} --warmup {args.warmup} --seeds {' '.join(map(str, args.seeds))}`; "
+        f"machine: {platform.node()} ({platform.machine()}, 1 torch thread, beside other jobs); "
+        f"{time.strftime('%Y-%m-%d')}; {seconds / 60:.0f} min for the runs this call trained.",
+        "",
+        "Mean deterministic return on the run's training robots (3 episodes per robot, averaged per robot), mean over "
+        "robots x seeds with a 95% bootstrap interval; step 0 is the student before any update (the same for both variants "
+        "but for the seed's evaluation noise).",
+        "",
+        "| arm | critic | " + " | ".join(f"{s / 1000:.0f}k" for s in steps) + " | change 0 -> last |",
+        "|---|---|" + "---|" * len(steps) + "---|",
+    ]
+    for arm in ARMS:
+        for variant in variants(args.warmup):
+            cells = []
+            for s in steps:
+                values = data[(data.arm == arm) & (data.variant == variant) & (data.timesteps == s)]["return"].to_numpy()
+                low, high = bootstrap_ci(values)
+                cells.append(f"{values.mean():.1f} [{low:.1f}, {high:.1f}]")
+            first = data[(data.arm == arm) & (data.variant == variant) & (data.timesteps == steps[0])].set_index(["robot", "seed"])
+            last = data[(data.arm == arm) & (data.variant == variant) & (data.timesteps == steps[-1])].set_index(["robot", "seed"])
+            change = (last["return"] - first["return"]).dropna().to_numpy()
+            low, high = bootstrap_ci(change)
+            lines.append(f"| {arm} | {variant} | " + " | ".join(cells) + f" | {change.mean():+.1f} [{low:+.1f}, {high:+.1f}] |")
+    (args.out / "README.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
