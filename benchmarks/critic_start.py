@@ -3,8 +3,10 @@
 A distilled student arrives at a new task with a critic that never learnt anything (DAgger distils
 the actor's means only), so PPO's first updates follow the advantages of an arbitrary value
 function. The race's rule for every arm that starts from trained weights is one of: no critic
-warm-up (the race of ``results/cpu-race``), or a critic warm-up (``transfer.critic_warmup``: the
-first N env steps train the critic only). This script measures which is better where the answer
+warm-up (the race of ``results/cpu-race``), a critic warm-up (``transfer.critic_warmup``: the
+first N env steps train the critic only), or a critic that learns at a multiple of the fine-tuned
+actor's rate (``transfer.critic_lr_scale``: 10 x lin_1e-4 = scratch's lin_1e-3). This script
+measures which is better where the answer
 is known in advance -- on the training task FT, whose skill the students already have, so any
 fall of the return during fine-tuning is damage, not exploration -- never on the novel tasks.
 
@@ -37,9 +39,13 @@ from sb3_divmorph.pipeline.transfer import transfer_run
 ARMS = ("divmorph", "distilled")
 
 
-def variants(warmup: int) -> dict[str, int]:
-    """``{variant folder: critic warm-up in env steps}``."""
-    return {"no-warmup": 0, f"warmup-{warmup // 1000}k": warmup}
+def variants(warmup: int, critic_scale: float) -> dict[str, dict[str, float]]:
+    """``{variant folder: its transfer settings}`` (the first is the baseline of the paired differences)."""
+    return {
+        "no-warmup": {"transfer.critic_warmup": 0},
+        f"warmup-{warmup // 1000}k": {"transfer.critic_warmup": warmup},
+        f"critic-{critic_scale:g}x": {"transfer.critic_warmup": 0, "transfer.critic_lr_scale": critic_scale},
+    }
 
 
 def bootstrap_ci(values: np.ndarray, seed: int = 0, draws: int = 2000) -> tuple[float, float]:
@@ -57,11 +63,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--steps", type=int, default=40_000, help="env steps per run")
     parser.add_argument("--eval-every", type=int, default=20_000)
     parser.add_argument("--warmup", type=int, default=16_384, help="critic-only env steps of the warm-up variant")
+    parser.add_argument("--critic-scale", type=float, default=10.0, help="critic learning-rate multiple of the third variant")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     args = parser.parse_args(argv)
     th.set_num_threads(1)
     start = time.time()
-    for variant, warmup in variants(args.warmup).items():
+    for variant, settings in variants(args.warmup, args.critic_scale).items():
         out = args.out / variant
         if not (out / "run.json").exists():
             branch(Path(args.source), out, ("distill",), command="python benchmarks/critic_start.py")
@@ -73,7 +80,7 @@ def main(argv: list[str] | None = None) -> None:
                 "transfer.checkpoint_every": args.eval_every,
                 "transfer.eval_episodes": 3,
                 "transfer.finetune_overrides": {"learning_rate": "lin_1e-4"},
-                "transfer.critic_warmup": warmup,
+                **settings,
             },
         )
         for arm in ARMS:
@@ -86,19 +93,22 @@ def main(argv: list[str] | None = None) -> None:
 def write_report(args: argparse.Namespace, seconds: float) -> None:
     """``<out>/README.md``: mean return on the training robots at each evaluation, per arm and variant, with CIs."""
     rows = []
-    for variant in variants(args.warmup):
+    names = list(variants(args.warmup, args.critic_scale))
+    for variant in names:
         for arm in ARMS:
             for seed in args.seeds:
                 frame = pd.read_csv(transfer_folder(args.out / variant, args.task, arm, seed) / "eval.csv")
                 frame = frame[frame.split == "train"].groupby(["timesteps", "robot"], as_index=False)["return"].mean()
                 rows.append(frame.assign(variant=variant, arm=arm, seed=seed))
     data = pd.concat(rows)
+    data = data[data.timesteps % args.eval_every == 0]  # the end-of-run evaluation repeats the last scheduled one
     steps = sorted(data.timesteps.unique())
     lines = [
         f"# The critic a fine-tuned student starts with: a calibration on the training task {args.task}",
         "",
         f"`python benchmarks/critic_start.py --source {args.source} --task {args.task} --steps {args.steps} "
-        f"--eval-every {args.eval_every} --warmup {args.warmup} --seeds {' '.join(map(str, args.seeds))}`; "
+        f"--eval-every {args.eval_every} --warmup {args.warmup} --critic-scale {args.critic_scale:g} "
+        f"--seeds {' '.join(map(str, args.seeds))}`; "
         f"machine: {platform.node()} ({platform.machine()}, 1 torch thread, beside other jobs); "
         f"{time.strftime('%Y-%m-%d')}; {seconds / 60:.0f} min for the runs this call trained.",
         "",
@@ -106,11 +116,11 @@ def write_report(args: argparse.Namespace, seconds: float) -> None:
         "robots x seeds with a 95% bootstrap interval; step 0 is the student before any update (the same for both variants "
         "but for the seed's evaluation noise).",
         "",
-        "| arm | critic | " + " | ".join(f"{s / 1000:.0f}k" for s in steps) + " | change 0 -> last |",
-        "|---|---|" + "---|" * len(steps) + "---|",
+        "| arm | critic | " + " | ".join(f"{s / 1000:.0f}k" for s in steps) + f" | change 0 -> last | last minus {names[0]}'s (paired) |",
+        "|---|---|" + "---|" * len(steps) + "---|---|",
     ]
     for arm in ARMS:
-        for variant in variants(args.warmup):
+        for variant in names:
             cells = []
             for s in steps:
                 values = data[(data.arm == arm) & (data.variant == variant) & (data.timesteps == s)]["return"].to_numpy()
@@ -120,7 +130,13 @@ def write_report(args: argparse.Namespace, seconds: float) -> None:
             last = data[(data.arm == arm) & (data.variant == variant) & (data.timesteps == steps[-1])].set_index(["robot", "seed"])
             change = (last["return"] - first["return"]).dropna().to_numpy()
             low, high = bootstrap_ci(change)
-            lines.append(f"| {arm} | {variant} | " + " | ".join(cells) + f" | {change.mean():+.1f} [{low:+.1f}, {high:+.1f}] |")
+            baseline = data[(data.arm == arm) & (data.variant == names[0]) & (data.timesteps == steps[-1])].set_index(["robot", "seed"])
+            paired = (last["return"] - baseline["return"]).dropna().to_numpy()
+            p_low, p_high = bootstrap_ci(paired)
+            lines.append(
+                f"| {arm} | {variant} | " + " | ".join(cells) + f" | {change.mean():+.1f} [{low:+.1f}, {high:+.1f}] "
+                f"| {paired.mean():+.1f} [{p_low:+.1f}, {p_high:+.1f}] |"
+            )
     (args.out / "README.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 

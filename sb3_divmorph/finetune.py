@@ -262,6 +262,12 @@ class CriticWarmup(BaseCallback):
         return bool(self._frozen)
 
 
+def critic_rate_scales(policy: nn.Module, scale: float) -> dict[nn.Parameter, th.Tensor]:
+    """``{parameter: scale}`` for every trainable parameter of the critic (:func:`critic_modules`),
+    for :class:`UnitLearningRates`: the critic then learns at ``scale`` times the optimiser's rate."""
+    return {p: th.full((), float(scale)) for module in critic_modules(policy) for p in module.parameters() if p.requires_grad}
+
+
 def actor_modules(policy: nn.Module) -> list[nn.Module]:
     """The modules a DivMorph policy's actions depend on (router excluded)."""
     extractor = policy.features_extractor if policy.share_features_extractor else policy.pi_features_extractor
@@ -311,6 +317,7 @@ def prepare_transfer(
     learngene_scale: float = 0.1,
     adam_eps: float | None = TRANSFER_ADAM_EPS,
     undiverted_scale: float | None = 1.0,
+    critic_scale: float = 1.0,
 ) -> UnitLearningRates:
     """Set a DivMorph policy up for DivMorph transfer, in place.
 
@@ -325,7 +332,7 @@ def prepare_transfer(
       unit of it would count as a learngene) trains at ``undiverted_scale`` -- by default the full
       rate, as any fine-tuned network, so that the ablation differs from DivMorph in its
       diversion, not in a learning rate;
-    * the critic (never distilled) trains at the full rate;
+    * the critic (never distilled) trains at ``critic_scale`` times the full rate;
     * the optimiser's ``eps`` is set to ``adam_eps`` so that Adam normalises even the small
       gradients of a distilled student and the configured ratio is the one applied.
 
@@ -335,6 +342,7 @@ def prepare_transfer(
     :param adam_eps: ``eps`` for every parameter group of the optimiser; ``None`` keeps it.
     :param undiverted_scale: learning-rate scale of the parts an ablation does not divert;
         ``None``: ``learngene_scale`` (every unit a learngene, the behaviour before this option).
+    :param critic_scale: learning-rate scale of the critic (:func:`critic_rate_scales`).
     :return: the installed :class:`UnitLearningRates` (keep it, or call ``remove``); its
         :meth:`~UnitLearningRates.measured_ratio` is the learngene / selected-tailor update ratio
         (units of undiverted parts are measured apart, as the group ``undiverted``).
@@ -381,6 +389,7 @@ def prepare_transfer(
                 scales[p] = th.full((), float(learngene_scale))
     if isinstance(getattr(policy, "log_std", None), nn.Parameter):
         scales[policy.log_std] = th.full((), float(learngene_scale))
+    scales.update(critic_rate_scales(policy, critic_scale))
     if adam_eps is not None:
         set_adam_eps(optimizer, adam_eps)
     return UnitLearningRates(optimizer, scales, groups)

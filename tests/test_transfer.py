@@ -12,7 +12,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
 import sb3_divmorph  # noqa: F401
 import unimal_envs  # noqa: F401
-from sb3_divmorph.finetune import UnitSelection, actor_modules, prepare_transfer
+from sb3_divmorph.finetune import UnitLearningRates, UnitSelection, actor_modules, critic_modules, critic_rate_scales, prepare_transfer
 from sb3_divmorph.layers import FactorizedLinear
 from unimal_envs.morphology.loader import morphology_files
 
@@ -144,6 +144,43 @@ def test_a_part_an_ablation_does_not_divert_trains_at_the_full_rate_unless_asked
     measured = ratio_after_tiny_steps(model, obs, rates, "undiverted")
     assert 0.7 * expected <= measured <= 1.4 * expected, f"undiverted / selected tailor update ratio {measured:.3f}, expected {expected}"
     assert 0.07 <= rates.measured_ratio() <= 0.14  # the decoder's learngenes keep their rate
+
+
+def one_ppo_like_step(model, obs) -> dict[str, th.Tensor]:
+    """The parameters after one optimiser step on a loss of both heads (log-likelihood of fixed actions + value)."""
+    batch = {k: np.repeat(v, 16, axis=0) for k, v in obs.items()}
+    obs_t, _ = model.policy.obs_to_tensor(batch)
+    actions = th.as_tensor(np.random.default_rng(0).uniform(-1, 1, (16, 24)).astype(np.float32))
+    values, log_prob, _ = model.policy.evaluate_actions(obs_t, actions)
+    model.policy.optimizer.zero_grad()
+    (-log_prob.mean() + (values - 1.0).pow(2).mean()).backward()
+    model.policy.optimizer.step()
+    return {name: p.detach().clone() for name, p in model.policy.named_parameters()}
+
+
+@pytest.mark.parametrize("divmorph_way", [False, True])
+def test_critic_lr_scale_moves_the_critic_that_many_times_as_far_and_the_actor_as_before(divmorph_way):
+    """transfer.critic_lr_scale: a fine-tuned actor at its small rate, its critic at a multiple of it."""
+    moved = {}
+    for scale in (1.0, 10.0):
+        model, venv = distilled_like_student(seed=3)
+        obs = venv.reset()
+        if divmorph_way:
+            gates = model.policy.get_gates(obs)
+            selection = UnitSelection.from_gates(gates.morphology.numpy(), gates.task.numpy())
+            prepare_transfer(model.policy, selection, learngene_scale=0.1, critic_scale=scale)
+        else:
+            UnitLearningRates(model.policy.optimizer, critic_rate_scales(model.policy, scale))
+        before = {name: p.detach().clone() for name, p in model.policy.named_parameters()}
+        after = one_ppo_like_step(model, obs)
+        moved[scale] = {name: (after[name] - before[name]).abs().sum().item() for name in before}
+    critic = {id(p) for module in critic_modules(model.policy) for p in module.parameters()}
+    names = {name: id(p) in critic for name, p in model.policy.named_parameters()}
+    critic_ratio = sum(moved[10.0][n] for n, c in names.items() if c) / sum(moved[1.0][n] for n, c in names.items() if c)
+    assert critic_ratio == pytest.approx(10.0, rel=1e-3), f"the critic moved {critic_ratio:.3f}x as far"
+    assert all(moved[10.0][n] == pytest.approx(moved[1.0][n], rel=1e-5, abs=1e-9) for n, c in names.items() if not c), (
+        "the actor's steps changed"
+    )
 
 
 def test_frozen_observation_statistics_stay_while_reward_statistics_learn(tmp_path):

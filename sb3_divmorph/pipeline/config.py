@@ -140,6 +140,11 @@ class TransferConfig:
     #: is frozen): they come without a critic for the novel task (see
     #: :class:`~sb3_divmorph.finetune.CriticWarmup`); 0 = none
     critic_warmup: int = 0
+    #: learning-rate multiple of the critic's parameters in those arms' runs: their actor fine-tunes
+    #: at ``finetune_overrides``' rate, while their critic (random, or another task's) has a new
+    #: task's values to learn, as scratch's does at the teachers' rate; e.g. 10 with lin_1e-4 gives
+    #: the critic lin_1e-3 (``benchmarks/critic_start.py`` measures it on a training task)
+    critic_lr_scale: float = 1.0
     checkpoint_every: int = 50_000
     #: the arms to race (see :data:`sb3_divmorph.pipeline.arms.ARMS`); default: ``divmorph`` and,
     #: with ``compare_scratch``, ``scratch``
@@ -404,6 +409,8 @@ def check_transfer(cfg: TransferConfig, where: str) -> None:
         raise ConfigError(f"{where}: eval_every must be >= 0 and eval_episodes >= 1")
     if cfg.critic_warmup < 0:
         raise ConfigError(f"{where}.critic_warmup must be >= 0 env steps, got {cfg.critic_warmup}")
+    if not cfg.critic_lr_scale > 0:
+        raise ConfigError(f"{where}.critic_lr_scale must be > 0, got {cfg.critic_lr_scale}")
     if cfg.observation_statistics not in ("frozen", "learning"):
         raise ConfigError(f"{where}.observation_statistics must be 'frozen' or 'learning', got {cfg.observation_statistics!r}")
     if cfg.adam_eps is not None:

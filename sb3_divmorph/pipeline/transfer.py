@@ -40,6 +40,7 @@ from sb3_divmorph.finetune import (
     CriticWarmup,
     UnitLearningRates,
     UnitSelection,
+    critic_rate_scales,
     prepare_transfer,
     set_adam_eps,
 )
@@ -424,9 +425,9 @@ def transfer_run(
             venv = inherited_normalizer(source, make_env(), gamma, freeze_observations=cfg.observation_statistics == "frozen")
             return finetuned_model(saved, venv, task, task_policy_kwargs, run_seed, device, entry.ppo_kwargs)
 
+    installed: dict[str, UnitLearningRates] = {}
     if spec.divmorph_transfer:
         selection_obs = robot_observations(env_name, robots, run_seed, env_kwargs.get("instruction"), **profile_env_kwargs(profile))
-        installed: dict[str, UnitLearningRates] = {}
 
         def prepare(model):
             with th.no_grad():
@@ -434,7 +435,12 @@ def transfer_run(
             # the hooks live on the optimiser; they are installed again whenever the run is loaded
             eps = TRANSFER_ADAM_EPS if cfg.adam_eps is None else cfg.adam_eps
             installed["rates"] = prepare_transfer(
-                model.policy, selection, cfg.learngene_lr_scale, adam_eps=eps, undiverted_scale=cfg.undiverted_lr_scale
+                model.policy,
+                selection,
+                cfg.learngene_lr_scale,
+                adam_eps=eps,
+                undiverted_scale=cfg.undiverted_lr_scale,
+                critic_scale=cfg.critic_lr_scale if source is not None else 1.0,
             )
 
         callbacks.append(UpdateRatioLogger(lambda: installed.get("rates")))
@@ -444,6 +450,9 @@ def transfer_run(
             # one optimiser rule for every arm (set again whenever the run is loaded)
             if cfg.adam_eps is not None:
                 set_adam_eps(model.policy.optimizer, cfg.adam_eps)
+            if source is not None and cfg.critic_lr_scale != 1:
+                # the fine-tuned actor's rate for the actor, a multiple of it for the critic (the hooks live on the optimiser)
+                installed["critic"] = UnitLearningRates(model.policy.optimizer, critic_rate_scales(model.policy, cfg.critic_lr_scale))
 
     _check_source(folder, _source_record(out, arm, seed, source))
     return TrainingRun(
