@@ -5,7 +5,7 @@ the actor's means only), so PPO's first updates follow the advantages of an arbi
 function. The race's rule for every arm that starts from trained weights is one of: no critic
 warm-up (the race of ``results/cpu-race``), a critic warm-up (``transfer.critic_warmup``: the
 first N env steps train the critic only), or a critic that learns at a multiple of the fine-tuned
-actor's rate (``transfer.critic_lr_scale``: 10 x lin_1e-4 = scratch's lin_1e-3). This script
+actor's rate (``transfer.critic_lr_scale``: 10 x lin_1e-4 = scratch's lin_1e-3), or both. This script
 measures which is better where the answer
 is known in advance -- on the training task FT, whose skill the students already have, so any
 fall of the return during fine-tuning is damage, not exploration -- never on the novel tasks.
@@ -45,6 +45,7 @@ def variants(warmup: int, critic_scale: float) -> dict[str, dict[str, float]]:
         "no-warmup": {"transfer.critic_warmup": 0},
         f"warmup-{warmup // 1000}k": {"transfer.critic_warmup": warmup},
         f"critic-{critic_scale:g}x": {"transfer.critic_warmup": 0, "transfer.critic_lr_scale": critic_scale},
+        f"warmup-{warmup // 1000}k+critic-{critic_scale:g}x": {"transfer.critic_warmup": warmup, "transfer.critic_lr_scale": critic_scale},
     }
 
 
