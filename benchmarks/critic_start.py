@@ -117,8 +117,10 @@ def write_report(args: argparse.Namespace, seconds: float) -> None:
         "robots x seeds with a 95% bootstrap interval; step 0 is the student before any update (the same for both variants "
         "but for the seed's evaluation noise).",
         "",
-        "| arm | critic | " + " | ".join(f"{s / 1000:.0f}k" for s in steps) + f" | change 0 -> last | last minus {names[0]}'s (paired) |",
-        "|---|---|" + "---|" * len(steps) + "---|---|",
+        "| arm | critic | "
+        + " | ".join(f"{s / 1000:.0f}k" for s in steps)
+        + f" | change 0 -> last | last minus {names[0]}'s (paired) | critic's explained variance |",
+        "|---|---|" + "---|" * len(steps) + "---|---|---|",
     ]
     for arm in ARMS:
         for variant in names:
@@ -136,10 +138,25 @@ def write_report(args: argparse.Namespace, seconds: float) -> None:
             p_low, p_high = bootstrap_ci(paired)
             lines.append(
                 f"| {arm} | {variant} | " + " | ".join(cells) + f" | {change.mean():+.1f} [{low:+.1f}, {high:+.1f}] "
-                f"| {paired.mean():+.1f} [{p_low:+.1f}, {p_high:+.1f}] |"
+                f"| {paired.mean():+.1f} [{p_low:+.1f}, {p_high:+.1f}] | {explained_variance(args, variant, arm):.2f} |"
             )
+    lines += [
+        "",
+        "Explained variance: SB3's `train/explained_variance` of the critic's values on each rollout's returns, averaged over "
+        "the second half of the run's updates and the seeds (0: the values explain nothing of the returns, 1: all of them).",
+    ]
     (args.out / "README.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
+
+
+def explained_variance(args: argparse.Namespace, variant: str, arm: str) -> float:
+    """Mean ``train/explained_variance`` over the second half of each seed's updates."""
+    means = []
+    for seed in args.seeds:
+        progress = pd.read_csv(transfer_folder(args.out / variant, args.task, arm, seed) / "logs" / "run-0" / "progress.csv")
+        values = progress["train/explained_variance"].dropna().to_numpy()
+        means.append(values[len(values) // 2 :].mean())
+    return float(np.mean(means))
 
 
 if __name__ == "__main__":
