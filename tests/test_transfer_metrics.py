@@ -115,3 +115,27 @@ def test_episodes_are_averaged_per_robot_and_seeds_share_steps_and_robots():
     assert list(partial.steps) == [0, 50, 100]
     steps, mean, sd = mean_curve([curves.mean(), (curves.steps, curves.mean()[1] + 20)])
     assert np.allclose(mean, curves.mean()[1] + 10) and np.allclose(sd, 10.0)
+
+
+def test_metrics_leave_out_a_seed_whose_run_is_still_going(tmp_path):
+    """A run in progress has a shorter curve; counted, it would cut every seed's curve to its last step."""
+    from sb3_divmorph.pipeline.config import load_profile
+    from sb3_divmorph.pipeline.curves import task_metrics, write_eval
+    from sb3_divmorph.pipeline.runs import mark_done
+
+    def write(seed: int, steps: tuple[int, ...], done: bool) -> None:
+        folder = tmp_path / "transfer" / "Escape" / "scratch" / f"seed-{seed}"
+        rows = [
+            {"timesteps": t, "split": split, "robot": "train-000", "episode": 0, "return": float(t), "length": 10}
+            for t in steps
+            for split in ("train", "novel")
+        ]
+        write_eval(folder / "eval.csv", rows)
+        if done:
+            mark_done(folder)
+
+    write(0, (0, 100, 200), done=True)
+    write(1, (0,), done=False)
+    (metrics,) = [m for m in task_metrics(load_profile("demo"), tmp_path, "Escape") if m.split == "train"]
+    assert metrics.seeds == 1, "the unfinished seed is not counted"
+    assert metrics.final > 100, f"the finished seed's final return, not its step-0 return: {metrics.final}"

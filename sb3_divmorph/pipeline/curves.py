@@ -28,7 +28,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecMonitor, Ve
 from sb3_divmorph.pipeline.arms import ARMS
 from sb3_divmorph.pipeline.config import Profile
 from sb3_divmorph.pipeline.metrics import ArmMetrics, RobotCurves, task_metrics_from_curves
-from sb3_divmorph.pipeline.runs import MODEL, atomic_write_text, stage_normalizer, task_env_name, write_csv
+from sb3_divmorph.pipeline.runs import MODEL, atomic_write_text, is_done, stage_normalizer, task_env_name, write_csv
 
 EVAL_FILE = "eval.csv"
 EVAL_COLUMNS = ["timesteps", "split", "robot", "episode", "return", "length"]
@@ -197,13 +197,19 @@ def seed_curves(out: Path, task: str, arm: str, split: str) -> dict[int, tuple[n
     return curves
 
 
-def seed_robot_curves(out: Path, task: str, arm: str, split: str) -> dict[int, RobotCurves]:
-    """``{seed: RobotCurves}`` (per robot and step, mean over episodes) of every seed of an arm with an evaluation curve."""
+def seed_robot_curves(out: Path, task: str, arm: str, split: str, finished_only: bool = False) -> dict[int, RobotCurves]:
+    """``{seed: RobotCurves}`` (per robot and step, mean over episodes) of every seed of an arm with an evaluation curve.
+
+    :param finished_only: leave out the seeds whose run has not finished (``done.json``): a run still
+        going has a shorter curve, and the metrics compare every seed over the steps all of them reached.
+    """
     base = Path(out) / "transfer" / task / arm
     folders = {int(folder.name.split("-")[1]): folder for folder in base.glob("seed-*")}
     folders.setdefault(0, base)  # a run from before seeds existed is seed 0
     curves = {}
     for seed, folder in sorted(folders.items()):
+        if finished_only and not is_done(folder):
+            continue
         found = RobotCurves.from_rows(read_eval(folder / EVAL_FILE), split)
         if len(found.steps) and found.robots:
             curves[seed] = found
@@ -211,10 +217,10 @@ def seed_robot_curves(out: Path, task: str, arm: str, split: str) -> dict[int, R
 
 
 def task_metrics(profile: Profile, out: Path, task: str) -> list[ArmMetrics]:
-    """Metrics of every arm with curves on ``task``, both splits (see :mod:`~sb3_divmorph.pipeline.metrics`)."""
+    """Metrics of every arm with finished runs on ``task``, both splits (see :mod:`~sb3_divmorph.pipeline.metrics`)."""
     metrics = []
     for split in ("train", "novel"):
-        runs = {arm: list(curves.values()) for arm in ARMS if (curves := seed_robot_curves(out, task, arm, split))}
+        runs = {arm: list(curves.values()) for arm in ARMS if (curves := seed_robot_curves(out, task, arm, split, finished_only=True))}
         if runs:
             metrics += task_metrics_from_curves(task, split, runs)
     return metrics
