@@ -140,6 +140,7 @@ class BalancedRobotSampler(BaseCallback):
         self.iterations += 1
         if self.iterations < self.warmup_iterations or not self.ema:
             return
+        assert self._names is not None  # read at the training start
         self.probabilities = self.probabilities_for(self._names)
         self.training_env.env_method("set_morphology_probabilities", self.probabilities)
         p = self.probabilities

@@ -36,8 +36,10 @@ def random_observations(
     rng = np.random.default_rng(seed)
     observation_space.seed(int(rng.integers(2**31)))
     obs = {key: np.stack([space.sample() for _ in range(batch_size)]) for key, space in observation_space.spaces.items()}
-    n_tokens = observation_space[PROPRIOCEPTIVE].shape[0]
-    slots = observation_space[ACT_PADDING_MASK].shape[0] // n_tokens
+    tokens_shape, mask_shape = observation_space[PROPRIOCEPTIVE].shape, observation_space[ACT_PADDING_MASK].shape
+    assert tokens_shape is not None and mask_shape is not None  # Box spaces have a shape
+    n_tokens = tokens_shape[0]
+    slots = mask_shape[0] // n_tokens
 
     robot = rng.integers(n_morphologies, size=batch_size) if n_morphologies else np.arange(batch_size)
     n_robots = int(robot.max()) + 1

@@ -256,7 +256,7 @@ def task_metrics_from_curves(
     final = {arm: float(v[:, :, -1].mean()) for arm, (_, v) in stacked.items()}
     level = level_for(zero, final, fraction)
     held_steps: dict[str, float | None] = {}
-    results = {}
+    results: dict[str, dict[str, Any]] = {}
     for arm, (steps, values) in stacked.items():
         per_seed = values.mean(1)  # (S, T)
         boot = bootstrap_curves(values, draws)
@@ -297,9 +297,9 @@ def task_metrics_from_curves(
         )
     reference = held_steps.get(REFERENCE_ARM)
     metrics = []
-    for arm, values in results.items():
+    for arm, fields in results.items():
         efficiency, bound = speedup(reference, held_steps[arm], results[REFERENCE_ARM]["budget"] if REFERENCE_ARM in results else None)
-        metrics.append(ArmMetrics(**values, efficiency=efficiency, efficiency_bound=bound))
+        metrics.append(ArmMetrics(**fields, efficiency=efficiency, efficiency_bound=bound))
     return metrics
 
 

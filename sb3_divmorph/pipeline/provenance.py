@@ -208,7 +208,7 @@ def check_and_record(
     previous = json.loads(path.read_text()) if path.is_file() else None
     begun = begun_stages(out)
     recorded = _with_defaults(previous["configuration"]) if previous else None
-    changed = {stage: stage_changes(recorded, config, stage) for stage in begun} if previous else {}
+    changed = {stage: stage_changes(recorded, config, stage) for stage in begun} if recorded is not None else {}
     changed = {stage: keys for stage, keys in changed.items() if keys}
     blocked = {stage: keys for stage, keys in changed.items() if stage not in redo and not force}
     if blocked:

@@ -105,7 +105,10 @@ class _TaskBlock:
             rows = self.rows(i)
             if self.pool is not None:
                 group.select_terrain(mask[rows], self.variant[rows], self.layout)
-            placed = (group.box_qpos, props[rows]) if props is not None else None
+            placed = None
+            if props is not None:
+                assert group.box_qpos is not None  # props are the box's pose: its robot's world has the box
+                placed = (group.box_qpos, props[rows])
             group.reset(mask[rows], noise, self.generator, placed)
         run_physics(self.groups, "sync")
         self.task.reset(mask, self.read())

@@ -109,11 +109,13 @@ class BatchedTask:
         if isinstance(arena, Incline):
             return arena.slope * r.torso[:, 0]
         if isinstance(arena, (VariableTerrain, Bowl)):  # the obstacle course's ground is flat
+            assert self.heightmaps is not None  # terrain arenas always come with their height maps
             return self.heightmaps.ground_height(r.variant, r.torso[:, :2])
         return torch.zeros_like(r.torso[:, 0])
 
     def observations(self, r: Readings) -> dict[str, torch.Tensor]:
         if "hfield" in self.task.observation_keys:
+            assert self.heightmaps is not None  # a task that observes the height map has an arena with one
             return {"hfield": self.heightmaps.height_map(r.variant, r.torso[:, :2], r.yaw())}
         return {}
 
@@ -294,6 +296,7 @@ class BoxTask(BatchedTask):
         return qpos
 
     def _box_goal_distance(self, r: Readings) -> torch.Tensor:
+        assert r.box is not None  # a box task's readings hold the box's pose
         return torch.hypot(self.goal[:, 0] - r.box[:, 0], self.goal[:, 1] - r.box[:, 1])
 
     def reset(self, mask, r):

@@ -126,7 +126,7 @@ def plan_signature(xml: str) -> str:
 
     def node(body: ET.Element) -> str:
         geom = body.find("geom")
-        label = f"{body.get('pos')}|{geom.get('fromto') or geom.get('size')}" if geom is not None else body.get("pos")
+        label = f"{body.get('pos')}|{geom.get('fromto') or geom.get('size')}" if geom is not None else str(body.get("pos"))
         return label + "[" + ",".join(sorted(node(kid) for kid in body.findall("body"))) + "]"
 
     torso = ET.fromstring(xml).find(f".//body[@name='{TORSO}']")
