@@ -209,7 +209,9 @@ def export_actor(
     normalized = observations if normalizer is None else normalizer.normalize_obs(observations)
     with th.no_grad():
         obs_t, _ = policy.obs_to_tensor(normalized)
-        reference = policy.get_distribution(obs_t).distribution.mean
+        distribution = policy.get_distribution(obs_t).distribution
+        assert isinstance(distribution, th.distributions.Normal)  # the masked diagonal Gaussian's
+        reference = distribution.mean
     one_raw = {k: v[:1] for k, v in observations.items()}
     repeats = profile.export.latency_repeats
     files: dict[str, Any] = {}

@@ -83,6 +83,7 @@ def _unit_names(profile: Profile) -> list[str]:
     from sb3_divmorph.policies import MetaMorphPolicy
 
     env = gym.make(task_env_name(profile.teachers.tasks[0]), morphologies=profile_robots(profile, "train")[:1])
+    assert isinstance(env.observation_space, gym.spaces.Dict) and isinstance(env.action_space, gym.spaces.Box)
     policy = MetaMorphPolicy(env.observation_space, env.action_space, lambda _: 1e-3, **grl_policy_kwargs(profile))
     env.close()
     return list(layer_units(policy))

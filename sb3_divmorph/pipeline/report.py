@@ -63,10 +63,10 @@ def plot_curves(profile: Profile, out: Path, target: Path) -> None:
     teachers, tasks = list(profile.teachers.tasks), transfer_tasks(profile, out)
     n = len(teachers) + 1 + len(tasks)
     columns = min(n, 4)
-    fig, axes = plt.subplots(
+    fig, grid = plt.subplots(
         (n + columns - 1) // columns, columns, figsize=(4.6 * columns, 3.6 * ((n + columns - 1) // columns)), squeeze=False
     )
-    axes = list(axes.flat)
+    axes = list(grid.flat)
     for ax, task in zip(axes, teachers):
         _curve(ax, read_progress(out / "teachers" / task), "rollout/ep_rew_mean", "MetaMorph teacher")
         ax.set_title(f"teacher {task} (PPO)", fontsize=9)
