@@ -830,6 +830,26 @@ def test_with_learning_rate_zero_a_transfer_run_leaves_every_fine_tuned_arms_act
     assert np.abs(trained.predict(trained.get_vec_normalize_env().normalize_obs(raw), deterministic=True)[0] - before).max() > 1e-4
 
 
+def test_transfer_curves_roll_out_the_first_eval_robots_of_each_split(finished_run, tmp_path):
+    """``transfer.eval_robots: 1``: the evaluation curves (zero-shot, every ``eval_every`` steps, final)
+    roll out only the first training and the first novel robot, every episode of each."""
+    from sb3_divmorph.pipeline.curves import EVAL_FILE, read_eval
+    from sb3_divmorph.pipeline.runs import profile_robots
+    from sb3_divmorph.pipeline.transfer import transfer_run
+
+    out, profiles = copied_run(finished_run, tmp_path)
+    profile = load_profile("tiny", profiles, overrides={"transfer.eval_robots": 1, "transfer.eval_episodes": 2})
+    run = transfer_run(profile, out, "Escape", "scratch", 3, progress_bar=False)
+    run.run()
+    rows = read_eval(run.folder / EVAL_FILE)
+    assert {row["timesteps"] for row in rows} == {0, 64, 128}
+    for split in ("train", "novel"):
+        seen = {(row["robot"], row["episode"]) for row in rows if row["split"] == split and row["timesteps"] == 128}
+        assert seen == {(profile_robots(profile, split)[0].stem, episode) for episode in (0, 1)}, split
+    with pytest.raises(ConfigError, match="eval_robots"):
+        load_profile("tiny", profiles, overrides={"transfer.eval_robots": 0})
+
+
 @pytest.mark.parametrize("task", ["Escape", "PointNav", "PushBoxIncline", "ManipulateBox"])
 def test_every_arm_sees_its_novel_tasks_inputs_under_one_optimiser_rule(finished_run, tmp_path, task):
     """Perturbing an input the novel task observes (Escape: height map; PointNav: goal; the box

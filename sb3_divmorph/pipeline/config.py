@@ -167,6 +167,9 @@ class TransferConfig:
     #: episodes per robot of each of those evaluations (deterministic policy; the episodes differ
     #: by their reset noise and terrain)
     eval_episodes: int = 3
+    #: robots per split of those evaluations: the first N training and the first N novel robots
+    #: (a fixed subset, chosen by position, never by result); ``null``: every robot of both splits
+    eval_robots: int | None = None
     #: observation statistics of the arms that start from trained weights: ``frozen`` (as inherited,
     #: for the whole run) or ``learning`` (they go on moving under the inherited weights; the rule
     #: before issue 26, kept for comparison). Reward statistics always start afresh and learn
@@ -407,6 +410,8 @@ def check_transfer(cfg: TransferConfig, where: str) -> None:
         raise ConfigError(f"{where}.closest_by must be 'embedding' or 'return', got {cfg.closest_by!r}")
     if cfg.eval_every < 0 or cfg.eval_episodes < 1:
         raise ConfigError(f"{where}: eval_every must be >= 0 and eval_episodes >= 1")
+    if cfg.eval_robots is not None and cfg.eval_robots < 1:
+        raise ConfigError(f"{where}.eval_robots must be >= 1 or null (every robot), got {cfg.eval_robots!r}")
     if cfg.critic_warmup < 0:
         raise ConfigError(f"{where}.critic_warmup must be >= 0 env steps, got {cfg.critic_warmup}")
     if not cfg.critic_lr_scale > 0:

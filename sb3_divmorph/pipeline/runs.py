@@ -124,6 +124,12 @@ def profile_robots(profile: Profile, split: str) -> list[Path]:
     return robot_files(profile.novel_set, profile.novel_robots, exclude=train)
 
 
+def transfer_eval_robots(profile: Profile, split: str) -> list[Path]:
+    """The robots of ``split`` that the transfer runs' evaluation curves roll out: the first
+    ``transfer.eval_robots`` of :func:`profile_robots` (every robot when it is ``None``)."""
+    return profile_robots(profile, split)[: profile.transfer.eval_robots]
+
+
 #: The record of which robots a run trains and evaluates on (at the run folder's root).
 ROBOT_SETS = "robot_sets.json"
 

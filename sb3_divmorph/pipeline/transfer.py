@@ -67,6 +67,7 @@ from sb3_divmorph.pipeline.runs import (
     normalizer_for,
     profile_env_kwargs,
     profile_robots,
+    transfer_eval_robots,
     resolve_device,
     robot_observations,
     task_env_name,
@@ -138,7 +139,7 @@ def closest_task(profile: Profile, out: Path, task: str, by: str | None = None) 
         scores = {t: float(np.dot(target, embeddings[t]) / (np.linalg.norm(target) * np.linalg.norm(embeddings[t]))) for t in teachers}
         what = "cosine of the instruction embeddings"
     elif by == "return":
-        robots = profile_robots(profile, "train")
+        robots = transfer_eval_robots(profile, "train")
         scores = {}
         for t in teachers:
             rows = evaluate_model(
@@ -382,7 +383,7 @@ def transfer_run(
     if source is not None and cfg.critic_warmup > 0:
         callbacks.append(CriticWarmup(cfg.critic_warmup))
     if cfg.eval_every > 0:
-        splits = {"train": robots, "novel": profile_robots(profile, "novel")}
+        splits = {split: transfer_eval_robots(profile, split) for split in ("train", "novel")}
         callbacks.append(
             EvalCurveCallback(
                 folder / EVAL_FILE,
