@@ -116,7 +116,7 @@ def _plot(curves: dict[str, tuple[np.ndarray, np.ndarray]], task: str, path: Pat
         ax.plot(steps / 1e6, returns, label=name)
     ax.set_xlabel("env steps (millions)")
     ax.set_ylabel(f"{task} episode return (stochastic, training rollouts)")
-    ax.set_title("Calibration teachers: mean return of the episodes finished per rollout")
+    ax.set_title("Calibration teachers: mean return of finished episodes")
     ax.legend(title="run")
     ax.grid(alpha=0.3)
     fig.tight_layout()
