@@ -643,6 +643,37 @@ def test_closest_by_return_picks_the_best_zero_shot_teacher(finished_run):
         other.rmdir()
 
 
+def test_report_gives_robot_intervals_and_answers_the_zero_shot_claim():
+    """Each robot counts once (its episodes averaged) in the returns table's interval; the zero-shot
+    comparison puts a student that keeps its return on novel robots above a HyperDistill student that
+    keeps half of it, and not the other way round."""
+    import importlib
+
+    R = importlib.import_module("sb3_divmorph.pipeline.report")
+    profile = load_profile("demo")
+    rng = np.random.default_rng(0)
+    rows = []
+    for model, kept in (("student", 1.0), ("hyperdistill", 0.5)):
+        for split, scale in (("train", 1.0), ("novel", kept)):
+            for robot in range(12):
+                for episode in range(3):
+                    value = scale * (100 + 10 * robot) + rng.normal(0, 1)
+                    rows.append(
+                        {"model": model, "task": "FT", "split": split, "morphology": f"r{robot}", "episode": episode, "return": value}
+                    )
+    table, groups = R.returns_table(rows)
+    assert len(groups[("student", "FT", "train")]) == 12  # one value per robot
+    assert "(12 x 3)" in table[2] and "[" in table[2]
+    lines = R.zero_shot_comparison(profile, rows)
+    ft = next(line for line in lines if line.startswith("| FT |"))
+    difference = ft.split("|")[4]
+    lo, hi = (float(x) for x in difference[difference.index("[") + 1 : difference.index("]")].split(","))
+    assert 0.3 < lo <= 0.5 <= hi < 0.7, ft  # kept 1.0 vs 0.5
+    swapped = [{**row, "model": {"student": "hyperdistill", "hyperdistill": "student"}[row["model"]]} for row in rows]
+    ft = next(line for line in R.zero_shot_comparison(profile, swapped) if line.startswith("| FT |"))
+    assert float(ft.split("|")[4].split("[")[0]) < 0
+
+
 def test_report_figures_label_axes_and_give_each_task_its_own_scale(tmp_path, monkeypatch):
     import importlib
 

@@ -38,7 +38,7 @@ from sb3_divmorph.pipeline.figures import (  # noqa: E402, F401 -- _correlation,
     save_png,
     write_metrics,
 )
-from sb3_divmorph.pipeline.metrics import EFFICIENCY_FRACTION  # noqa: E402
+from sb3_divmorph.pipeline.metrics import BOOTSTRAP, EFFICIENCY_FRACTION, bootstrap_curves, interval  # noqa: E402
 from sb3_divmorph.pipeline.runs import atomic_write_text, read_progress  # noqa: E402
 
 
@@ -105,17 +105,106 @@ def read_returns(path: Path) -> list[dict[str, str]]:
 
 
 def returns_table(rows: list[dict[str, str]]) -> tuple[list[str], dict[tuple[str, str, str], list[float]]]:
-    groups: dict[tuple[str, str, str], list[float]] = defaultdict(list)
-    for row in rows:
-        groups[(row["model"], row["task"], row["split"])].append(float(row["return"]))
-    lines = ["| model | task | train robots: return (mean ± sd, n) | novel robots: return |", "|---|---|---|---|"]
+    """The evaluation as a markdown table, and ``{(model, task, split): per-robot mean returns}``.
+
+    Each robot's return is the mean over its episodes; a cell is the mean over robots with a 95%
+    bootstrap interval over robots (robots, not episodes, carry the variance of a morphology-agnostic
+    controller), and the number of robots x episodes per robot.
+    """
+    per_robot = robot_means(rows)
+    groups = {key: list(robots.values()) for key, robots in per_robot.items()}
+    episodes = _episodes_per_robot(rows)
+    lines = [
+        "| model | task | train robots: mean return [95% CI] (robots x episodes) | novel robots: mean return [95% CI] |",
+        "|---|---|---|---|",
+    ]
     for model, task in sorted({(m, t) for m, t, _ in groups}, key=lambda mt: (mt[1], mt[0])):
         cells = []
         for split in ("train", "novel"):
-            values = groups.get((model, task, split), [])
-            cells.append(f"{np.mean(values):.1f} ± {np.std(values):.1f} ({len(values)})" if values else "–")
+            values = np.asarray(groups.get((model, task, split), []))
+            if values.size:
+                lo, hi = robot_interval(values)
+                cells.append(f"{values.mean():.1f} [{lo:.1f}, {hi:.1f}] ({values.size} x {episodes[(model, task, split)]})")
+            else:
+                cells.append("–")
         lines.append(f"| {model} | {task} | {cells[0]} | {cells[1]} |")
     return lines, groups
+
+
+def robot_means(rows: list[dict[str, str]]) -> dict[tuple[str, str, str], dict[str, float]]:
+    """``{(model, task, split): {robot: mean return over its episodes}}`` of ``evaluate/returns.csv`` rows."""
+    returns: dict[tuple[str, str, str], dict[str, list[float]]] = defaultdict(lambda: defaultdict(list))
+    for row in rows:
+        returns[(row["model"], row["task"], row["split"])][row["morphology"]].append(float(row["return"]))
+    return {key: {robot: float(np.mean(values)) for robot, values in robots.items()} for key, robots in returns.items()}
+
+
+def robot_interval(values: np.ndarray) -> tuple[float, float]:
+    """95% bootstrap interval of the mean of per-robot values (robots resampled with replacement)."""
+    return interval(bootstrap_curves(np.asarray(values, float)[None, :, None])[:, 0])
+
+
+def zero_shot_comparison(profile: Profile, rows: list[dict[str, str]], draws: int = BOOTSTRAP) -> list[str]:
+    """The paper's zero-shot claim, per training task: does the DivMorph student keep more of its return
+    on the novel robots than the HyperDistill student? *Kept* is the mean over novel robots / the mean
+    over training robots; the interval resamples the training and the novel robots independently, with
+    the same draws for both models (both ran on the same robots), so the difference is paired."""
+    per_robot = robot_means(rows)
+    models = ("student", "hyperdistill")
+    if not any(key[0] == "hyperdistill" for key in per_robot):
+        return []
+    lines = [
+        "## Zero-shot to novel robots: the DivMorph student against HyperDistill",
+        "",
+        "*Kept*: mean return on the novel robots / mean on the training robots (each robot's return the mean of its "
+        "episodes); 95% bootstrap intervals resampling training and novel robots independently, the same draws for "
+        "both models (a paired difference). The paper's claim holds on a task when the difference's interval is above 0.",
+        "",
+        "| task | DivMorph student: novel / train, kept [95% CI] | HyperDistill: novel / train, kept [95% CI] | difference in kept [95% CI] | absolute novel return, student - HyperDistill [95% CI] |",
+        "|---|---|---|---|---|",
+    ]
+    rng = np.random.default_rng(0)
+    for task in profile.teachers.tasks:
+        splits = {(m, s): per_robot.get((m, task, s), {}) for m in models for s in ("train", "novel")}
+        robots = {s: sorted(set(splits[("student", s)]) & set(splits[("hyperdistill", s)])) for s in ("train", "novel")}
+        if not robots["train"] or not robots["novel"]:
+            continue
+        values = {(m, s): np.array([splits[(m, s)][r] for r in robots[s]]) for m in models for s in ("train", "novel")}
+        picks = {s: rng.integers(0, len(robots[s]), size=(draws, len(robots[s]))) for s in ("train", "novel")}
+        kept, novel = {}, {}
+        for m in models:
+            train_means, novel_means = values[(m, "train")][picks["train"]].mean(1), values[(m, "novel")][picks["novel"]].mean(1)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                kept[m] = novel_means / train_means
+            novel[m] = novel_means
+        cells = []
+        for m in models:
+            point = values[(m, "novel")].mean() / values[(m, "train")].mean()
+            lo, hi = interval(kept[m])
+            cells.append(f"{values[(m, 'novel')].mean():.1f} / {values[(m, 'train')].mean():.1f}, {point:.2f} [{lo:.2f}, {hi:.2f}]")
+        diff = kept["student"] - kept["hyperdistill"]
+        point = (
+            values[("student", "novel")].mean() / values[("student", "train")].mean()
+            - values[("hyperdistill", "novel")].mean() / values[("hyperdistill", "train")].mean()
+        )
+        lo, hi = interval(diff)
+        absolute = values[("student", "novel")].mean() - values[("hyperdistill", "novel")].mean()
+        a_lo, a_hi = interval(novel["student"] - novel["hyperdistill"])
+        cells += [f"{point:+.2f} [{lo:+.2f}, {hi:+.2f}]", f"{absolute:+.1f} [{a_lo:+.1f}, {a_hi:+.1f}]"]
+        lines.append(f"| {task} | " + " | ".join(cells) + " |")
+    lines += [
+        "",
+        f"Robots: {len(robots['train'])} training and {len(robots['novel'])} novel, the same for every task.",
+    ]
+    return lines
+
+
+def _episodes_per_robot(rows: list[dict[str, str]]) -> dict[tuple[str, str, str], int]:
+    """Episodes per robot of each (model, task, split) (the most any robot has)."""
+    counts: dict[tuple[str, str, str], dict[str, int]] = defaultdict(lambda: defaultdict(int))
+    for row in rows:
+        counts[(row["model"], row["task"], row["split"])][row["morphology"]] += 1
+    return {key: max(robots.values()) for key, robots in counts.items()}
 
 
 def plot_returns(groups: dict[tuple[str, str, str], list[float]], target: Path, title: str = "") -> None:
@@ -353,7 +442,8 @@ def report(profile: Profile, out: Path, command: str = "") -> str:
 
     returns_file = out / "evaluate" / "returns.csv"
     if returns_file.is_file():
-        table, groups = returns_table(read_returns(returns_file))
+        rows = read_returns(returns_file)
+        table, groups = returns_table(rows)
         episodes = profile.evaluate.episodes
         plot_returns(
             groups,
@@ -367,12 +457,15 @@ def report(profile: Profile, out: Path, command: str = "") -> str:
             "",
             *table,
             "",
-            f"Mean ± sd over robots ({episodes} deterministic episode(s) per robot; n = robots x episodes); "
-            "the error bars of the figure are the same sd. Per-robot rows: `evaluate/returns.csv`.",
+            f"Mean over robots of each robot's mean return over its deterministic episodes ({episodes} per robot), with a "
+            "95% bootstrap interval over robots; the error bars of the figure are the sd over robots. Per-robot rows: "
+            "`evaluate/returns.csv`.",
             "",
             "![returns](report/returns.png)",
             "",
             *findings(profile, groups, [json.loads(p.read_text()) for p in export_reports(out)]),
+            "",
+            *zero_shot_comparison(profile, rows),
         ]
     gates_file = out / "evaluate" / "gates.npz"
     if gates_file.is_file():
