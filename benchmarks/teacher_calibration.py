@@ -10,7 +10,7 @@ chosen without looking at them.
 
 Writes ``<out>/README.md`` (mean return with a 95% bootstrap interval over robots, median, robots
 above thresholds, throughput), ``<out>/returns.csv`` (one row per run, model, robot and episode) and
-``<out>/training_curves.png`` (the mean return of the episodes finished in each rollout -- stochastic
+``<out>/training_curves.png`` with its numbers in ``<out>/curves.csv`` (the mean return of the episodes finished in each rollout -- stochastic
 actions, so below the deterministic return -- against env steps).
 
     divmorph teachers --profile cpu100 --out results/cpu100-calibration/w32 --task FT --no-progress
@@ -76,6 +76,10 @@ def main(argv: list[str] | None = None) -> None:
         summaries.append(_summary(run, profile, trained, untrained, float(steps[-1]), _wall_time(wall)))
 
     pd.DataFrame(rows).to_csv(args.out / "returns.csv", index=False)
+    # the curves of the figure, small enough to keep in the tree (a run's logs are not)
+    pd.concat(
+        [pd.DataFrame({"run": name, "env_steps": steps, "ep_rew_mean": returns}) for name, (steps, returns) in curves.items()]
+    ).to_csv(args.out / "curves.csv", index=False, float_format="%.2f")
     _plot(curves, args.task, args.out / "training_curves.png")
     (args.out / "README.md").write_text(_report(args, summaries))
     print((args.out / "README.md").read_text())
@@ -153,7 +157,7 @@ def _report(args: argparse.Namespace, summaries: list[dict]) -> str:
         "![training curves](training_curves.png)",
         "",
         f"Written {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())} on {platform.machine()} ({os.cpu_count()} cores), "
-        f"torch {th.__version__}, 1 thread per process. Per-robot returns: `returns.csv`.",
+        f"torch {th.__version__}, 1 thread per process. Per-robot returns: `returns.csv`; the curves' numbers: `curves.csv`.",
         "",
     ]
     return "\n".join(lines)
