@@ -162,6 +162,23 @@ def test_the_evaluation_reuses_a_transfer_runs_final_evaluation_only_when_it_is_
     assert final_evaluation(folder, "novel", robots[:1], 1) is None
 
 
+def test_student_overrides_size_one_student_and_name_only_known_students(finished_run, tmp_path):
+    """``student.overrides: {deploy-g1k1: {d_model: 24, ff_dim: 48}}`` widens that student alone; an
+    override for a student that does not exist stops the distill stage before any training."""
+    from sb3_divmorph.pipeline.distill import distill, distill_run
+
+    out, profiles = copied_run(finished_run, tmp_path)
+    profile = load_profile("tiny", profiles, overrides={"student.overrides": {"deploy-g1k1": {"d_model": 24, "ff_dim": 48}}})
+    widths = {
+        name: distill_run(profile, out, name, progress_bar=False).make_model().policy.config["d_model"]
+        for name in ("deploy-g1k1", "divmorph")
+    }
+    assert widths == {"deploy-g1k1": 24, "divmorph": 16}
+    wrong = load_profile("tiny", profiles, overrides={"student.overrides": {"deploy-g9k9": {"d_model": 24}}})
+    with pytest.raises(ConfigError, match="deploy-g9k9"):
+        distill(wrong, out, progress_bar=False, students=["divmorph"])
+
+
 def test_a_deployment_student_is_distilled_exported_and_reported_beside_the_student(finished_run, tmp_path):
     import shutil
 

@@ -89,9 +89,13 @@ class TeachersConfig:
 
 @dataclass
 class StudentConfig:
-    """The DivMorph student's ``policy_kwargs``."""
+    """The DivMorph student's ``policy_kwargs``, and updates of them for other students."""
 
     policy_kwargs: dict[str, Any] = field(default_factory=dict)
+    #: per-student updates of the ``policy_kwargs`` a student derives from the profile, by student
+    #: name, e.g. ``{deploy-g1k1: {d_model: 64, ff_dim: 256}}`` (a wider deployment student, whose
+    #: compact actor's size reduction grows with width); applied last
+    overrides: dict[str, dict[str, Any]] = field(default_factory=dict)
 
 
 @dataclass

@@ -60,7 +60,7 @@ def distill_run(profile: Profile, out: Path, name: str = "divmorph", progress_ba
     ppo_kwargs = load_zoo_entry(profile.teachers.hyperparams, "Unimal-FT-v0", profile.teachers.overrides).ppo_kwargs
     ppo_kwargs.update(n_steps=cfg.n_steps, batch_size=cfg.batch_size)
     algo = PPO if cfg.ppo_loss else ImitationPPO
-    policy_kwargs = spec.policy_kwargs(profile)
+    policy_kwargs = spec.kwargs(profile)
 
     def make_env():
         venv = make_vec_env(
@@ -130,9 +130,9 @@ def distill(profile: Profile, out: Path, progress_bar: bool = True, students: li
     from sb3_divmorph.pipeline.grid import Job, run_grid
 
     names = list(dict.fromkeys(students if students is not None else ["divmorph", *students_for(profile.transfer.arm_list())]))
-    unknown = [n for n in names if n not in STUDENTS]
+    unknown = [n for n in [*names, *profile.student.overrides] if n not in STUDENTS]
     if unknown:
-        raise ConfigError(f"unknown student(s) {unknown}; students: {list(STUDENTS)}")
+        raise ConfigError(f"unknown student(s) {unknown} (--students or student.overrides); students: {list(STUDENTS)}")
     jobs = [Job(f"{__name__}:distill_run", (name,), student_folder(out, name), f"student {name}") for name in names]
     if not all(is_done(job.folder) for job in jobs):
         load_teachers(profile, out)  # a missing teacher is an error before anything starts

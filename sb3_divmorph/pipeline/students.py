@@ -31,6 +31,10 @@ class StudentSpec:
     policy_kwargs: Callable[[Profile], dict[str, Any]]
     description: str
 
+    def kwargs(self, profile: Profile) -> dict[str, Any]:
+        """The student's ``policy_kwargs`` in ``profile``, its ``student.overrides`` entry applied last."""
+        return {**self.policy_kwargs(profile), **profile.student.overrides.get(self.name, {})}
+
 
 def dense_student_kwargs(profile: Profile) -> dict[str, Any]:
     """The teachers' MetaMorph kwargs, with ``task_embedding`` as one more late-fused input."""
