@@ -1,0 +1,55 @@
+#!/usr/bin/env bash
+# The 100-robot run (issue 27, profile `cpu100`), stage after stage, as a job queue that any number of
+# workers share -- one per core:
+#   PATH=$PWD/.venv/bin:$PATH nohup bash results/cpu100/streams/run.sh > results/cpu100/stream-1.log 2>&1 &
+#   PATH=$PWD/.venv/bin:$PATH nohup bash results/cpu100/streams/run.sh > results/cpu100/stream-2.log 2>&1 &
+# A worker takes the next job nobody holds; a stage's jobs all finish before any worker starts the next
+# stage's. Resumable: rerun after a stop -- finished runs are skipped, an unfinished one resumes from its
+# checkpoint (a job whose worker died is taken again). Each job is a divmorph command on the run folder.
+set -euo pipefail
+RUN=results/cpu100
+QUEUE="$RUN/streams/queue"
+P="--profile cpu100 --out $RUN --no-progress"
+mkdir -p "$QUEUE"
+
+STAGES=(teachers students transfer finish)
+# longest first, so that the two workers end a stage together
+jobs_teachers=("teachers $P --task Obstacle" "teachers $P --task VT" "teachers $P --task Incline" "teachers $P --task Patrol"
+               "teachers $P --task FT" "grl $P")
+jobs_students=("distill $P --students divmorph" "distill $P --students distilled" "distill $P --students deploy-g1k1"
+               "hyperdistill $P")
+jobs_transfer=()
+for seed in 0 1 2; do for task in PointNav Exploration Escape; do jobs_transfer+=("transfer $P --task $task --seeds $seed"); done; done
+jobs_finish=("export $P" "evaluate $P")
+
+alive() { [ -f "$1/pid" ] && kill -0 "$(cat "$1/pid")" 2> /dev/null; }
+
+claim() {  # take job folder $1 if nobody holds it (or its holder died without finishing)
+  if mkdir "$1" 2> /dev/null; then echo $$ > "$1/pid"; return 0; fi
+  # a dead holder's job: one worker wins it (the folder is named after the dead holder, made once)
+  if [ ! -f "$1/done" ] && [ -f "$1/pid" ] && ! alive "$1" && mkdir "$1/after-$(cat "$1/pid" 2> /dev/null)" 2> /dev/null; then echo $$ > "$1/pid"; return 0; fi
+  return 1
+}
+
+for stage in "${STAGES[@]}"; do
+  declare -n list="jobs_$stage"
+  for i in "${!list[@]}"; do
+    job="$QUEUE/$stage-$i"
+    [ -f "$job/done" ] && continue
+    claim "$job" || continue
+    echo "[$(date -u +%H:%M:%S)] $stage $i: divmorph ${list[$i]}"
+    # shellcheck disable=SC2086
+    divmorph ${list[$i]}
+    touch "$job/done"
+  done
+  # the stage's barrier: wait for the other workers' jobs of this stage
+  for i in "${!list[@]}"; do
+    until [ -f "$QUEUE/$stage-$i/done" ]; do
+      if [ -f "$QUEUE/$stage-$i/pid" ] && ! alive "$QUEUE/$stage-$i" && [ ! -f "$QUEUE/$stage-$i/done" ]; then
+        echo "a worker of $stage $i died; rerun this script to take it over" >&2; exit 1
+      fi
+      sleep 30
+    done
+  done
+done
+divmorph report --run "$RUN" --no-progress
