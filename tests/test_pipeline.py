@@ -880,7 +880,8 @@ def test_with_learning_rate_zero_a_transfer_run_leaves_every_fine_tuned_arms_act
 
 def test_transfer_curves_roll_out_the_first_eval_robots_of_each_split(finished_run, tmp_path):
     """``transfer.eval_robots: 1``: the evaluation curves (zero-shot, every ``eval_every`` steps, final)
-    roll out only the first training and the first novel robot, every episode of each."""
+    roll out only the first training and the first novel robot, every episode of each; the evaluation
+    stage evaluates the run on the same robots and episodes (so it reuses the last curve point)."""
     from sb3_divmorph.pipeline.curves import EVAL_FILE, read_eval
     from sb3_divmorph.pipeline.runs import profile_robots
     from sb3_divmorph.pipeline.transfer import transfer_run
@@ -894,6 +895,14 @@ def test_transfer_curves_roll_out_the_first_eval_robots_of_each_split(finished_r
     for split in ("train", "novel"):
         seen = {(row["robot"], row["episode"]) for row in rows if row["split"] == split and row["timesteps"] == 128}
         assert seen == {(profile_robots(profile, split)[0].stem, episode) for episode in (0, 1)}, split
+    # the evaluation stage evaluates such a run on its curves' robots and episodes, reusing the last one
+    from sb3_divmorph.pipeline.evaluate import final_evaluation, transfer_robots_and_episodes
+
+    for split in ("train", "novel"):
+        robots, episodes = transfer_robots_and_episodes(profile, split, profile_robots(profile, split), 1)
+        assert (robots, episodes) == (profile_robots(profile, split)[:1], 2)
+        assert final_evaluation(run.folder, split, robots, episodes) is not None
+        assert transfer_robots_and_episodes(profile, split, profile_robots(profile, split), 1, episodes_given=True)[1] == 1
     with pytest.raises(ConfigError, match="eval_robots"):
         load_profile("tiny", profiles, overrides={"transfer.eval_robots": 0})
 

@@ -6,9 +6,10 @@ training (``teacher-untrained``: the teacher run's initial weights and normalise
 student on every training task and (zero-shot) on the transfer tasks, the other distilled students
 (``student-<name>``, e.g. the dense MetaMorph⚗ student and the deployment diversions) on the
 training tasks, transferred and from-scratch policies on their novel task (every seed's run), and
-the HyperDistill student (when the baseline ran) on the training tasks. A transfer run's final
-evaluation (``eval.csv``, the same deterministic episodes with the same seed) is reused rather than
-rolled out again. Rows go to ``evaluate/returns.csv``. The student's gates for all ten task instructions and for
+the HyperDistill student (when the baseline ran) on the training tasks. A transfer run with
+evaluation curves is evaluated on their robots and episodes (``transfer.eval_robots`` /
+``eval_episodes``): its last curve evaluation (``eval.csv``, the same deterministic episodes with the
+same seed) is reused rather than rolled out again. Rows go to ``evaluate/returns.csv``. The student's gates for all ten task instructions and for
 every evaluated robot go to ``evaluate/gates.npz`` (for the correlation heatmaps of the report).
 """
 
@@ -37,6 +38,7 @@ from sb3_divmorph.pipeline.runs import (
     profile_env_kwargs,
     profile_robots,
     robot_observations,
+    transfer_eval_robots,
     stage_normalizer,
     task_env_name,
 )
@@ -74,6 +76,19 @@ def final_evaluation(folder: Path, split: str, robots: list[Path], episodes: int
     if sorted((row["robot"], row["episode"]) for row in rows) != sorted((r.stem, e) for r in robots for e in range(episodes)):
         return None
     return [{"morphology": row["robot"], "episode": row["episode"], "return": row["return"], "length": row["length"]} for row in rows]
+
+
+def transfer_robots_and_episodes(
+    profile: Profile, split: str, robots: list[Path], episodes: int, episodes_given: bool = False
+) -> tuple[list[Path], int]:
+    """The robots and episodes a transfer run is evaluated on: those of its evaluation curves (the
+    first ``transfer.eval_robots`` of the split, ``transfer.eval_episodes`` each), whose last
+    evaluation is then reused; ``robots`` x ``episodes`` when the runs have no curves or when the
+    episodes were asked for explicitly."""
+    cfg = profile.transfer
+    if cfg.eval_every <= 0 or episodes_given:
+        return robots, episodes
+    return transfer_eval_robots(profile, split), cfg.eval_episodes
 
 
 def evaluation_plan(profile: Profile, out: Path) -> list[tuple[str, Path, str]]:
@@ -181,16 +196,20 @@ def evaluate(
             print(f"[evaluate] skipped, already evaluated in {folder}")
             return folder
         print(f"[evaluate] {len(jobs)} model x task x split evaluation(s) of models finished since {folder} was written")
+    selected_episodes = episodes is not None
     episodes = profile.evaluate.episodes if episodes is None else episodes
     splits = splits_robots
     for label, model, task, split in tqdm(jobs, desc="[evaluate]", unit="model x task x split", disable=not progress_bar):
         if label == "teacher-untrained":
             found = evaluate_untrained_teacher(profile, out, task, splits[split], episodes, profile.seed)
         else:
-            found = final_evaluation(model, split, splits[split], episodes) if label.startswith("transfer-") else None
+            robots, count = splits[split], episodes
+            if label.startswith("transfer-"):
+                robots, count = transfer_robots_and_episodes(profile, split, robots, episodes, episodes_given=selected_episodes)
+            found = final_evaluation(model, split, robots, count) if label.startswith("transfer-") else None
             if found is None:
                 found = evaluate_model(
-                    model, task, splits[split], episodes, profile.max_episode_steps, profile.seed, env_kwargs=profile_env_kwargs(profile)
+                    model, task, robots, count, profile.max_episode_steps, profile.seed, env_kwargs=profile_env_kwargs(profile)
                 )
         rows += [{"model": label, "task": task, "split": split, **row} for row in found]
     buffer = io.StringIO()
