@@ -37,7 +37,7 @@ import torch as th  # noqa: E402
 from sb3_divmorph.pipeline.curves import evaluate_model  # noqa: E402
 from sb3_divmorph.pipeline.evaluate import evaluate_untrained_teacher  # noqa: E402
 from sb3_divmorph.pipeline.folders import teacher_folder  # noqa: E402
-from sb3_divmorph.pipeline.metrics import bootstrap_curves, interval  # noqa: E402
+from sb3_divmorph.pipeline.report import robot_interval  # noqa: E402
 from sb3_divmorph.pipeline.provenance import RECORD, recorded_profile  # noqa: E402
 from sb3_divmorph.pipeline.runs import is_done, profile_env_kwargs, profile_robots, read_progress  # noqa: E402
 
@@ -89,8 +89,8 @@ def _summary(run: Path, profile, trained: list[dict], untrained: list[dict], ste
     """One table row: the run's settings and its per-robot mean returns (trained and untrained)."""
     per_robot = pd.DataFrame(trained).groupby("morphology")["return"].mean().to_numpy()
     before = pd.DataFrame(untrained).groupby("morphology")["return"].mean().to_numpy()
-    lo, hi = interval(bootstrap_curves(per_robot[None, :, None])[:, 0])
-    b_lo, b_hi = interval(bootstrap_curves(before[None, :, None])[:, 0])
+    lo, hi = robot_interval(per_robot)
+    b_lo, b_hi = robot_interval(before)
     teachers = profile.teachers
     return {
         "run": run.name,

@@ -682,12 +682,12 @@ def test_report_gives_robot_intervals_and_answers_the_zero_shot_claim():
     assert len(groups[("student", "FT", "train")]) == 12  # one value per robot
     assert "(12 x 3)" in table[2] and "[" in table[2]
     lines = R.zero_shot_comparison(profile, rows)
-    ft = next(line for line in lines if line.startswith("| FT |"))
+    ft = next(line for line in lines if line.startswith("| FT ("))
     difference = ft.split("|")[4]
     lo, hi = (float(x) for x in difference[difference.index("[") + 1 : difference.index("]")].split(","))
     assert 0.3 < lo <= 0.5 <= hi < 0.7, ft  # kept 1.0 vs 0.5
     swapped = [{**row, "model": {"student": "hyperdistill", "hyperdistill": "student"}[row["model"]]} for row in rows]
-    ft = next(line for line in R.zero_shot_comparison(profile, swapped) if line.startswith("| FT |"))
+    ft = next(line for line in R.zero_shot_comparison(profile, swapped) if line.startswith("| FT ("))
     assert float(ft.split("|")[4].split("[")[0]) < 0
 
 

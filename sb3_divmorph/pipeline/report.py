@@ -160,7 +160,7 @@ def zero_shot_comparison(profile: Profile, rows: list[dict[str, str]], draws: in
         "episodes); 95% bootstrap intervals resampling training and novel robots independently, the same draws for "
         "both models (a paired difference). The paper's claim holds on a task when the difference's interval is above 0.",
         "",
-        "| task | DivMorph student: novel / train, kept [95% CI] | HyperDistill: novel / train, kept [95% CI] | difference in kept [95% CI] | absolute novel return, student - HyperDistill [95% CI] |",
+        "| task (training / novel robots) | DivMorph student: novel / train, kept [95% CI] | HyperDistill: novel / train, kept [95% CI] | difference in kept [95% CI] | absolute novel return, student - HyperDistill [95% CI] |",
         "|---|---|---|---|---|",
     ]
     rng = np.random.default_rng(0)
@@ -177,25 +177,19 @@ def zero_shot_comparison(profile: Profile, rows: list[dict[str, str]], draws: in
             with np.errstate(divide="ignore", invalid="ignore"):
                 kept[m] = novel_means / train_means
             novel[m] = novel_means
-        cells = []
+        means = {key: float(v.mean()) for key, v in values.items()}
+        points = {m: means[(m, "novel")] / means[(m, "train")] for m in models}
+        cells = [f"{task} ({len(robots['train'])} / {len(robots['novel'])} robots)"]
         for m in models:
-            point = values[(m, "novel")].mean() / values[(m, "train")].mean()
             lo, hi = interval(kept[m])
-            cells.append(f"{values[(m, 'novel')].mean():.1f} / {values[(m, 'train')].mean():.1f}, {point:.2f} [{lo:.2f}, {hi:.2f}]")
-        diff = kept["student"] - kept["hyperdistill"]
-        point = (
-            values[("student", "novel")].mean() / values[("student", "train")].mean()
-            - values[("hyperdistill", "novel")].mean() / values[("hyperdistill", "train")].mean()
-        )
-        lo, hi = interval(diff)
-        absolute = values[("student", "novel")].mean() - values[("hyperdistill", "novel")].mean()
+            cells.append(f"{means[(m, 'novel')]:.1f} / {means[(m, 'train')]:.1f}, {points[m]:.2f} [{lo:.2f}, {hi:.2f}]")
+        lo, hi = interval(kept["student"] - kept["hyperdistill"])
         a_lo, a_hi = interval(novel["student"] - novel["hyperdistill"])
-        cells += [f"{point:+.2f} [{lo:+.2f}, {hi:+.2f}]", f"{absolute:+.1f} [{a_lo:+.1f}, {a_hi:+.1f}]"]
-        lines.append(f"| {task} | " + " | ".join(cells) + " |")
-    lines += [
-        "",
-        f"Robots: {len(robots['train'])} training and {len(robots['novel'])} novel, the same for every task.",
-    ]
+        cells += [
+            f"{points['student'] - points['hyperdistill']:+.2f} [{lo:+.2f}, {hi:+.2f}]",
+            f"{means[('student', 'novel')] - means[('hyperdistill', 'novel')]:+.1f} [{a_lo:+.1f}, {a_hi:+.1f}]",
+        ]
+        lines.append("| " + " | ".join(cells) + " |")
     return lines
 
 
