@@ -1,0 +1,57 @@
+#!/usr/bin/env bash
+# The GPU work order of ../shared/gpu/README.md as one job, for a machine lent for minutes.
+#
+# Runs ON the GPU machine, in the project's root, after the parts .gpu/p0 and .gpu/p1 were copied to
+# /tmp/gpu by the jobs before (the README's table); this job carries .gpu/p2 and .gpu/data:
+#
+#     bash benchmarks/gpu_session.sh SECONDS
+#
+# SECONDS is the time this job may use in all: each step gets a share of what is left, and whatever
+# a step printed or wrote comes back even when its share runs out (the log, and one archive of the
+# result files, both in $OUT). In order of the work order:
+#   1. env steps/s of the batched backend on CUDA, FT and VT, the 100 official robots, 32-512 worlds
+#      per robot, beside the single C env on the same machine (benchmarks/batched_throughput.py);
+#   2. end-to-end PPO samples/s on 100 robots with the small and the paper-size MetaMorph policy
+#      (SB3's VecEnv path and DevicePPO), with the rollout/update split;
+#   3. a paper-size FT teacher on the 100 robots (the `gpu` profile) for the time left.
+set -uo pipefail
+budget=${1:?usage: gpu_session.sh SECONDS}
+deadline=$((SECONDS + budget))
+OUT=${OUT:?the device machine sets OUT}
+res=/tmp/res && mkdir -p "$res"
+log="$OUT/log.txt"
+exec > >(tee -a "$log") 2>&1
+
+left() { echo $((deadline - SECONDS)); }
+# share PERCENT: seconds for the next step, PERCENT of what is left minus the packing at the end
+share() { echo $(((deadline - SECONDS - 25) * $1 / 100)); }
+stamp() { echo "== $(date -u +%H:%M:%S) [$(left) s left] $*"; }
+
+stamp "install"
+cp .gpu/p2/* /tmp/gpu/ && bash /tmp/gpu/install.sh || { echo "install failed"; exit 1; }
+export PYTHONPATH=/tmp/site:$PWD UNIMAL_DATA=$PWD/.gpu/data PYTHONUNBUFFERED=1 MUJOCO_GL=egl
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
+python3 -c "import torch; print('torch', torch.__version__, torch.cuda.get_device_name(0))"
+
+stamp "1. env steps/s on CUDA (100 official robots)"
+timeout -s INT "$(share 45)" python3 benchmarks/batched_throughput.py --morphologies unimals100-train \
+  --tasks FT VT --robots 100 --worlds 32 128 512 --devices cuda --ppo-presets --count-robots 0 \
+  --seconds 3 --out "$res/batched_throughput_gpu.md"
+echo "step 1 exit $?"
+
+stamp "2. PPO end to end on CUDA (100 official robots)"
+timeout -s INT "$(share 60)" python3 benchmarks/batched_throughput.py --morphologies unimals100-train \
+  --tasks --robots --ppo-robots 100 --ppo-worlds 128 --ppo-presets small paper --count-robots 0 \
+  --out "$res/batched_ppo_gpu.md"
+echo "step 2 exit $?"
+
+stamp "3. paper-size FT teacher (gpu profile, 100 official robots)"
+timeout -s INT "$(share 100)" python3 -m divmorph teachers --profile gpu --out /tmp/gpu-run \
+  --train-robots unimals100-train --task FT --no-progress --set teachers.checkpoint_every=1000000
+echo "step 3 exit $?"
+
+stamp "packing"
+cp -r /tmp/gpu-run "$res/gpu-run" 2>/dev/null
+tar -C "$res" -czf /tmp/results.tgz . && split -b 15M /tmp/results.tgz "$OUT/results.tgz.part-"
+ls -la "$OUT"
+stamp "done"
