@@ -29,7 +29,8 @@ stamp() { echo "== $(date -u +%H:%M:%S) [$(left) s left] $*"; }
 
 stamp "install"
 cp .gpu/p2/* /tmp/gpu/ && bash /tmp/gpu/install.sh || { echo "install failed"; exit 1; }
-export PYTHONPATH=/tmp/site:$PWD UNIMAL_DATA=$PWD/.gpu/data PYTHONUNBUFFERED=1 MUJOCO_GL=egl
+# MUJOCO_GL=disable: the image has no EGL, and `import mujoco` would load it for rendering
+export PYTHONPATH=/tmp/site:$PWD UNIMAL_DATA=$PWD/.gpu/data PYTHONUNBUFFERED=1 MUJOCO_GL=disable
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
 python3 -c "import torch; print('torch', torch.__version__, torch.cuda.get_device_name(0))"
 
@@ -41,7 +42,7 @@ echo "step 1 exit $?"
 
 stamp "2. PPO end to end on CUDA (100 official robots)"
 timeout -s INT "$(share 60)" python3 benchmarks/batched_throughput.py --morphologies unimals100-train \
-  --tasks --robots --ppo-robots 100 --ppo-worlds 128 --ppo-presets small paper --count-robots 0 \
+  --tasks --robots --devices cuda --ppo-robots 100 --ppo-worlds 128 --ppo-presets small paper --count-robots 0 \
   --out "$res/batched_ppo_gpu.md"
 echo "step 2 exit $?"
 
