@@ -39,6 +39,8 @@ CAMERA_NEAR, CAMERA_FAR = 0.05, 400.0
 #: Half-width (m) of the region around the camera's target that casts shadows; MuJoCo's default
 #: (the model extent) spreads the shadow map over hundreds of metres and speckles the ground.
 SHADOW_CLIP = 50.0
+#: Side (pixels) of the generated textures of worlds that are never rendered (``render_mode=None``).
+UNRENDERED_TEXTURE_SIZE = 8
 
 
 def _check_display() -> None:
@@ -203,6 +205,15 @@ class UnimalEnv(gym.Env):
         self.task.build(spec)
         spec.visual.global_.offwidth = max(spec.visual.global_.offwidth, self.width)
         spec.visual.global_.offheight = max(spec.visual.global_.offheight, self.height)
+        if self.render_mode is None:
+            # Nothing draws this env's worlds, so its generated textures can be tiny: at full size
+            # they are 13.8 MB of every compiled world (the 800x800 skybox alone 11.5 MB), which
+            # made 32 envs x 16 cached worlds of 100 robots ~8 GB. Physics does not read them.
+            for texture in spec.textures:
+                if texture.builtin != mujoco.mjtBuiltin.mjBUILTIN_NONE:
+                    texture.width, texture.height = min(texture.width, UNRENDERED_TEXTURE_SIZE), min(
+                        texture.height, UNRENDERED_TEXTURE_SIZE
+                    )
         return spec, robot
 
     def _build_world(self, index: int) -> _World:

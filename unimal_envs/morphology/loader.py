@@ -93,6 +93,11 @@ class Morphology:
     standing_height: float = 0.0
     path: Path | None = None
 
+    def __post_init__(self) -> None:
+        # read-only: one loaded morphology is shared by every env of a process (load_morphology)
+        for array in (self.proprio_static, self.context, self.obs_padding_mask, self.act_padding_mask):
+            array.setflags(write=False)
+
     @property
     def num_tokens(self) -> int:
         return len(self.tokens)
@@ -319,11 +324,22 @@ def load_morphology(path: str | Path) -> Morphology:
     path = Path(path)
     if not path.is_file():
         raise MorphologyError(f"{path}: no such MJCF file")
-    try:
-        xml = path.read_text()
-    except (OSError, UnicodeDecodeError) as err:
-        raise MorphologyError(f"{path}: cannot read it ({err})") from None
-    return parse_morphology(xml, name=path.stem, source=str(path), path=path.resolve())
+    # One load per file and version in a process: every env of a vectorised stage loads the same
+    # robots, and each load compiles the robot, leaving ~1.9 MB of freed but unreturned heap per
+    # robot behind (190 MB per env for 100 robots). Morphologies are frozen, so sharing is safe.
+    stat = path.stat()
+    key = (str(path.resolve()), stat.st_mtime_ns, stat.st_size)
+    if key not in _LOADED:
+        try:
+            xml = path.read_text()
+        except (OSError, UnicodeDecodeError) as err:
+            raise MorphologyError(f"{path}: cannot read it ({err})") from None
+        _LOADED[key] = parse_morphology(xml, name=path.stem, source=str(path), path=path.resolve())
+    return _LOADED[key]
+
+
+#: Morphologies loaded in this process, by (resolved path, modification time, size).
+_LOADED: dict[tuple[str, int, int], Morphology] = {}
 
 
 def shipped_set_dir(name: str) -> Path:
