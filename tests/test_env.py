@@ -146,6 +146,16 @@ def test_same_seed_same_episode(train_files):
     assert not _same(a, c)
 
 
+def test_worlds_that_never_render_keep_little_memory_and_the_same_physics(train_files):
+    """An env without a render mode compiles its worlds with tiny generated textures (the skybox
+    alone is 11.5 MB at full size, times 16 cached worlds per env), and nothing else: the same seed
+    and actions give the same episode as an env that renders."""
+    headless, drawing = make_ft(train_files), make_ft(train_files, render_mode="rgb_array", width=64, height=48)
+    assert _same(_rollout(headless, seed=3), _rollout(drawing, seed=3))
+    assert headless.unwrapped.model.ntexdata < 100_000  # bytes of texture in the compiled world
+    assert drawing.unwrapped.model.ntexdata > 1_000_000
+
+
 def test_velocities_describe_the_current_state(train_files):
     env = make_ft(train_files[:1])
     env.reset(seed=0)

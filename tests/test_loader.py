@@ -107,3 +107,15 @@ def test_torso_context_includes_the_reference_floor_offset(official_train):
     lo, hi = -0.49, 2.04  # ModuMorph's body_pos z bounds
     assert robot.context[0, 2] == pytest.approx(2 * (z + REFERENCE_FLOOR_TOP - lo) / (hi - lo) - 1, abs=1e-6)
     assert 0.0 < robot.context[0, 2] < 1.0  # inside the bounds only with the offset
+
+
+def test_a_process_loads_each_robot_file_once_and_again_when_it_changes(tmp_path):
+    """Every env of a stage reads the same robots: they share one loaded (read-only) morphology,
+    and an edited file is read again."""
+    path = tmp_path / "robot.xml"
+    path.write_text(unimal_xml())
+    first = load_morphology(path)
+    assert load_morphology(path) is first
+    assert not first.context.flags.writeable
+    path.write_text(unimal_xml() + "\n<!-- edited -->\n")
+    assert load_morphology(path) is not first
