@@ -28,7 +28,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecMonitor, Ve
 from sb3_divmorph.pipeline.arms import ARMS
 from sb3_divmorph.pipeline.config import Profile
 from sb3_divmorph.pipeline.metrics import ArmMetrics, RobotCurves, task_metrics_from_curves
-from sb3_divmorph.pipeline.runs import MODEL, atomic_write_text, is_done, stage_normalizer, task_env_name, write_csv
+from sb3_divmorph.pipeline.runs import stage_model, atomic_write_text, is_done, stage_normalizer, task_env_name, write_csv
 
 EVAL_FILE = "eval.csv"
 EVAL_COLUMNS = ["timesteps", "split", "robot", "episode", "return", "length"]
@@ -291,7 +291,7 @@ def evaluate_model(
     if statistics is not None:
         venv = VecNormalize.load(str(statistics), venv)
         venv.training, venv.norm_reward = False, False
-    model = PPO.load(folder / MODEL, device="cpu")
+    model = PPO.load(stage_model(folder), device="cpu")
     rows = rollout_returns(model, venv, robots, episodes)
     venv.close()
     return [{"morphology": row.pop("robot"), **row} for row in rows]

@@ -31,6 +31,7 @@ from sb3_divmorph.pipeline.folders import TEACHER_RUN, student_folder, teacher_f
 from sb3_divmorph.pipeline.students import STUDENTS
 from sb3_divmorph.pipeline.runs import (
     MODEL,
+    stage_model,
     atomic_save,
     atomic_write_text,
     is_done,
@@ -96,16 +97,24 @@ def evaluation_plan(profile: Profile, out: Path) -> list[tuple[str, Path, str]]:
     the teacher's folder, evaluated with its run's initial model)."""
     out = Path(out)
     plan = []
+
+    def trained(folder: Path) -> bool:
+        # a finished stage whose model a recorded run does not ship is skipped, and said so
+        if is_done(folder) and not (folder / MODEL).is_file():
+            print(f"[evaluate] skipping {folder}: its model is not in this checkout (see stage_model)")
+            return False
+        return is_done(folder)
+
     for t in profile.teachers.tasks:
-        if is_done(teacher_folder(out, t)):
+        if trained(teacher_folder(out, t)):
             plan += [("teacher", teacher_folder(out, t), t), ("teacher-untrained", teacher_folder(out, t), t)]
-    if is_done(student_folder(out)):
+    if trained(student_folder(out)):
         plan += [("student", student_folder(out), t) for t in (*profile.teachers.tasks, *transfer_tasks(profile, out))]
     for name in STUDENTS:
-        if name != "divmorph" and is_done(student_folder(out, name)):
+        if name != "divmorph" and trained(student_folder(out, name)):
             plan += [(f"student-{name}", student_folder(out, name), t) for t in profile.teachers.tasks]
     hyperdistill_student = out / "hyperdistill" / "student"
-    if is_done(hyperdistill_student):
+    if trained(hyperdistill_student):
         plan += [("hyperdistill", hyperdistill_student, t) for t in profile.teachers.tasks]
     for task in transfer_tasks(profile, out):
         for arm in ARMS:
@@ -117,7 +126,7 @@ def evaluation_plan(profile: Profile, out: Path) -> list[tuple[str, Path, str]]:
 
 def student_gates(out: Path, robots: list[Path], seed: int, **env_kwargs: Any) -> dict[str, np.ndarray]:
     """The student's task gates for every task instruction and morphology gates for ``robots``."""
-    model = PPO.load(student_folder(out) / MODEL, device="cpu")
+    model = PPO.load(stage_model(student_folder(out)), device="cpu")
     statistics = stage_normalizer(student_folder(out))
     normalizer = None if statistics is None else load_normalizer(statistics)
     obs = robot_observations(task_env_name("FT"), robots, seed, **env_kwargs)

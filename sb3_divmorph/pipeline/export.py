@@ -56,6 +56,7 @@ from sb3_divmorph.pipeline.runs import (
     profile_env_kwargs,
     profile_robots,
     read_done,
+    stage_model,
     stage_normalizer,
     task_env_name,
 )
@@ -163,7 +164,7 @@ def export_actor(
         # e.g. a zero-shot export of a novel task made before its transfer finished: not reused as if it were the transferred one
         print(f"[export] {folder}: exported from another model than {source / MODEL} ({source_label}); exporting again")
         (folder / DONE).unlink()
-    model = PPO.load(source / MODEL, device="cpu")
+    model = PPO.load(stage_model(source), device="cpu")
     policy = model.policy.eval()
     if not isinstance(policy, DivMorphPolicy):
         raise TypeError(f"{source / MODEL} holds a {type(policy).__name__}, not a DivMorph student")

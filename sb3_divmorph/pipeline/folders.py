@@ -32,7 +32,7 @@ from typing import Any
 
 from sb3_divmorph.distillation import Teacher
 from sb3_divmorph.pipeline.config import ConfigError, Profile
-from sb3_divmorph.pipeline.runs import MODEL, is_done, stage_normalizer
+from sb3_divmorph.pipeline.runs import stage_model, is_done, stage_normalizer
 from sb3_divmorph.pipeline.students import STUDENTS
 from unimal_envs.contract import NOVEL_TASKS, TASK_NAMES, observation_space
 
@@ -77,7 +77,7 @@ def load_teachers(profile: Profile, out: Path, root: str = "teachers") -> dict[i
         if not is_done(folder):
             raise FileNotFoundError(f"teacher for {task} not found in {folder} (no done.json); run `divmorph teachers --out {out}` first")
         teachers[TASK_NAMES.index(task)] = Teacher.load(
-            folder / MODEL, stage_normalizer(folder), name=task, observation_space=observation_space()
+            stage_model(folder), stage_normalizer(folder), name=task, observation_space=observation_space()
         )
     return teachers
 

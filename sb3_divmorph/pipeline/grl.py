@@ -44,7 +44,7 @@ from sb3_divmorph.learngene import inherit, layer_units, unit_tensors  # noqa: F
 from sb3_divmorph.pipeline.config import Profile, grl_policy_kwargs, load_zoo_entry  # noqa: F401 -- re-exported
 from sb3_divmorph.pipeline.folders import agent_folder, grl_folder, learngene_file, read_learngene  # noqa: F401 -- re-exported
 from sb3_divmorph.pipeline.runs import (
-    MODEL,
+    stage_model,
     TrainingRun,
     atomic_write_json,
     is_done,
@@ -167,7 +167,7 @@ def agent_run(profile: Profile, out: Path, generation: int, index: int, progress
         parent_folder = agent_folder(out, generation - 1, plan.parent)
         venv = inherited_normalizer(parent_folder, make_env(), gamma)
         model = PPO(POLICY, venv, policy_kwargs=kwargs, seed=seed, device=device, **entry.ppo_kwargs)
-        parent = PPO.load(parent_folder / MODEL, device=device)
+        parent = PPO.load(stage_model(parent_folder), device=device)
         inherit(model.policy, parent.policy, plan.learngene)
         return model
 

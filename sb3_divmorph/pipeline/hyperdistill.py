@@ -41,6 +41,7 @@ from sb3_divmorph.pipeline.folders import TEACHER_RUN, load_teachers, teacher_fo
 from sb3_divmorph.pipeline.grid import Job, run_grid
 from sb3_divmorph.pipeline.runs import (
     MODEL,
+    stage_model,
     NORMALIZER,
     atomic_save,
     atomic_write_json,
@@ -190,7 +191,7 @@ def export_mlp(profile: Profile, out: Path, robot_file: Path, task: str, steps: 
     source = hyperdistill_folder(out) / "student"
     if not is_done(source):
         raise FileNotFoundError(f"no HyperDistill student in {source}; run `divmorph hyperdistill --out {out}` first")
-    policy = load_student(source / MODEL, observation_space())
+    policy = load_student(stage_model(source), observation_space())
     statistics = stage_normalizer(source)  # none when the student holds its teachers' statistics
     normalizer = None if statistics is None else load_normalizer(statistics)
     env = gym.make(
@@ -247,7 +248,7 @@ def export_mlp(profile: Profile, out: Path, robot_file: Path, task: str, steps: 
     if teacher_folder is not None:
         from stable_baselines3 import PPO
 
-        teacher_actor = actor_parameter_count(PPO.load(teacher_folder / MODEL, device="cpu").policy)
+        teacher_actor = actor_parameter_count(PPO.load(stage_model(teacher_folder), device="cpu").policy)
     weights = mlp.stored_numbers()["weights"]
     report = {
         **metadata,

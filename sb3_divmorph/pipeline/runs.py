@@ -337,6 +337,26 @@ def save_checkpoint(model: BaseAlgorithm, folder: Path, stateful: Sequence[State
     return target
 
 
+def stage_model(folder: Path) -> Path:
+    """The ``model.zip`` of a trained stage.
+
+    :raises FileNotFoundError: it is not there; when the stage is finished (``done.json``), the message
+        says that the model was left out of this checkout (a recorded run ships some models only, the
+        rest stay in git history) and how to get it back.
+    """
+    path = Path(folder) / MODEL
+    if path.is_file():
+        return path
+    if is_done(folder):
+        raise FileNotFoundError(
+            f"{path} is not in this checkout: {folder} finished training (done.json), but its model does not ship "
+            "(the recorded runs keep the tracked files small; their README lists what ships). Restore it from git "
+            f"history (`git log --oneline -- {path}` names the commit that removed it; `git checkout <that commit>^ -- {path}`) "
+            "or retrain the stage (`--redo <stage>`)."
+        )
+    raise FileNotFoundError(f"{path}: no model; train the stage first")
+
+
 def stage_normalizer(folder: Path) -> Path | None:
     """The ``VecNormalize`` statistics a finished stage saved, or ``None`` if it trained without.
 

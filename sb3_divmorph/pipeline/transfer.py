@@ -58,7 +58,7 @@ from sb3_divmorph.pipeline.folders import (  # noqa: F401 -- transfer_folder, tr
 )
 from sb3_divmorph.pipeline.grid import GridReport, Job, run_grid
 from sb3_divmorph.pipeline.runs import (
-    MODEL,
+    stage_model,
     TrainingRun,
     atomic_write_json,
     inherited_normalizer,
@@ -413,7 +413,7 @@ def transfer_run(
             # a new MetaMorph; only the learngene's layers (and the observation statistics they were trained with) inherited
             venv = inherited_normalizer(source, make_env(), gamma, freeze_observations=cfg.observation_statistics == "frozen")
             model = PPO("MetaMorphPolicy", venv, policy_kwargs=grl_policy_kwargs(profile), seed=run_seed, device=device, **entry.ppo_kwargs)
-            inherit(model.policy, PPO.load(source / MODEL, device=device).policy, learngene["units"])
+            inherit(model.policy, PPO.load(stage_model(source), device=device).policy, learngene["units"])
             return model
 
     else:
@@ -422,7 +422,7 @@ def transfer_run(
         def make_model():
             # the source's weights and observation statistics (frozen); reward statistics start afresh for the
             # new task; an encoder for a task input the source never had (a teacher of another task) is added
-            saved = PPO.load(source / MODEL, device=device)
+            saved = PPO.load(stage_model(source), device=device)
             venv = inherited_normalizer(source, make_env(), gamma, freeze_observations=cfg.observation_statistics == "frozen")
             return finetuned_model(saved, venv, task, task_policy_kwargs, run_seed, device, entry.ppo_kwargs)
 
