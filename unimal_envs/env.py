@@ -211,8 +211,9 @@ class UnimalEnv(gym.Env):
             # made 32 envs x 16 cached worlds of 100 robots ~8 GB. Physics does not read them.
             for texture in spec.textures:
                 if texture.builtin != mujoco.mjtBuiltin.mjBUILTIN_NONE:
-                    texture.width, texture.height = min(texture.width, UNRENDERED_TEXTURE_SIZE), min(
-                        texture.height, UNRENDERED_TEXTURE_SIZE
+                    texture.width, texture.height = (
+                        min(texture.width, UNRENDERED_TEXTURE_SIZE),
+                        min(texture.height, UNRENDERED_TEXTURE_SIZE),
                     )
         return spec, robot
 
