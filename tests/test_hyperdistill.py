@@ -373,7 +373,12 @@ def test_profile_key_task_input_new_runs_index_recorded_runs_none(tmp_path):
     assert "task_input" not in with_current_values(record)["hyperdistill"]  # a branch links the recorded student
     shipped_profile = recorded_profile(SHIPPED / "run.json").hyperdistill
     assert (shipped_profile.task_input, shipped_profile.observation_statistics) == ("none", "own")
-    shipped = load_student(SHIPPED / "hyperdistill" / "student" / "model.zip")
+    # a student saved before the keys existed (its saved policy_kwargs lack them) loads as it was
+    # trained; results/cpu's own such student left the tree (git history), so one is made here
+    legacy = PPO(HyperDistillPolicy, multitask_venv(tasks=("FT",)), policy_kwargs=STUDENT, n_steps=16, batch_size=16, device="cpu")
+    assert "task_input" not in legacy.policy_kwargs
+    legacy.save(tmp_path / "legacy.zip")
+    shipped = load_student(tmp_path / "legacy.zip")
     assert (shipped.task_input, shipped.observation_statistics) == ("none", "own")
     assert shipped.network.context_dim == contract.observation_space()["context"].shape[1]
 
