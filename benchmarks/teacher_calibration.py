@@ -37,7 +37,7 @@ import torch as th  # noqa: E402
 from sb3_divmorph.pipeline.curves import evaluate_model  # noqa: E402
 from sb3_divmorph.pipeline.evaluate import evaluate_untrained_teacher  # noqa: E402
 from sb3_divmorph.pipeline.folders import teacher_folder  # noqa: E402
-from sb3_divmorph.pipeline.report import robot_interval  # noqa: E402
+from sb3_divmorph.pipeline.metrics import robot_interval  # noqa: E402
 from sb3_divmorph.pipeline.provenance import RECORD, recorded_profile  # noqa: E402
 from sb3_divmorph.pipeline.runs import is_done, profile_env_kwargs, profile_robots, read_progress  # noqa: E402
 

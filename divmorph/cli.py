@@ -170,7 +170,7 @@ def _parser(overview: bool = False) -> argparse.ArgumentParser:
     )
     command("report", "plots, the paper's figures and a markdown summary of the run")
     p = command("figure", "one of the paper's figures (PNG + CSV in report/figures/)")
-    p.add_argument("name", help="transfer-train, transfer-novel, deployment, ablation or gates")
+    p.add_argument("name", help="transfer-train, transfer-novel, deployment, pareto, ablation or gates")
 
     # Commands that read no run: they take no --out and create nothing but what they write.
     help_text = "record a trained model (pipeline stage or rl-zoo run) to MP4, headless"

@@ -235,8 +235,8 @@ def test_every_arm_writes_a_curve_and_metrics(finished_run):
 def test_the_papers_figures_come_with_their_numbers(finished_run):
     out, profiles = finished_run
     figures = out / "report" / "figures"
-    for name in ("transfer-train", "transfer-novel", "deployment", "ablation", "gates"):
-        assert (figures / f"{name}.png").stat().st_size > 10_000, name
+    for name in ("transfer-train", "transfer-novel", "deployment", "pareto", "ablation", "gates"):
+        assert (figures / f"{name}.png").stat().st_size > (5_000 if name == "pareto" else 10_000), name  # a drawn figure
         with open(figures / f"{name}.csv") as f:
             assert list(csv.DictReader(f)), name
     with open(figures / "transfer-train.csv") as f:
@@ -250,9 +250,25 @@ def test_the_papers_figures_come_with_their_numbers(finished_run):
     assert {r["model"] for r in bars} == {"teacher", "hyperdistill", "student"}
     sizes = {r["model"]: float(r["value"]) for r in bars if r["panel"].startswith("parameters") and r["task"] == "FT"}
     assert sizes["student"] < sizes["teacher"]  # the compact actor, pruned
+    # the Pareto figure plots the same sizes against the training robots' returns, with intervals
+    with open(figures / "pareto.csv") as f:
+        points = {r["model"]: r for r in csv.DictReader(f) if r["task"] == "FT"}
+    assert set(points) == {"teacher", "hyperdistill", "student"}
+    assert all(np.isclose(float(points[m]["parameters"]), sizes[m]) for m in ("teacher", "student"))
+    assert all(float(p["lo"]) <= float(p["return"]) <= float(p["hi"]) for p in points.values())
+    smallest = min(points.values(), key=lambda p: float(p["parameters"]))
+    assert smallest["pareto"] == "True"  # nothing is smaller, so nothing beats it
     (figures / "ablation.png").unlink()
     assert cli(["figure", "ablation", "--profile", "tiny", "--profiles", str(profiles), "--out", str(out)]) == 0
     assert (figures / "ablation.png").is_file()
+
+
+def test_the_pareto_front_keeps_what_no_smaller_actor_beats():
+    from sb3_divmorph.pipeline.figures import pareto_front
+
+    # (size, return): (5, 2) beats (5, 1) and (10, 1); (20, 3) buys more return for more size
+    assert pareto_front([10, 5, 20, 5], [1, 2, 3, 1]) == [1, 2]
+    assert pareto_front([1, 2, 3], [3, 2, 1]) == [0]
 
 
 def test_closest_starts_from_the_teacher_the_embeddings_say(finished_run):

@@ -48,7 +48,7 @@ from sb3_divmorph.pipeline.curves import (  # noqa: E402, F401 -- the metrics ar
     task_metrics,
     write_metrics,
 )
-from sb3_divmorph.pipeline.metrics import ArmMetrics, mean_curve  # noqa: E402
+from sb3_divmorph.pipeline.metrics import ArmMetrics, mean_curve, robot_interval  # noqa: E402
 from sb3_divmorph.pipeline.runs import atomic_save, profile_robots, write_csv  # noqa: E402
 from sb3_divmorph.pipeline.folders import export_reports, transfer_tasks  # noqa: E402
 from sb3_divmorph.pipeline.students import STUDENTS  # noqa: E402
@@ -64,6 +64,8 @@ CAPTIONS = {
     "transfer-novel": "the same on the novel robots (never trained on); band = ±1 sd over seeds",
     "deployment": "bars = mean over robots of deterministic episodes, error bars = sd over robots; sizes: stored actor "
     "weights, mean over exported robots (log scale)",
+    "pareto": "each deployable actor's size (stored weights, mean over exported robots, log scale) against its mean "
+    "deterministic return on the training robots, error bars = 95% bootstrap interval over robots; line = Pareto front",
     "ablation": "DivMorph and its ablations, deterministic return; line = mean over seeds, band = ±1 sd over seeds",
     "gates": "Pearson correlation of the gate vectors of two tasks (left) or two robots (right)",
 }
@@ -174,20 +176,20 @@ def _read_csv(path: Path) -> list[dict[str, str]]:
 DEPLOYED = {"teacher": "Teacher (MetaMorph)", "hyperdistill": "HyperDistill MLP", "student": "DivMorph compact actor"}
 
 
-def deployment_figure(profile: Profile, out: Path) -> Path | None:
-    """Fig 5: per training task, returns on training and novel robots, and parameter counts."""
-    out = Path(out)
-    returns_file = out / "evaluate" / "returns.csv"
+def _deployment_data(profile: Profile, out: Path) -> tuple[dict[str, str], dict[tuple[str, str, str], dict[str, list[float]]], dict] | None:
+    """What the deployment figures show: ``(models and their labels, returns by (model, task, split)
+    and robot, actor sizes by (model, task))``; ``None`` without an evaluation."""
+    returns_file = Path(out) / "evaluate" / "returns.csv"
     if not returns_file.is_file():
         return None
     tasks = list(profile.teachers.tasks)
     deployed = dict(DEPLOYED)
     # students distilled with a deployment diversion are deployed too (export/<student>/...)
     deployed.update({f"student-{name}": f"DivMorph compact actor ({name})" for name in STUDENTS if name.startswith("deploy-")})
-    groups: dict[tuple[str, str, str], list[float]] = defaultdict(list)
+    groups: dict[tuple[str, str, str], dict[str, list[float]]] = defaultdict(lambda: defaultdict(list))
     for row in _read_csv(returns_file):
         if row["model"] in deployed and row["task"] in tasks:
-            groups[(row["model"], row["task"], row["split"])].append(float(row["return"]))
+            groups[(row["model"], row["task"], row["split"])][row["morphology"]].append(float(row["return"]))
     sizes: dict[tuple[str, str], list[int]] = defaultdict(list)
     for path in export_reports(out):
         r = json.loads(path.read_text())
@@ -195,9 +197,21 @@ def deployment_figure(profile: Profile, out: Path) -> Path | None:
         sizes[("student" if student == "divmorph" else f"student-{student}", r["task"])].append(r["compact_weights"])
         if student == "divmorph":
             sizes[("teacher", r["task"])].append(r["metamorph_folded_weights"])  # like for like: through the same folding
-    for path in (out / "hyperdistill" / "export").glob("*/report.json"):
+    for path in (Path(out) / "hyperdistill" / "export").glob("*/report.json"):
         r = json.loads(path.read_text())
         sizes[("hyperdistill", r["task"])].append(r["mlp_weights"])
+    return deployed, groups, sizes
+
+
+def deployment_figure(profile: Profile, out: Path) -> Path | None:
+    """Fig 5: per training task, returns on training and novel robots, and parameter counts."""
+    out = Path(out)
+    data = _deployment_data(profile, out)
+    if data is None:
+        return None
+    deployed, by_robot, sizes = data
+    tasks = list(profile.teachers.tasks)
+    groups = {key: [r for robot in robots.values() for r in robot] for key, robots in by_robot.items()}
     models = [m for m in deployed if any(key[0] == m for key in groups)]
     if not models:
         return None
@@ -251,6 +265,69 @@ def deployment_figure(profile: Profile, out: Path) -> Path | None:
     write_csv(folder / "deployment.csv", rows, ["panel", "model", "task", "value", "sd", "n"])
     _save(fig, folder / "deployment.png", rect=(0, 0.07, 1, 0.95))
     return folder / "deployment.png"
+
+
+def pareto_front(sizes: list[float], returns: list[float]) -> list[int]:
+    """Indices of the points that no other point beats (as small or smaller and as good or better, one of
+    them strictly), by increasing size: the best return each size buys."""
+    points = sorted(range(len(sizes)), key=lambda i: (sizes[i], -returns[i]))
+    front: list[int] = []
+    for i in points:
+        if not front or returns[i] > returns[front[-1]]:
+            front.append(i)
+    return front
+
+
+def pareto_figure(profile: Profile, out: Path) -> Path | None:
+    """Deployment's trade-off: per training task, each deployable actor's size against the return it
+    keeps on the training robots (like for like: every size counted after the same folding)."""
+    out = Path(out)
+    data = _deployment_data(profile, out)
+    if data is None:
+        return None
+    deployed, by_robot, sizes = data
+    tasks = [t for t in profile.teachers.tasks if any((m, t) in sizes and (m, t, "train") in by_robot for m in deployed)]
+    if not tasks:
+        return None
+    columns = min(len(tasks), 3)
+    fig, axes = plt.subplots(-(-len(tasks) // columns), columns, figsize=(4.4 * columns, 3.6 * -(-len(tasks) // columns)), squeeze=False)
+    rows = []
+    for ax, task in zip(axes.flat, tasks):
+        models = [m for m in deployed if (m, task) in sizes and (m, task, "train") in by_robot]
+        x = [float(np.mean(sizes[(m, task)])) for m in models]
+        per_robot = [np.array([np.mean(v) for v in by_robot[(m, task, "train")].values()]) for m in models]
+        y = [float(v.mean()) for v in per_robot]
+        for i, (model, values) in enumerate(zip(models, per_robot)):
+            lo, hi = robot_interval(values)
+            color = f"C{list(deployed).index(model)}"
+            ax.errorbar(x[i], y[i], yerr=[[y[i] - lo], [hi - y[i]]], fmt="o", color=color, capsize=3, label=deployed[model])
+            rows.append({"task": task, "model": model, "parameters": x[i], "return": y[i], "lo": lo, "hi": hi, "robots": len(values)})
+        front = pareto_front(x, y)
+        ax.plot([x[i] for i in front], [y[i] for i in front], "k--", linewidth=0.8, zorder=0)
+        for row in rows[-len(models) :]:
+            row["pareto"] = models.index(row["model"]) in front
+        ax.set_xscale("log")
+        ax.set_title(task, fontsize=9)
+        ax.set_xlabel("actor parameters (count, log scale)")
+        ax.set_ylabel("return, training robots")
+    for ax in list(axes.flat)[len(tasks) :]:
+        ax.axis("off")
+    handles, labels = axes.flat[0].get_legend_handles_labels()
+    for ax in axes.flat:
+        for h, label in zip(*ax.get_legend_handles_labels()):
+            if label not in labels:
+                handles.append(h)
+                labels.append(label)
+    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 4), fontsize=8)
+    fig.suptitle(
+        f"Deployment: actor size against return\n(profile {profile.name}, seed {profile.seed}; "
+        f"{profile.evaluate.episodes} deterministic episode(s) per robot)",
+        fontsize=10,
+    )
+    folder = figures_folder(out)
+    write_csv(folder / "pareto.csv", rows, ["task", "model", "parameters", "return", "lo", "hi", "robots", "pareto"])
+    _save(fig, folder / "pareto.png", rect=(0, 0.08, 1, 0.95))
+    return folder / "pareto.png"
 
 
 def _correlation(gates: np.ndarray) -> np.ndarray:
@@ -322,6 +399,8 @@ def make_figure(profile: Profile, out: Path, name: str) -> Path | None:
         return _curves_figure(profile, out, name, ABLATION_ARMS, ("train", "novel"), f"Ablations of DivMorph (seeds {seeds})")
     if name == "deployment":
         return deployment_figure(profile, out)
+    if name == "pareto":
+        return pareto_figure(profile, out)
     if name == "gates":
         return gates_figure(profile, out)
     raise ConfigError(f"unknown figure {name!r}; figures: {list(FIGURES)}")

@@ -168,6 +168,11 @@ def interval(samples: np.ndarray, confidence: float = CONFIDENCE) -> tuple[float
     return float(lo), float(hi)
 
 
+def robot_interval(values: np.ndarray) -> tuple[float, float]:
+    """95% bootstrap interval of the mean of per-robot values (robots resampled with replacement)."""
+    return interval(bootstrap_curves(np.asarray(values, float)[None, :, None])[:, 0])
+
+
 def level_for(zero_shots: Mapping[str, float], finals: Mapping[str, float], fraction: float = EFFICIENCY_FRACTION) -> float | None:
     """The sample-efficiency level of a task and split (see the module docstring); ``None`` when no
     arm ends above the start (nothing was learnt that steps could be counted to).

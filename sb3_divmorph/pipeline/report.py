@@ -38,7 +38,7 @@ from sb3_divmorph.pipeline.figures import (  # noqa: E402, F401 -- _correlation,
     save_png,
     write_metrics,
 )
-from sb3_divmorph.pipeline.metrics import BOOTSTRAP, EFFICIENCY_FRACTION, bootstrap_curves, interval  # noqa: E402
+from sb3_divmorph.pipeline.metrics import BOOTSTRAP, EFFICIENCY_FRACTION, interval, robot_interval  # noqa: E402
 from sb3_divmorph.pipeline.runs import atomic_write_text, read_progress  # noqa: E402
 
 
@@ -137,11 +137,6 @@ def robot_means(rows: list[dict[str, str]]) -> dict[tuple[str, str, str], dict[s
     for row in rows:
         returns[(row["model"], row["task"], row["split"])][row["morphology"]].append(float(row["return"]))
     return {key: {robot: float(np.mean(values)) for robot, values in robots.items()} for key, robots in returns.items()}
-
-
-def robot_interval(values: np.ndarray) -> tuple[float, float]:
-    """95% bootstrap interval of the mean of per-robot values (robots resampled with replacement)."""
-    return interval(bootstrap_curves(np.asarray(values, float)[None, :, None])[:, 0])
 
 
 def zero_shot_comparison(profile: Profile, rows: list[dict[str, str]], draws: int = BOOTSTRAP) -> list[str]:
