@@ -229,7 +229,7 @@ def evaluate(
     if selected:
         print(f"[evaluate] {len(jobs)} model x task x split evaluation(s), {episodes} episode(s) per robot -> {folder}")
         return folder
-    if is_done(student_folder(out)):
+    if is_done(student_folder(out)) and (student_folder(out) / MODEL).is_file():  # (a skipped student has no gates)
         gates = student_gates(out, splits["train"] + splits["novel"], profile.seed, **profile_env_kwargs(profile))
         atomic_save(folder / "gates.npz", lambda p: np.savez(p, **gates))
     mark_done(folder, rows=len(rows))

@@ -289,6 +289,7 @@ def pareto_figure(profile: Profile, out: Path) -> Path | None:
     tasks = [t for t in profile.teachers.tasks if any((m, t) in sizes and (m, t, "train") in by_robot for m in deployed)]
     if not tasks:
         return None
+    present = [m for m in deployed if any(key[0] == m for key in by_robot)]
     columns = min(len(tasks), 3)
     fig, axes = plt.subplots(-(-len(tasks) // columns), columns, figsize=(4.4 * columns, 3.6 * -(-len(tasks) // columns)), squeeze=False)
     rows = []
@@ -299,8 +300,10 @@ def pareto_figure(profile: Profile, out: Path) -> Path | None:
         y = [float(v.mean()) for v in per_robot]
         for i, (model, values) in enumerate(zip(models, per_robot)):
             lo, hi = robot_interval(values)
-            color = f"C{list(deployed).index(model)}"
-            ax.errorbar(x[i], y[i], yerr=[[y[i] - lo], [hi - y[i]]], fmt="o", color=color, capsize=3, label=deployed[model])
+            color = f"C{present.index(model)}"  # the deployment figure's colours
+            ax.errorbar(
+                x[i], y[i], yerr=[[max(y[i] - lo, 0.0)], [max(hi - y[i], 0.0)]], fmt="o", color=color, capsize=3, label=deployed[model]
+            )
             rows.append({"task": task, "model": model, "parameters": x[i], "return": y[i], "lo": lo, "hi": hi, "robots": len(values)})
         front = pareto_front(x, y)
         ax.plot([x[i] for i in front], [y[i] for i in front], "k--", linewidth=0.8, zorder=0)

@@ -239,11 +239,9 @@ def export_mlp(profile: Profile, out: Path, robot_file: Path, task: str, steps: 
             f"exported MLP differs from the student by {max_diff:.2e} > {TOLERANCE} ({robot_file.stem}, {task}; "
             f"largest action mean {float(reference.abs().max()):.3g})"
         )
-    teacher_folder = (
-        next(p for p in (Path(out) / "hyperdistill" / "teachers" / task, Path(out) / "teachers" / task) if (p / MODEL).is_file())
-        if task in profile.teachers.tasks
-        else None
-    )
+    # the teacher the student learnt from: HyperDistill's own (ModuMorph) teachers, else the run's
+    own, shared = Path(out) / "hyperdistill" / "teachers" / task, Path(out) / "teachers" / task
+    teacher_folder = (own if (own / MODEL).is_file() else shared) if task in profile.teachers.tasks else None
     teacher_actor = None
     if teacher_folder is not None:
         from stable_baselines3 import PPO
