@@ -14,6 +14,10 @@
 #   2. end-to-end PPO samples/s on 100 robots with the small and the paper-size MetaMorph policy
 #      (SB3's VecEnv path and DevicePPO), with the rollout/update split;
 #   3. a paper-size FT teacher on the 100 robots (the `gpu` profile) for the time left.
+# Warp compiles MuJoCo Warp's kernels on a fresh machine (~3.5 minutes on an H200, 2026-11-26): the job
+# returns its kernel cache (warp-cache.tgz.part-*, with the results); put those files in the ignored
+# .gpu/warp-cache/ and carry that folder with p2 next time, and the compilation is skipped (same Warp
+# version, same GPU architecture: sm_90 for the H100 and H200).
 set -uo pipefail
 budget=${1:?usage: gpu_session.sh SECONDS}
 deadline=$((SECONDS + budget))
@@ -31,6 +35,9 @@ stamp "install"
 cp .gpu/p2/* /tmp/gpu/ && bash /tmp/gpu/install.sh || { echo "install failed"; exit 1; }
 # MUJOCO_GL=disable: the image has no EGL, and `import mujoco` would load it for rendering
 export PYTHONPATH=/tmp/site:$PWD UNIMAL_DATA=$PWD/.gpu/data PYTHONUNBUFFERED=1 MUJOCO_GL=disable
+if ls .gpu/warp-cache/warp-cache.tgz.part-* > /dev/null 2>&1; then
+  mkdir -p ~/.cache/warp && cat .gpu/warp-cache/warp-cache.tgz.part-* | tar -xz -C ~/.cache/warp && echo "warp kernel cache restored"
+fi
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
 python3 -c "import torch; print('torch', torch.__version__, torch.cuda.get_device_name(0))"
 
@@ -52,7 +59,11 @@ timeout -s INT "$(share 100)" python3 -m divmorph teachers --profile gpu --out /
 echo "step 3 exit $?"
 
 stamp "packing"
-cp -r /tmp/gpu-run "$res/gpu-run" 2>/dev/null
+# the teacher's run without its checkpoints (40 MB each at the paper size: more than a job brings back)
+mkdir -p "$res/gpu-run" && tar -C /tmp/gpu-run --exclude=checkpoints -cf - . 2>/dev/null | tar -C "$res/gpu-run" -xf -
 tar -C "$res" -czf /tmp/results.tgz . && split -b 15M /tmp/results.tgz "$OUT/results.tgz.part-"
+# the kernel cache, for the next machine (at most 8 files come back: log, results, cache)
+tar -C ~/.cache/warp -czf /tmp/warp-cache.tgz . && split -b 15M /tmp/warp-cache.tgz "$OUT/warp-cache.tgz.part-"
+[ "$(ls "$OUT" | wc -l)" -le 8 ] || echo "more than 8 files in \$OUT: some will not come back"
 ls -la "$OUT"
 stamp "done"
