@@ -30,15 +30,15 @@ from sb3_divmorph.pipeline.config import Profile
 from sb3_divmorph.pipeline.folders import TEACHER_RUN, student_folder, teacher_folder, transfer_folder, transfer_seeds, transfer_tasks
 from sb3_divmorph.pipeline.students import STUDENTS
 from sb3_divmorph.pipeline.runs import (
-    MODEL,
-    stage_model,
     atomic_save,
     atomic_write_text,
+    has_model,
     is_done,
     mark_done,
     profile_env_kwargs,
     profile_robots,
     robot_observations,
+    stage_model,
     transfer_eval_robots,
     stage_normalizer,
     task_env_name,
@@ -100,10 +100,9 @@ def evaluation_plan(profile: Profile, out: Path) -> list[tuple[str, Path, str]]:
 
     def trained(folder: Path) -> bool:
         # a finished stage whose model a recorded run does not ship is skipped, and said so
-        if is_done(folder) and not (folder / MODEL).is_file():
+        if is_done(folder) and not has_model(folder):
             print(f"[evaluate] skipping {folder}: its model is not in this checkout (see stage_model)")
-            return False
-        return is_done(folder)
+        return has_model(folder)
 
     for t in profile.teachers.tasks:
         if trained(teacher_folder(out, t)):
@@ -229,7 +228,7 @@ def evaluate(
     if selected:
         print(f"[evaluate] {len(jobs)} model x task x split evaluation(s), {episodes} episode(s) per robot -> {folder}")
         return folder
-    if is_done(student_folder(out)) and (student_folder(out) / MODEL).is_file():  # (a skipped student has no gates)
+    if has_model(student_folder(out)):  # (a skipped student has no gates)
         gates = student_gates(out, splits["train"] + splits["novel"], profile.seed, **profile_env_kwargs(profile))
         atomic_save(folder / "gates.npz", lambda p: np.savez(p, **gates))
     mark_done(folder, rows=len(rows))

@@ -337,6 +337,11 @@ def save_checkpoint(model: BaseAlgorithm, folder: Path, stateful: Sequence[State
     return target
 
 
+def has_model(folder: Path) -> bool:
+    """Whether a stage finished and its ``model.zip`` is in this checkout (see :func:`stage_model`)."""
+    return is_done(folder) and (Path(folder) / MODEL).is_file()
+
+
 def stage_model(folder: Path) -> Path:
     """The ``model.zip`` of a trained stage.
 
