@@ -366,6 +366,7 @@ def main(argv: list[str] | None = None) -> None:
         default=["sb3", "device"],
         help="batched PPO paths: sb3 (SB3's PPO through the VecEnv interface), device (DevicePPO)",
     )
+    parser.add_argument("--ppo-single-envs", type=int, default=8, help="single C envs of the CPU PPO row (0: skip it)")
     parser.add_argument("--count-robots", type=int, default=10, help="robots of the launch and copy counts (0: skip them)")
     parser.add_argument("--count-worlds", type=int, default=8, help="worlds per robot of the launch and copy counts")
     parser.add_argument("--out", type=Path, default=RESULTS)
@@ -403,16 +404,17 @@ def main(argv: list[str] | None = None) -> None:
     from sb3_divmorph.pipeline.runs import make_vec_env
 
     for preset in args.ppo_presets:
-        single_envs = 8
-        rate, rollout, collect, update = ppo_steps_per_second(
-            lambda: make_vec_env("Unimal-FT-v0", single_envs, 0, 1000, morphologies=files),  # noqa: B023 (called here)
-            preset,
-            "cpu",
-            64,
-            2,
-        )
-        ppo_rows.append((preset, f"single x {single_envs} (cpu)", single_envs, rollout, rate, collect, update))
-        print(f"PPO {preset} single x{single_envs}: {rate:.0f} steps/s", flush=True)
+        single_envs = args.ppo_single_envs
+        if single_envs:
+            rate, rollout, collect, update = ppo_steps_per_second(
+                lambda: make_vec_env("Unimal-FT-v0", single_envs, 0, 1000, morphologies=files),  # noqa: B023 (called here)
+                preset,
+                "cpu",
+                64,
+                2,
+            )
+            ppo_rows.append((preset, f"single x {single_envs} (cpu)", single_envs, rollout, rate, collect, update))
+            print(f"PPO {preset} single x{single_envs}: {rate:.0f} steps/s", flush=True)
         for device in devices:
             for worlds in args.ppo_worlds:
                 make = lambda: make_vec_env("Unimal-FT-v0", 0, 0, 1000, "batched", worlds, device, morphologies=files)  # noqa: E731,B023 (called in this iteration)

@@ -13,7 +13,8 @@
 #      per robot, beside the single C env on the same machine (benchmarks/batched_throughput.py);
 #   2. end-to-end PPO samples/s on 100 robots with the small and the paper-size MetaMorph policy
 #      (SB3's VecEnv path and DevicePPO), with the rollout/update split;
-#   3. a paper-size FT teacher on the 100 robots (the `gpu` profile) for the time left.
+#   3. a paper-size FT teacher on the 100 robots (the `gpu` profile) for the time left (over a minute).
+# WORLDS="128 512" picks step 1's worlds per robot; PPO_SHARE=60 keeps 40% of step 2's time for step 3.
 # Warp compiles MuJoCo Warp's kernels on a fresh machine (~3.5 minutes on an H200, 2026-11-26): the job
 # returns its kernel cache (warp-cache.tgz.part-*, with the results); put those files in the ignored
 # .gpu/warp-cache/ and carry that folder with p2 next time, and the compilation is skipped (same Warp
@@ -41,26 +42,31 @@ fi
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
 python3 -c "import torch; print('torch', torch.__version__, torch.cuda.get_device_name(0))"
 
-stamp "1. env steps/s on CUDA (100 official robots)"
-timeout -s INT "$(share 45)" python3 benchmarks/batched_throughput.py --morphologies unimals100-train \
-  --tasks FT VT --robots 100 --worlds 32 128 512 --devices cuda --ppo-presets --count-robots 0 \
+stamp "1. env steps/s on CUDA (100 official robots; worlds per robot: ${WORLDS:=32 128 512})"
+# shellcheck disable=SC2086  # WORLDS is a list
+timeout -s INT "$(share 55)" python3 benchmarks/batched_throughput.py --morphologies unimals100-train \
+  --tasks FT VT --robots 100 --worlds $WORLDS --devices cuda --ppo-presets --count-robots 0 \
   --seconds 3 --out "$res/batched_throughput_gpu.md"
 echo "step 1 exit $?"
 
 stamp "2. PPO end to end on CUDA (100 official robots)"
-timeout -s INT "$(share 60)" python3 benchmarks/batched_throughput.py --morphologies unimals100-train \
-  --tasks --robots --devices cuda --ppo-robots 100 --ppo-worlds 128 --ppo-presets small paper --count-robots 0 \
-  --out "$res/batched_ppo_gpu.md"
+# the paper size first (issue 28's target is for it); no single-env CPU rows (CPU numbers live elsewhere)
+timeout -s INT "$(share ${PPO_SHARE:-100})" python3 benchmarks/batched_throughput.py --morphologies unimals100-train \
+  --tasks --robots --devices cuda --ppo-robots 100 --ppo-worlds 128 --ppo-presets paper small --ppo-single-envs 0 \
+  --count-robots 0 --out "$res/batched_ppo_gpu.md"
 echo "step 2 exit $?"
 
-stamp "3. paper-size FT teacher (gpu profile, 100 official robots)"
-timeout -s INT "$(share 100)" python3 -m divmorph teachers --profile gpu --out /tmp/gpu-run \
-  --train-robots unimals100-train --task FT --no-progress --set teachers.checkpoint_every=1000000
-echo "step 3 exit $?"
+# PPO_SHARE=60 leaves 40% of what is left after step 1 to the teacher (a first session measured it already)
+if [ "$(share 100)" -gt 60 ]; then
+  stamp "3. paper-size FT teacher (gpu profile, 100 official robots)"
+  timeout -s INT "$(share 100)" python3 -m divmorph teachers --profile gpu --out /tmp/gpu-run \
+    --train-robots unimals100-train --task FT --no-progress --set teachers.checkpoint_every=1000000
+  echo "step 3 exit $?"
+fi
 
 stamp "packing"
 # the teacher's run without its checkpoints (40 MB each at the paper size: more than a job brings back)
-mkdir -p "$res/gpu-run" && tar -C /tmp/gpu-run --exclude=checkpoints -cf - . 2>/dev/null | tar -C "$res/gpu-run" -xf -
+[ -d /tmp/gpu-run ] && mkdir -p "$res/gpu-run" && tar -C /tmp/gpu-run --exclude=checkpoints -cf - . 2>/dev/null | tar -C "$res/gpu-run" -xf -
 tar -C "$res" -czf /tmp/results.tgz . && split -b 15M /tmp/results.tgz "$OUT/results.tgz.part-"
 # the kernel cache, for the next machine (at most 8 files come back: log, results, cache)
 tar -C ~/.cache/warp -czf /tmp/warp-cache.tgz . && split -b 15M /tmp/warp-cache.tgz "$OUT/warp-cache.tgz.part-"
