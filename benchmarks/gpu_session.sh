@@ -15,10 +15,9 @@
 #      (SB3's VecEnv path and DevicePPO), with the rollout/update split;
 #   3. a paper-size FT teacher on the 100 robots (the `gpu` profile) for the time left (over a minute).
 # WORLDS="128 512" picks step 1's worlds per robot; PPO_SHARE=60 keeps 40% of step 2's time for step 3.
-# Warp compiles MuJoCo Warp's kernels on a fresh machine (~3.5 minutes on an H200, 2026-11-26): the job
-# returns its kernel cache (warp-cache.tgz.part-*, with the results); put those files in the ignored
-# .gpu/warp-cache/ and carry that folder with p2 next time, and the compilation is skipped (same Warp
-# version, same GPU architecture: sm_90 for the H100 and H200).
+# Warp compiles MuJoCo Warp's kernels on a fresh machine (~4 minutes for FT and 1 more for VT on an
+# H200, 2026-11-26); the steps after the first reuse them. The kernel cache does not travel: it is
+# ~76 MB compressed, more than a job brings back (64 MiB) or carries beside the parts.
 set -uo pipefail
 budget=${1:?usage: gpu_session.sh SECONDS}
 deadline=$((SECONDS + budget))
@@ -36,9 +35,6 @@ stamp "install"
 cp .gpu/p2/* /tmp/gpu/ && bash /tmp/gpu/install.sh || { echo "install failed"; exit 1; }
 # MUJOCO_GL=disable: the image has no EGL, and `import mujoco` would load it for rendering
 export PYTHONPATH=/tmp/site:$PWD UNIMAL_DATA=$PWD/.gpu/data PYTHONUNBUFFERED=1 MUJOCO_GL=disable
-if ls .gpu/warp-cache/warp-cache.tgz.part-* > /dev/null 2>&1; then
-  mkdir -p ~/.cache/warp && cat .gpu/warp-cache/warp-cache.tgz.part-* | tar -xz -C ~/.cache/warp && echo "warp kernel cache restored"
-fi
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
 python3 -c "import torch; print('torch', torch.__version__, torch.cuda.get_device_name(0))"
 
@@ -68,8 +64,5 @@ stamp "packing"
 # the teacher's run without its checkpoints (40 MB each at the paper size: more than a job brings back)
 [ -d /tmp/gpu-run ] && mkdir -p "$res/gpu-run" && tar -C /tmp/gpu-run --exclude=checkpoints -cf - . 2>/dev/null | tar -C "$res/gpu-run" -xf -
 tar -C "$res" -czf /tmp/results.tgz . && split -b 15M /tmp/results.tgz "$OUT/results.tgz.part-"
-# the kernel cache, for the next machine (at most 8 files come back: log, results, cache)
-tar -C ~/.cache/warp -czf /tmp/warp-cache.tgz . && split -b 15M /tmp/warp-cache.tgz "$OUT/warp-cache.tgz.part-"
-[ "$(ls "$OUT" | wc -l)" -le 8 ] || echo "more than 8 files in \$OUT: some will not come back"
 ls -la "$OUT"
 stamp "done"
