@@ -28,7 +28,7 @@ import unimal_envs  # noqa: F401
 from sb3_divmorph.finetune import prepare_transfer, set_adam_eps
 from sb3_divmorph.pipeline.grl import inherited_normalizer
 from sb3_divmorph.pipeline.provenance import recorded_profile
-from sb3_divmorph.pipeline.runs import make_vec_env, profile_robots
+from sb3_divmorph.pipeline.runs import make_vec_env, profile_robots, stage_model
 from sb3_divmorph.pipeline.transfer import gate_selection, robot_observations
 
 ACTOR = {
@@ -75,7 +75,7 @@ def probe(
         )
     else:
         source = run / model_folder
-        saved = PPO.load(source / "model.zip", device="cpu")
+        saved = PPO.load(stage_model(source), device="cpu")
         venv = inherited_normalizer(source, env, 0.99, freeze_observations=True)
         model = PPO(
             type(saved.policy),
@@ -114,7 +114,7 @@ def gain(run: Path, model_folder: str, task: str, robots, steps: int = 100) -> t
         action-mean space, J = d means / d embedding output), and the embedding output's RMS.
     """
     source = run / model_folder
-    model = PPO.load(source / "model.zip", device="cpu")
+    model = PPO.load(stage_model(source), device="cpu")
     venv = inherited_normalizer(
         source, make_vec_env(f"Unimal-{task}-v0", 4, 100, 1000, morphologies=robots), 0.99, freeze_observations=True
     )
@@ -246,7 +246,7 @@ def main() -> None:
         ("DivMorph student", "student"),
     ):
         g, rms = gain(run, folder, args.task, robots)
-        policy = PPO.load(run / folder / "model.zip", device="cpu").policy
+        policy = PPO.load(stage_model(run / folder), device="cpu").policy
         first = getattr(policy.mlp_extractor.policy_net.layers[0], "weight", None)
         head = getattr(policy.action_net, "weight", None)
         lines.append(

@@ -34,13 +34,13 @@ import sb3_divmorph  # noqa: F401  (policy aliases)
 import unimal_envs  # noqa: F401
 from sb3_divmorph.pipeline.grl import inherited_normalizer
 from sb3_divmorph.pipeline.provenance import recorded_profile
-from sb3_divmorph.pipeline.runs import make_vec_env, profile_robots
+from sb3_divmorph.pipeline.runs import make_vec_env, profile_robots, stage_model
 
 
 def visited_states(run: Path, folder: str, task: str, robots, steps: int, device: str):
     """``steps`` x 4 normalised observations the trained model at ``run/folder`` visits (deterministic actions)."""
     source = run / folder
-    model = PPO.load(source / "model.zip", device=device)
+    model = PPO.load(stage_model(source), device=device)
     venv = inherited_normalizer(source, make_vec_env(f"Unimal-{task}-v0", 4, 0, 1000, morphologies=robots), 0.99, freeze_observations=True)
     obs, batch = venv.reset(), []
     for _ in range(steps):
@@ -116,8 +116,8 @@ def main(argv: list[str] | None = None) -> None:
     states = visited_states(run, "teachers/FT", args.task, robots, args.steps, args.device)
     env = make_vec_env(f"Unimal-{args.task}-v0", 1, 0, 1000, morphologies=robots)
     models = [
-        ("FT teacher (trained)", PPO.load(run / "teachers" / "FT" / "model.zip", device=args.device).policy),
-        ("DivMorph student (trained)", PPO.load(run / "student" / "model.zip", device=args.device).policy),
+        ("FT teacher (trained)", PPO.load(stage_model(run / "teachers" / "FT"), device=args.device).policy),
+        ("DivMorph student (trained)", PPO.load(stage_model(run / "student"), device=args.device).policy),
     ]
     for name, policy_class in (("MetaMorph", "MetaMorphPolicy"), ("DivMorph", "DivMorphPolicy")):
         th.manual_seed(0)

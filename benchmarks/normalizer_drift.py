@@ -34,7 +34,7 @@ import sb3_divmorph  # noqa: F401
 import unimal_envs  # noqa: F401
 from sb3_divmorph.distillation import load_normalizer
 from sb3_divmorph.pipeline.provenance import recorded_profile
-from sb3_divmorph.pipeline.runs import profile_robots
+from sb3_divmorph.pipeline.runs import profile_robots, stage_model
 
 TASKS = ("FT", "VT", "Incline", "Obstacle", "Patrol")
 KEY = "proprioceptive"
@@ -84,7 +84,7 @@ def main() -> None:
     run = Path(args.run)
     profile = recorded_profile(run / "run.json")
     robots = profile_robots(profile, "train")[: args.robots]
-    student = PPO.load(run / "student" / "model.zip", device="cpu")
+    student = PPO.load(stage_model(run / "student"), device="cpu")
     normalizer = load_normalizer(run / "student" / "vecnormalize.pkl")
     mixture = normalizer.obs_rms[KEY]
     per_task = {task: statistics(run / "teachers" / task) for task in TASKS}

@@ -2,6 +2,7 @@
 
     python examples/load_run_model.py runs/demo/teachers/FT          # a teacher of `make demo`
     python examples/load_run_model.py runs/demo/student --task Patrol
+    python examples/load_run_model.py results/cpu100/teachers/Obstacle --robot mvt-5506-1-12-17-11-10-12 --seed 1 --steps 1000
 
 Any folder holding ``model.zip`` and (when training normalised observations) ``vecnormalize.pkl``
 works: the pipeline's ``teachers/<task>``, ``student``, ``transfer/<task>/<arm>/seed-<s>``, or the output of
@@ -21,7 +22,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import VecNormalize
 
 import sb3_divmorph  # noqa: F401  (policy aliases)
-from sb3_divmorph.pipeline.runs import trained_robots
+from sb3_divmorph.pipeline.runs import trained_env_kwargs, trained_robots
 import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
 from unimal_envs.contract import TASK_NAMES
 
@@ -36,6 +37,8 @@ def main(argv: list[str] | None = None) -> None:
         default=2,
         help="first N robots the model was trained on (its run's robot_sets.json; else the train set), one episode each",
     )
+    parser.add_argument("--robot", nargs="+", default=None, help="these robots of its training set, by name, instead of the first N")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the first env (env i: seed + i; it lays out terrain and blocks)")
     parser.add_argument("--steps", type=int, default=200, help="longest episode")
     args = parser.parse_args(argv)
     th.set_num_threads(1)  # small models: a second thread only contends with the simulation
@@ -50,9 +53,18 @@ def main(argv: list[str] | None = None) -> None:
     # The robots the model was trained on, by default: a pipeline run records them (robot_sets.json);
     # a teacher run on other robots would look untrained.
     trained = trained_robots(args.folder)
-    robots = (trained if trained is not None else unimal_envs.morphology.loader.morphology_files("train"))[: args.robots]
+    robots = trained if trained is not None else unimal_envs.morphology.loader.morphology_files("train")
+    if args.robot:
+        unknown = sorted(set(args.robot) - {r.stem for r in robots})
+        if unknown:
+            parser.error(f"not among the robots it was trained on: {unknown}")
+        robots = [r for name in args.robot for r in robots if r.stem == name]
+    else:
+        robots = robots[: args.robots]
     print(f"robots: {[r.stem for r in robots]} ({'the ones it was trained on' if trained else 'the shipped train set'})")
-    venv = make_vec_env(f"Unimal-{task}-v0", n_envs=len(robots), seed=0, env_kwargs=dict(morphologies=robots, max_episode_steps=args.steps))
+    # and the observations it learnt on (a run may measure body heights above the ground, not the world)
+    env_kwargs = dict(morphologies=robots, max_episode_steps=args.steps, **trained_env_kwargs(args.folder))
+    venv = make_vec_env(f"Unimal-{task}-v0", n_envs=len(robots), seed=args.seed, env_kwargs=env_kwargs)
     if stats_file.is_file():
         venv = VecNormalize.load(str(stats_file), venv)
         venv.training, venv.norm_reward = False, False

@@ -40,7 +40,7 @@ for robot in sorted(by_robot[0]):
 out += ["", f"Written {time.strftime('%Y-%m-%d %H:%M')} on {platform.machine()} ({os.cpu_count()} cores), torch {th.__version__}.",
         "Short episodes are falls (termination): a third of the official robots fall at zero torque and must learn to stand first.", "",
         "The two teachers' models are not in the repository (tracked files stay under 24 MiB): the commands above train them again "
-        "(~2,760 s each); the calib-lr1e-3 teacher has bit for bit the weights and statistics of `results/cpu/teachers/FT`, which ships. "
+        "(~2,760 s each); the calib-lr1e-3 teacher has bit for bit the weights and statistics of `results/cpu/teachers/FT` (its model in git history since 2026-11-26). "
         "`summarize.py` needs both.", ""]
 (root / "summary.md").write_text("\n".join(out))
 print("\n".join(out))

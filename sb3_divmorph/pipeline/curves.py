@@ -28,7 +28,15 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecMonitor, Ve
 from sb3_divmorph.pipeline.arms import ARMS
 from sb3_divmorph.pipeline.config import Profile
 from sb3_divmorph.pipeline.metrics import ArmMetrics, RobotCurves, task_metrics_from_curves
-from sb3_divmorph.pipeline.runs import stage_model, atomic_write_text, is_done, stage_normalizer, task_env_name, write_csv
+from sb3_divmorph.pipeline.runs import (
+    atomic_write_text,
+    is_done,
+    stage_model,
+    stage_normalizer,
+    task_env_name,
+    trained_env_kwargs,
+    write_csv,
+)
 
 EVAL_FILE = "eval.csv"
 EVAL_COLUMNS = ["timesteps", "split", "robot", "episode", "return", "length"]
@@ -282,8 +290,11 @@ def evaluate_model(
     """Deterministic returns of the model saved in ``folder`` on each robot doing ``task``.
 
     :param instruction: the task's instruction in other words (default: the built-in one).
-    :param env_kwargs: further env arguments (the run's :func:`~sb3_divmorph.pipeline.runs.profile_env_kwargs`).
+    :param env_kwargs: further env arguments; default: those the model's run trained with
+        (:func:`~sb3_divmorph.pipeline.runs.trained_env_kwargs`), so that it sees the observations it learnt on.
     """
+    if env_kwargs is None:
+        env_kwargs = trained_env_kwargs(folder)
     venv = robot_venv(
         task_env_name(task), robots, max_steps, seed, **({"instruction": instruction} if instruction else {}), **(env_kwargs or {})
     )
