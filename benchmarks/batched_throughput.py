@@ -28,8 +28,9 @@ Usage::
     python benchmarks/batched_throughput.py [--robots 10 100] [--worlds 1 8 32] [--devices cpu cuda]
     python benchmarks/batched_throughput.py --tasks --robots --ppo-robots 2 --ppo-worlds 8 --out results/x.md  # PPO and counts only
 
-Writes ``results/batched_throughput.md``. Targets on one H100: >= 200k env steps/s on FT across
-100 robots, >= 100k on VT, PPO end-to-end (small model) >= 30k steps/s.
+Writes ``results/batched_throughput.md`` (interrupted with Ctrl-C or ``timeout -s INT``, it writes the
+rows measured so far). Targets on one H100: >= 200k env steps/s on FT across 100 robots, >= 100k on
+VT, PPO end to end >= 30k samples/s with the paper-size MetaMorph.
 """
 
 from __future__ import annotations
@@ -378,67 +379,82 @@ def main(argv: list[str] | None = None) -> None:
     devices = [d for d in args.devices if d != "cuda" or torch.cuda.is_available()]
     skipped = [d for d in args.devices if d not in devices]
     env_rows: list[tuple] = []
-    for task in args.tasks:
-        for robots in args.robots:
-            files = morphology_files(args.morphologies)[:robots]
-            single = single_steps_per_second(task, files, args.seconds)
-            env_rows.append((task, len(files), "single (1 core)", 1, 1, single, 0.0, "-"))
-            print(f"{task} {len(files)} robots single: {single:.0f} steps/s", flush=True)
-            for device in devices:
-                for worlds in args.worlds:
-                    if device == "cpu" and worlds * len(files) > args.max_worlds_cpu:
-                        continue
-                    env = make_batched_env(task, morphologies=files, worlds_per_robot=worlds, device=device, seed=0)
-                    rate, warmup = batched_steps_per_second(env, args.seconds)
-                    overflow = ", ".join(f"{kind} {n}" for kind, n in env.overflow_report().items()) or "none"
-                    env.close()
-                    env_rows.append((task, len(files), f"batched ({device})", worlds, env.num_envs, rate, warmup, overflow))
-                    print(
-                        f"{task} {len(files)} robots batched {device} W={worlds}: {rate:.0f} steps/s "
-                        f"({rate / single:.1f}x single; warm-up {warmup:.1f} s)",
-                        flush=True,
-                    )
-
     ppo_rows: list[tuple] = []
-    files = morphology_files(args.morphologies)[: args.ppo_robots]
-    from sb3_divmorph.pipeline.runs import make_vec_env
-
-    for preset in args.ppo_presets:
-        single_envs = args.ppo_single_envs
-        if single_envs:
-            rate, rollout, collect, update = ppo_steps_per_second(
-                lambda: make_vec_env("Unimal-FT-v0", single_envs, 0, 1000, morphologies=files),  # noqa: B023 (called here)
-                preset,
-                "cpu",
-                64,
-                2,
-            )
-            ppo_rows.append((preset, f"single x {single_envs} (cpu)", single_envs, rollout, rate, collect, update))
-            print(f"PPO {preset} single x{single_envs}: {rate:.0f} steps/s", flush=True)
-        for device in devices:
-            for worlds in args.ppo_worlds:
-                make = lambda: make_vec_env("Unimal-FT-v0", 0, 0, 1000, "batched", worlds, device, morphologies=files)  # noqa: E731,B023 (called in this iteration)
-                for algo in args.ppo_algos:
-                    rate, rollout, collect, update = ppo_steps_per_second(make, preset, device, 16, 2, algo)
-                    path = "VecEnv, SB3 PPO" if algo == "sb3" else "device, DevicePPO"
-                    ppo_rows.append(
-                        (preset, f"batched ({device}, {path}), {worlds} worlds/robot", len(files) * worlds, rollout, rate, collect, update)
-                    )
-                    print(
-                        f"PPO {preset} batched {device} {algo} W={worlds}: {rate:.0f} steps/s "
-                        f"(rollout {collect:.2f} s, update {update:.2f} s)",
-                        flush=True,
-                    )
-
     counts: dict[str, dict] = {}
-    if args.count_robots:
-        count_files = morphology_files(args.morphologies)[: args.count_robots]
-        for device in devices:
-            for task in ("FT", "VT"):
-                counts[f"launches {task} {device}"] = launch_counts(task, count_files, args.count_worlds, device)
-                print(f"counted launches {task} {device}", flush=True)
-            counts[f"transfers {device}"] = transfer_counts(count_files, args.count_worlds, device)
-            print(f"counted transfers {device}", flush=True)
+    ppo_files = morphology_files(args.morphologies)[: args.ppo_robots]
+    interrupted = False
+    try:
+        for task in args.tasks:
+            for robots in args.robots:
+                files = morphology_files(args.morphologies)[:robots]
+                single = single_steps_per_second(task, files, args.seconds)
+                env_rows.append((task, len(files), "single (1 core)", 1, 1, single, 0.0, "-"))
+                print(f"{task} {len(files)} robots single: {single:.0f} steps/s", flush=True)
+                for device in devices:
+                    for worlds in args.worlds:
+                        if device == "cpu" and worlds * len(files) > args.max_worlds_cpu:
+                            continue
+                        env = make_batched_env(task, morphologies=files, worlds_per_robot=worlds, device=device, seed=0)
+                        rate, warmup = batched_steps_per_second(env, args.seconds)
+                        overflow = ", ".join(f"{kind} {n}" for kind, n in env.overflow_report().items()) or "none"
+                        env.close()
+                        env_rows.append((task, len(files), f"batched ({device})", worlds, env.num_envs, rate, warmup, overflow))
+                        print(
+                            f"{task} {len(files)} robots batched {device} W={worlds}: {rate:.0f} steps/s "
+                            f"({rate / single:.1f}x single; warm-up {warmup:.1f} s)",
+                            flush=True,
+                        )
+
+        files = ppo_files
+        from sb3_divmorph.pipeline.runs import make_vec_env
+
+        for preset in args.ppo_presets:
+            single_envs = args.ppo_single_envs
+            if single_envs:
+                rate, rollout, collect, update = ppo_steps_per_second(
+                    lambda: make_vec_env("Unimal-FT-v0", single_envs, 0, 1000, morphologies=files),  # noqa: B023 (called here)
+                    preset,
+                    "cpu",
+                    64,
+                    2,
+                )
+                ppo_rows.append((preset, f"single x {single_envs} (cpu)", single_envs, rollout, rate, collect, update))
+                print(f"PPO {preset} single x{single_envs}: {rate:.0f} steps/s", flush=True)
+            for device in devices:
+                for worlds in args.ppo_worlds:
+                    make = lambda: make_vec_env("Unimal-FT-v0", 0, 0, 1000, "batched", worlds, device, morphologies=files)  # noqa: E731,B023 (called in this iteration)
+                    for algo in args.ppo_algos:
+                        rate, rollout, collect, update = ppo_steps_per_second(make, preset, device, 16, 2, algo)
+                        path = "VecEnv, SB3 PPO" if algo == "sb3" else "device, DevicePPO"
+                        ppo_rows.append(
+                            (
+                                preset,
+                                f"batched ({device}, {path}), {worlds} worlds/robot",
+                                len(files) * worlds,
+                                rollout,
+                                rate,
+                                collect,
+                                update,
+                            )
+                        )
+                        print(
+                            f"PPO {preset} batched {device} {algo} W={worlds}: {rate:.0f} steps/s "
+                            f"(rollout {collect:.2f} s, update {update:.2f} s)",
+                            flush=True,
+                        )
+
+        if args.count_robots:
+            count_files = morphology_files(args.morphologies)[: args.count_robots]
+            for device in devices:
+                for task in ("FT", "VT"):
+                    counts[f"launches {task} {device}"] = launch_counts(task, count_files, args.count_worlds, device)
+                    print(f"counted launches {task} {device}", flush=True)
+                counts[f"transfers {device}"] = transfer_counts(count_files, args.count_worlds, device)
+                print(f"counted transfers {device}", flush=True)
+
+    except KeyboardInterrupt:  # a time box ran out: keep what was measured
+        interrupted = True
+        print("interrupted: writing the rows measured so far", flush=True)
 
     command = "python benchmarks/batched_throughput.py " + " ".join(argv if argv is not None else sys.argv[1:])
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "none"
@@ -453,6 +469,8 @@ def main(argv: list[str] | None = None) -> None:
         "batched steps go through the torch interface (observations, rewards, terminations and auto-resets on the "
         "device included); the single env's resets are not timed.",
     ]
+    if interrupted:
+        lines.append("**Interrupted** (a time limit ran out): the rows below are those measured before it; the rest are missing.")
     if skipped:
         lines.append(f"No {', '.join(skipped)} device on this machine: those rows are missing; run the same command on a GPU machine.")
     if devices == ["cpu"]:
@@ -460,35 +478,38 @@ def main(argv: list[str] | None = None) -> None:
             "**Every batched row and count here is CPU Warp** (MuJoCo Warp's kernels compiled for the CPU, one core): "
             "a correctness backend, not a measurement of the GPU."
         )
-    lines += [
-        "",
-        "## Env steps/s",
-        "",
-        "Overflow: world-steps in which MuJoCo Warp dropped contacts or constraint rows for lack of room "
-        "(`BatchedUnimalEnv.overflow_report()`, by kind); it should read `none`.",
-        "",
-        "| task | robots | backend | worlds/robot | envs | env steps/s | vs single | warm-up (s) | overflow |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
+    if env_rows:
+        lines += [
+            "",
+            "## Env steps/s",
+            "",
+            "Overflow: world-steps in which MuJoCo Warp dropped contacts or constraint rows for lack of room "
+            "(`BatchedUnimalEnv.overflow_report()`, by kind); it should read `none`.",
+            "",
+            "| task | robots | backend | worlds/robot | envs | env steps/s | vs single | warm-up (s) | overflow |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
     singles = {(t, r): rate for t, r, backend, _, _, rate, _, _ in env_rows if backend.startswith("single")}
     for task, robots, backend, worlds, envs, rate, warmup, overflow in env_rows:
         lines.append(
             f"| {task} | {robots} | {backend} | {worlds} | {envs} | {rate:,.0f} | {rate / singles[task, robots]:.2f}x "
             f"| {warmup:.1f} | {overflow} |"
         )
-    lines += [
-        "",
-        f"## PPO end to end (FT, {len(files)} robots, MetaMorph policy)",
-        "",
-        "Samples/s of `learn` over two rollouts (collection + 2 epochs of updates, batch <= 4096) after one warm-up rollout; "
-        "single rollouts are 64 steps x 8 envs, batched rollouts 16 steps x all worlds. Batched rows run twice: SB3's PPO "
-        "through the VecEnv interface (numpy observations and one info dict per world every step) and DevicePPO "
-        "(rollouts through `step_tensors`, buffer, GAE and VecNormalize's arithmetic on the device). Rollout and update "
-        "are the seconds of the two timed rollouts spent collecting and in PPO's update (CUDA synchronised at the boundaries).",
-        "",
-        "| preset | backend | envs | rollout | PPO steps/s | rollout (s) | update (s) | rollout share |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
+    if ppo_rows:
+        single = f"single rollouts are 64 steps x {args.ppo_single_envs} envs, " if args.ppo_single_envs else ""
+        lines += [
+            "",
+            f"## PPO end to end (FT, {len(ppo_files)} robots, MetaMorph policy)",
+            "",
+            "Samples/s of `learn` over two rollouts (collection + 2 epochs of updates, batch <= 4096) after one warm-up rollout; "
+            f"{single}batched rollouts 16 steps x all worlds. Batched rows run twice: SB3's PPO "
+            "through the VecEnv interface (numpy observations and one info dict per world every step) and DevicePPO "
+            "(rollouts through `step_tensors`, buffer, GAE and VecNormalize's arithmetic on the device). Rollout and update "
+            "are the seconds of the two timed rollouts spent collecting and in PPO's update (CUDA synchronised at the boundaries).",
+            "",
+            "| preset | backend | envs | rollout | PPO steps/s | rollout (s) | update (s) | rollout share |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
     for preset, backend, envs, rollout, rate, collect, update in ppo_rows:
         lines.append(
             f"| {preset} | {backend} | {envs} | {rollout} | {rate:,.0f} | {collect:.2f} | {update:.2f} "

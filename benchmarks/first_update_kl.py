@@ -6,7 +6,8 @@ makes one PPO update at the cpu profile's transfer settings (learning rate 1e-3 
 lin_1e-3, 4 epochs of minibatch 512), training only the listed parameters, and reports SB3's
 ``train/approx_kl`` and clip fraction. Writes ``results/first_update_kl.md``.
 
-    python benchmarks/first_update_kl.py            # ~2 min on one core
+    python benchmarks/first_update_kl.py            # ~2 min on one core (restore results/cpu/teachers/FT first:
+                                                    # its model is in git history, results/cpu/README.md)
 """
 
 from __future__ import annotations

@@ -6,9 +6,10 @@
 #
 #     bash benchmarks/gpu_session.sh SECONDS
 #
-# SECONDS is the time this job may use in all: each step gets a share of what is left, and whatever
-# a step printed or wrote comes back even when its share runs out (the log, and one archive of the
-# result files, both in $OUT). In order of the work order:
+# SECONDS is the time this job may use in all: each step gets a share of what is left (SIGINT at its
+# end, SIGKILL 20 s later), and whatever a step printed or wrote comes back even when its share runs
+# out (the log, and one archive of the result files, both in $OUT; an interrupted benchmark writes the
+# rows it measured). In order of the work order:
 #   1. env steps/s of the batched backend on CUDA, FT and VT, the 100 official robots, 32-512 worlds
 #      per robot, beside the single C env on the same machine (benchmarks/batched_throughput.py);
 #   2. end-to-end PPO samples/s on 100 robots with the small and the paper-size MetaMorph policy
@@ -28,7 +29,8 @@ exec > >(tee -a "$log") 2>&1
 
 left() { echo $((deadline - SECONDS)); }
 # share PERCENT: seconds for the next step, PERCENT of what is left minus the packing at the end
-share() { echo $(((deadline - SECONDS - 25) * $1 / 100)); }
+# (at least 1: `timeout 0` would mean no limit at all)
+share() { local s=$(((deadline - SECONDS - 25) * $1 / 100)); echo $((s > 0 ? s : 1)); }
 stamp() { echo "== $(date -u +%H:%M:%S) [$(left) s left] $*"; }
 
 stamp "install"
@@ -40,14 +42,14 @@ python3 -c "import torch; print('torch', torch.__version__, torch.cuda.get_devic
 
 stamp "1. env steps/s on CUDA (100 official robots; worlds per robot: ${WORLDS:=32 128 512})"
 # shellcheck disable=SC2086  # WORLDS is a list
-timeout -s INT "$(share 55)" python3 benchmarks/batched_throughput.py --morphologies unimals100-train \
+timeout -k 20 -s INT "$(share 55)" python3 benchmarks/batched_throughput.py --morphologies unimals100-train \
   --tasks FT VT --robots 100 --worlds $WORLDS --devices cuda --ppo-presets --count-robots 0 \
   --seconds 3 --out "$res/batched_throughput_gpu.md"
 echo "step 1 exit $?"
 
 stamp "2. PPO end to end on CUDA (100 official robots)"
 # the paper size first (issue 28's target is for it); no single-env CPU rows (CPU numbers live elsewhere)
-timeout -s INT "$(share ${PPO_SHARE:-100})" python3 benchmarks/batched_throughput.py --morphologies unimals100-train \
+timeout -k 20 -s INT "$(share ${PPO_SHARE:-100})" python3 benchmarks/batched_throughput.py --morphologies unimals100-train \
   --tasks --robots --devices cuda --ppo-robots 100 --ppo-worlds 128 --ppo-presets paper small --ppo-single-envs 0 \
   --count-robots 0 --out "$res/batched_ppo_gpu.md"
 echo "step 2 exit $?"
@@ -55,7 +57,7 @@ echo "step 2 exit $?"
 # PPO_SHARE=60 leaves 40% of what is left after step 1 to the teacher (a first session measured it already)
 if [ "$(share 100)" -gt 60 ]; then
   stamp "3. paper-size FT teacher (gpu profile, 100 official robots)"
-  timeout -s INT "$(share 100)" python3 -m divmorph teachers --profile gpu --out /tmp/gpu-run \
+  timeout -k 20 -s INT "$(share 100)" python3 -m divmorph teachers --profile gpu --out /tmp/gpu-run \
     --train-robots unimals100-train --task FT --no-progress --set teachers.checkpoint_every=1000000
   echo "step 3 exit $?"
 fi

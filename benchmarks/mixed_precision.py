@@ -15,7 +15,8 @@ bfloat16 autocast, and compared:
 * seconds per forward+backward of that minibatch in each precision (best of 3), on this machine (on a CPU
   bfloat16 is usually *slower*: the speed is a GPU question; run with ``--device cuda`` there).
 
-    python benchmarks/mixed_precision.py                       # ~3 min on one core
+    python benchmarks/mixed_precision.py                       # ~3 min on one core (restore results/cpu/teachers/FT first:
+                                                               # its model is in git history, results/cpu/README.md)
     python benchmarks/mixed_precision.py --device cuda --out results/mixed_precision_gpu.md
 """
 

@@ -22,7 +22,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import VecNormalize
 
 import sb3_divmorph  # noqa: F401  (policy aliases)
-from sb3_divmorph.pipeline.runs import trained_env_kwargs, trained_robots
+from sb3_divmorph.pipeline.runs import stage_model, trained_env_kwargs, trained_robots
 import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
 from unimal_envs.contract import TASK_NAMES
 
@@ -46,9 +46,11 @@ def main(argv: list[str] | None = None) -> None:
     task = args.task or args.folder.name
     if task not in TASK_NAMES:
         parser.error(f"cannot tell the task from {args.folder}; pass --task (one of {list(TASK_NAMES)})")
-    model_file, stats_file = args.folder / "model.zip", args.folder / "vecnormalize.pkl"
-    if not model_file.is_file():
-        parser.error(f"{model_file} does not exist")
+    try:  # a recorded run's model may have left the tree: the message says how to get it back
+        model_file = stage_model(args.folder)
+    except FileNotFoundError as error:
+        parser.error(str(error))
+    stats_file = args.folder / "vecnormalize.pkl"
 
     # The robots the model was trained on, by default: a pipeline run records them (robot_sets.json);
     # a teacher run on other robots would look untrained.

@@ -404,7 +404,7 @@ def test_evaluate_a_selection_of_a_shipped_run_into_a_folder_of_ones_own(officia
                 "--run",
                 str(run),
                 "--model",
-                "teacher",
+                "student",  # the small run's teachers left the tree; its students ship
                 "--task",
                 "FT",
                 "--split",
@@ -419,7 +419,7 @@ def test_evaluate_a_selection_of_a_shipped_run_into_a_folder_of_ones_own(officia
         == 0
     )
     rows = list(csv.DictReader(open(into / "returns.csv")))
-    assert len(rows) == 10 and {(r["model"], r["task"], r["split"]) for r in rows} == {("teacher", "FT", "train")}
+    assert len(rows) == 10 and {(r["model"], r["task"], r["split"]) for r in rows} == {("student", "FT", "train")}
     assert (run / "run.json").read_text() == record and (run / "evaluate" / "returns.csv").read_text() == shipped
     assert cli(["evaluate", "--run", str(run), "--model", "teachr", "--into", str(into), "--no-progress"]) == 2
     assert "no finished model matches models=['teachr']" in capsys.readouterr().err
