@@ -441,7 +441,9 @@ def main(argv: list[str] | None = None) -> int:
             _put_back(out, record, previous_record)
         raise
     where = getattr(args, "into", None) or out  # a selection evaluated --into a folder leaves the run untouched
-    print(f"[divmorph] {args.command} finished in {time.perf_counter() - start:.0f} s (threads: {th.get_num_threads()}); outputs in {where}")
+    print(
+        f"[divmorph] {args.command} finished in {time.perf_counter() - start:.0f} s (threads: {th.get_num_threads()}); outputs in {where}"
+    )
     return 0
 
 
