@@ -23,7 +23,7 @@ RESULTS = Path(__file__).resolve().parents[1] / "results"
 RUN = RESULTS / "cpu"
 RUN100 = RESULTS / "cpu100"
 #: the 100-robot run's teachers that ship (the others are still training; see results/cpu100/README.md)
-TEACHERS100 = ["VT", "Obstacle", "Incline"]
+TEACHERS100 = ["VT", "Obstacle", "Incline", "Patrol"]
 #: the cpu100 Obstacle teacher's best training robot (return 2254 in results/cpu100/checks/teacher-Obstacle)
 CLIMBER = "mvt-5506-1-12-17-11-10-12"
 
