@@ -22,7 +22,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import VecNormalize
 
 import sb3_divmorph  # noqa: F401  (policy aliases)
-from sb3_divmorph.pipeline.runs import stage_model, trained_env_kwargs, trained_robots
+from sb3_divmorph.pipeline.runs import stage_model, stage_normalizer, trained_env_kwargs, trained_robots
 import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
 from unimal_envs.contract import TASK_NAMES
 
@@ -50,7 +50,7 @@ def main(argv: list[str] | None = None) -> None:
         model_file = stage_model(args.folder)
     except FileNotFoundError as error:
         parser.error(str(error))
-    stats_file = args.folder / "vecnormalize.pkl"
+    stats_file = stage_normalizer(args.folder)  # None: the model trained on raw observations
 
     # The robots the model was trained on, by default: a pipeline run records them (robot_sets.json);
     # a teacher run on other robots would look untrained.
@@ -67,11 +67,11 @@ def main(argv: list[str] | None = None) -> None:
     # and the observations it learnt on (a run may measure body heights above the ground, not the world)
     env_kwargs = dict(morphologies=robots, max_episode_steps=args.steps, **trained_env_kwargs(args.folder))
     venv = make_vec_env(f"Unimal-{task}-v0", n_envs=len(robots), seed=args.seed, env_kwargs=env_kwargs)
-    if stats_file.is_file():
+    if stats_file is not None:
         venv = VecNormalize.load(str(stats_file), venv)
         venv.training, venv.norm_reward = False, False
     else:
-        print(f"{stats_file} does not exist: the model was trained on raw observations")
+        print(f"{args.folder} has no vecnormalize.pkl: the model was trained on raw observations")
     model = PPO.load(model_file, env=venv, device="cpu")
 
     # one episode per env (each env holds one robot); VecMonitor-free bookkeeping of the returns

@@ -295,9 +295,7 @@ def evaluate_model(
     """
     if env_kwargs is None:
         env_kwargs = trained_env_kwargs(folder)
-    venv = robot_venv(
-        task_env_name(task), robots, max_steps, seed, **({"instruction": instruction} if instruction else {}), **(env_kwargs or {})
-    )
+    venv = robot_venv(task_env_name(task), robots, max_steps, seed, **({"instruction": instruction} if instruction else {}), **env_kwargs)
     statistics = stage_normalizer(folder)
     if statistics is not None:
         venv = VecNormalize.load(str(statistics), venv)
