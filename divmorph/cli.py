@@ -168,6 +168,14 @@ def _parser(overview: bool = False) -> argparse.ArgumentParser:
         help="folder for the selection's returns.csv (default: evaluations/<run>-<time>/ here); a selection never "
         "writes into the run's evaluate/",
     )
+    p.add_argument(
+        "--part",
+        type=_part,
+        default=None,
+        metavar="K/N",
+        help="evaluate the k-th of n shares of the run's evaluation (n processes, one per core); a plain evaluate "
+        "afterwards merges them and finishes",
+    )
     command("report", "plots, the paper's figures and a markdown summary of the run")
     p = command("figure", "one of the paper's figures (PNG + CSV in report/figures/)")
     p.add_argument("name", help="transfer-train, transfer-novel, deployment, pareto, ablation or gates")
@@ -243,6 +251,17 @@ def _branch(args: argparse.Namespace, argv: list[str] | None) -> int:
         f"with --run {args.out} (and --set KEY=VALUE for their new settings)"
     )
     return 0
+
+
+def _part(text: str) -> tuple[int, int]:
+    """``"k/n"`` (``--part``) as ``(k, n)`` with 1 <= k <= n."""
+    try:
+        k, n = (int(x) for x in text.split("/"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a part is K/N, e.g. 1/2, got {text!r}") from None
+    if not 1 <= k <= n:
+        raise argparse.ArgumentTypeError(f"a part K/N needs 1 <= K <= N, got {text!r}")
+    return k, n
 
 
 def _robot_path(name: str) -> Path:
@@ -420,7 +439,7 @@ def main(argv: list[str] | None = None) -> int:
                     f"return {r['compact_return']:.1f} (student {r['student_return']:.1f})"
                 )
         elif args.command == "evaluate":
-            folder = P.evaluate(profile, out, progress, args.models, args.eval_tasks, args.splits, args.episodes, args.into)
+            folder = P.evaluate(profile, out, progress, args.models, args.eval_tasks, args.splits, args.episodes, args.into, args.part)
             print(f"returns -> {folder / 'returns.csv'}")
         elif args.command == "report":
             print(P.report(profile, out, command_line))

@@ -162,6 +162,38 @@ def test_the_evaluation_reuses_a_transfer_runs_final_evaluation_only_when_it_is_
     assert final_evaluation(folder, "novel", robots[:1], 1) is None
 
 
+def test_two_parts_and_a_merge_give_the_whole_evaluation(finished_run, tmp_path):
+    """``evaluate --part 1/2`` and ``--part 2/2`` (one process per core) take disjoint shares; the plain
+    evaluation afterwards merges them, rolls nothing out again, and writes what one process would."""
+    out, profiles = copied_run(finished_run, tmp_path)
+    whole = read_returns(out / "evaluate" / "returns.csv")
+    (out / "evaluate" / "returns.csv").unlink()
+    (out / "evaluate" / "done.json").unlink()
+    base = ["evaluate", "--profile", "tiny", "--profiles", str(profiles), "--out", str(out), "--no-progress"]
+    assert cli([*base, "--part", "1/2"]) == 0 and cli([*base, "--part", "2/2"]) == 0
+    shares = [{key[:3] for key in read_returns(out / "evaluate" / "parts" / f"part-{k}-of-2.csv")} for k in (1, 2)]
+    assert shares[0] and shares[1] and not shares[0] & shares[1]
+    # part 1's rows are kept as written (one marked to tell); part 2 "lost": the merge evaluates its share again
+    part_1 = out / "evaluate" / "parts" / "part-1-of-2.csv"
+    lines = part_1.read_text().splitlines()
+    marked = lines[1].split(",")
+    lines[1] = ",".join([*marked[:5], "12345.0", *marked[6:]])
+    part_1.write_text("\n".join(lines) + "\n")
+    (out / "evaluate" / "parts" / "part-2-of-2.csv").write_text("model,task,split,morphology,episode,return,length\n")
+    assert cli([*base]) == 0
+    merged = read_returns(out / "evaluate" / "returns.csv")
+    assert merged.pop(tuple(marked[:5])) == 12345.0
+    assert merged == pytest.approx({k: v for k, v in whole.items() if k != tuple(marked[:5])}, rel=1e-5)
+    assert not (out / "evaluate" / "parts").exists()
+    with pytest.raises(SystemExit, match="2"):
+        cli([*base, "--part", "3/2"])
+
+
+def read_returns(path: Path) -> dict[tuple[str, ...], float]:
+    with open(path, newline="") as f:
+        return {(r["model"], r["task"], r["split"], r["morphology"], r["episode"]): float(r["return"]) for r in csv.DictReader(f)}
+
+
 def test_student_overrides_size_one_student_and_name_only_known_students(finished_run, tmp_path):
     """``student.overrides: {deploy-g1k1: {d_model: 24, ff_dim: 48}}`` widens that student alone; an
     override for a student that does not exist stops the distill stage before any training."""

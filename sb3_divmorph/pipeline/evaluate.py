@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import csv
 import io
+import shutil
 import time
 from pathlib import Path
 from typing import Any
@@ -50,6 +51,7 @@ from unimal_envs.contract import TASK_NAMES
 from unimal_envs.instructions import shipped_embeddings
 
 COLUMNS = ["model", "task", "split", "morphology", "episode", "return", "length"]
+PARTS = "parts"  # evaluate/parts/: the shares of an evaluation that several processes run (--part k/n)
 
 
 def evaluate_untrained_teacher(
@@ -148,6 +150,7 @@ def evaluate(
     splits: list[str] | None = None,
     episodes: int | None = None,
     into: Path | None = None,
+    part: tuple[int, int] | None = None,
 ) -> Path:
     """Evaluate every finished model of the run; writes ``evaluate/returns.csv`` and ``gates.npz``.
 
@@ -162,11 +165,20 @@ def evaluate(
     :param episodes: episodes per robot (default: the profile's ``evaluate.episodes``).
     :param into: the folder for ``returns.csv`` of a selection (default ``evaluations/<run>-<time>/``
         in the working folder).
-    :raises ValueError: a selection that matches nothing (the message lists what there is).
+    :param part: ``(k, n)``: evaluate only every n-th of the jobs still to do, starting at the k-th
+        (1-based), into ``evaluate/parts/`` -- n processes share the run's evaluation, one per core;
+        the plain evaluation afterwards merges the parts, evaluates whatever is left, and finishes.
+    :raises ValueError: a selection that matches nothing (the message lists what there is); a part
+        of a selection, or a part outside 1..n.
+
+    The run's own evaluation is resumable: ``returns.csv`` (and a part's file) is rewritten after
+    every (model, task, split), and a rerun keeps every complete one already there.
     """
     out = Path(out)
     selected = any(x is not None for x in (models, tasks, splits, episodes, into))
     folder = out / "evaluate"
+    if part is not None and (selected or not 1 <= part[0] <= part[1]):
+        raise ValueError(f"a part k/n of the run's evaluation needs 1 <= k <= n and no selection, got {part[0]}/{part[1]}")
     if selected:
         folder = Path(into) if into is not None else Path("evaluations") / f"{out.resolve().name}-{time.strftime('%Y%m%d-%H%M%S')}"
         if folder.resolve() == (out / "evaluate").resolve():
@@ -191,45 +203,99 @@ def evaluate(
                 f"models {sorted({j[0] for j in plan})} on tasks {sorted({j[2] for j in plan})}"
             )
         plan = chosen
-    rows: list[dict] = []
-    jobs = [(label, model, task, split) for label, model, task in plan for split in splits_robots]
-    if is_done(folder) and not selected:
-        # A finished evaluation grows with the models finished after it (e.g. a student distilled
-        # later); what it has already evaluated is kept as it is.
-        with open(folder / "returns.csv", newline="") as f:
-            rows = list(csv.DictReader(f))
-        evaluated = {(row["model"], row["task"], row["split"]) for row in rows}
-        jobs = [job for job in jobs if (job[0], job[2], job[3]) not in evaluated]
-        if not jobs:
-            print(f"[evaluate] skipped, already evaluated in {folder}")
-            return folder
-        print(f"[evaluate] {len(jobs)} model x task x split evaluation(s) of models finished since {folder} was written")
     selected_episodes = episodes is not None
     episodes = profile.evaluate.episodes if episodes is None else episodes
-    splits = splits_robots
+
+    def robots_and_count(label: str, split: str) -> tuple[list[Path], int]:
+        if label.startswith("transfer-"):
+            return transfer_robots_and_episodes(profile, split, splits_robots[split], episodes, episodes_given=selected_episodes)
+        return splits_robots[split], episodes
+
+    jobs = [(label, model, task, split) for label, model, task in plan for split in splits_robots]
+    rows: list[dict] = []
+    target = folder / "returns.csv"
+    if not selected:
+        # What is already evaluated -- a finished evaluation (which grows with the models finished
+        # after it, e.g. a student distilled later), an interrupted one, or the parts of a shared
+        # one -- is kept when it is complete: every robot and episode of that model, task and split.
+        sources = [target, *sorted((folder / PARTS).glob("*.csv"))]
+        rows = complete_rows(sources, {(label, task, split): robots_and_count(label, split) for label, _, task, split in jobs})
+        evaluated = {(row["model"], row["task"], row["split"]) for row in rows}
+        todo = [job for job in jobs if (job[0], job[2], job[3]) not in evaluated]
+        if part is not None:
+            # a share fixed by the job's place in the plan, not by what is done, so that parts
+            # started (or restarted) at different times never take the same job
+            target = folder / PARTS / f"part-{part[0]}-of-{part[1]}.csv"
+            share = {(job[0], job[2], job[3]) for job in jobs[part[0] - 1 :: part[1]]}
+            todo = [job for job in todo if (job[0], job[2], job[3]) in share]
+            rows = [row for row in rows if (row["model"], row["task"], row["split"]) in share]
+        if not todo and part is None and is_done(folder):
+            print(f"[evaluate] skipped, already evaluated in {folder}")
+            return folder
+        if len(todo) < len(jobs):
+            print(f"[evaluate] {len(jobs) - len(todo)} model x task x split evaluation(s) kept, {len(todo)} to do -> {target}")
+        jobs = todo
     for label, model, task, split in tqdm(jobs, desc="[evaluate]", unit="model x task x split", disable=not progress_bar):
+        robots, count = robots_and_count(label, split)
         if label == "teacher-untrained":
-            found = evaluate_untrained_teacher(profile, out, task, splits[split], episodes, profile.seed)
+            found = evaluate_untrained_teacher(profile, out, task, robots, count, profile.seed)
         else:
-            robots, count = splits[split], episodes
-            if label.startswith("transfer-"):
-                robots, count = transfer_robots_and_episodes(profile, split, robots, episodes, episodes_given=selected_episodes)
             found = final_evaluation(model, split, robots, count) if label.startswith("transfer-") else None
             if found is None:
                 found = evaluate_model(
                     model, task, robots, count, profile.max_episode_steps, profile.seed, env_kwargs=profile_env_kwargs(profile)
                 )
         rows += [{"model": label, "task": task, "split": split, **row} for row in found]
-    buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=COLUMNS)
-    writer.writeheader()
-    writer.writerows(rows)
-    atomic_write_text(folder / "returns.csv", buffer.getvalue())
+        if not selected:  # an interruption loses at most the (model, task, split) under way
+            write_rows(target, rows)
+    write_rows(target, rows)
+    if part is not None:
+        print(f"[evaluate] part {part[0]}/{part[1]}: {len(jobs)} model x task x split evaluation(s) -> {target}")
+        return folder
     if selected:
         print(f"[evaluate] {len(jobs)} model x task x split evaluation(s), {episodes} episode(s) per robot -> {folder}")
         return folder
     if has_model(student_folder(out)):  # (a skipped student has no gates)
-        gates = student_gates(out, splits["train"] + splits["novel"], profile.seed, **profile_env_kwargs(profile))
+        gates = student_gates(out, splits_robots["train"] + splits_robots["novel"], profile.seed, **profile_env_kwargs(profile))
         atomic_save(folder / "gates.npz", lambda p: np.savez(p, **gates))
     mark_done(folder, rows=len(rows))
+    shutil.rmtree(folder / PARTS, ignore_errors=True)  # merged into returns.csv
     return folder
+
+
+def read_rows(path: Path) -> list[dict[str, str]]:
+    """The rows of a ``returns.csv`` (empty when there is none)."""
+    if not path.is_file():
+        return []
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def write_rows(path: Path, rows: list[dict[str, Any]]) -> None:
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=COLUMNS)
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write_text(path, buffer.getvalue())
+
+
+def complete_rows(sources: list[Path], expected: dict[tuple[str, str, str], tuple[list[Path], int]]) -> list[dict[str, str]]:
+    """The rows of ``sources`` for each (model, task, split) of ``expected`` that has exactly its
+    robots x episodes (the first source that has them wins; partial or stale ones are dropped), and
+    those of the first source for any other (a model no longer in this checkout keeps its rows)."""
+    kept: dict[tuple[str, str, str], list[dict[str, str]]] = {}
+    for source in sources:
+        found: dict[tuple[str, str, str], list[dict[str, str]]] = {}
+        for row in read_rows(source):
+            found.setdefault((row["model"], row["task"], row["split"]), []).append(row)
+        for key, rows in found.items():
+            if key in kept:
+                continue
+            if key not in expected:
+                if source == sources[0]:
+                    kept[key] = rows
+                continue
+            robots, episodes = expected[key]
+            if sorted((row["morphology"], int(row["episode"])) for row in rows) == sorted((r.stem, e) for r in robots for e in range(episodes)):
+                kept[key] = rows
+    return [row for rows in kept.values() for row in rows]

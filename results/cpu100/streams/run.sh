@@ -12,7 +12,7 @@ QUEUE="$RUN/streams/queue"
 P="--profile cpu100 --out $RUN --no-progress"
 mkdir -p "$QUEUE"
 
-STAGES=(teachers students transfer finish)
+STAGES=(teachers students transfer finish merge report)
 # longest first, so that the two workers end a stage together
 jobs_teachers=("teachers $P --task Obstacle" "teachers $P --task VT" "teachers $P --task Incline" "teachers $P --task Patrol"
                "teachers $P --task FT" "grl $P")
@@ -20,7 +20,11 @@ jobs_students=("distill $P --students divmorph" "distill $P --students distilled
                "hyperdistill $P")
 jobs_transfer=()
 for seed in 0 1 2; do for task in PointNav Exploration Escape; do jobs_transfer+=("transfer $P --task $task --seeds $seed"); done; done
-jobs_finish=("export $P" "evaluate $P")
+# the evaluation in two shares (one per worker), merged and finished by the plain evaluate before the report
+jobs_finish=("evaluate $P --part 1/2" "evaluate $P --part 2/2" "export $P")
+# one worker merges the shares (and evaluates what a lost share left); then one writes the report
+jobs_merge=("evaluate $P")
+jobs_report=("report --run $RUN --no-progress")
 
 alive() { [ -f "$1/pid" ] && kill -0 "$(cat "$1/pid")" 2> /dev/null; }
 
@@ -52,4 +56,3 @@ for stage in "${STAGES[@]}"; do
     done
   done
 done
-divmorph report --run "$RUN" --no-progress
