@@ -739,6 +739,37 @@ def test_report_gives_robot_intervals_and_answers_the_zero_shot_claim():
     assert float(ft.split("|")[4].split("[")[0]) < 0
 
 
+def test_student_shares_pair_the_robots_and_judge_the_90_percent_bar_by_the_interval():
+    """A student at 97% of its teacher on every robot passes; one at 50% fails; one at 100% on half the
+    robots and 75% on the other half (86% of the teacher's mean) does not pass. Pairing matters: the
+    robots differ ten-fold in return, so an unpaired interval would straddle the bar for the first."""
+    import importlib
+
+    R = importlib.import_module("sb3_divmorph.pipeline.report")
+    profile = load_profile("demo")
+    rows = []
+    scales = {"teacher": [1.0] * 20, "student": [0.97] * 20, "student-distilled": [0.5] * 20, "hyperdistill": [1.0, 0.75] * 10}
+    for model, per_robot in scales.items():
+        for robot, scale in enumerate(per_robot):
+            for episode in range(2):
+                rows.append(
+                    {
+                        "model": model,
+                        "task": "FT",
+                        "split": "train",
+                        "morphology": f"r{robot}",
+                        "episode": episode,
+                        "return": scale * 100 * (1 + robot % 10),
+                    }
+                )
+    table = R.student_shares(profile, rows)
+    header = [c.strip() for c in table[4].split("|")[1:-1]]
+    ft = dict(zip(header, (c.strip() for c in next(line for line in table if line.startswith("| FT (")).split("|")[1:-1])))
+    assert ft["student"].endswith("yes") and "97%" in ft["student"]
+    assert ft["student-distilled"].endswith("no")
+    assert ft["hyperdistill"].endswith(("no", "unclear")) and "86%" in ft["hyperdistill"]
+
+
 def test_report_figures_label_axes_and_give_each_task_its_own_scale(tmp_path, monkeypatch):
     import importlib
 

@@ -296,6 +296,8 @@ def complete_rows(sources: list[Path], expected: dict[tuple[str, str, str], tupl
                     kept[key] = rows
                 continue
             robots, episodes = expected[key]
-            if sorted((row["morphology"], int(row["episode"])) for row in rows) == sorted((r.stem, e) for r in robots for e in range(episodes)):
+            if sorted((row["morphology"], int(row["episode"])) for row in rows) == sorted(
+                (r.stem, e) for r in robots for e in range(episodes)
+            ):
                 kept[key] = rows
     return [row for rows in kept.values() for row in rows]

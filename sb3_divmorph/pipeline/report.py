@@ -188,6 +188,56 @@ def zero_shot_comparison(profile: Profile, rows: list[dict[str, str]], draws: in
     return lines
 
 
+STUDENT_SHARE, DEPLOYED_SHARE = 0.9, 0.95
+
+
+def student_shares(profile: Profile, rows: list[dict[str, str]], draws: int = BOOTSTRAP) -> list[str]:
+    """Each distilled student's return as a share of its teacher's on the training robots, per task, with
+    a paired 95% bootstrap interval (the same robots drawn for both); the verdict on the paper's bar
+    (>= 90% of the teacher) is *yes* when the interval is above it, *no* when below, else *unclear*.
+    The untrained teacher is the floor the shares are read against (a share of a return near 0 means
+    little: the table gives both returns)."""
+    per_robot = robot_means(rows)
+    students = [
+        m for m in ("student", *(f"student-{n}" for n in STUDENTS if n != "divmorph"), "hyperdistill") if any(k[0] == m for k in per_robot)
+    ]
+    if not students or not any(k[0] == "teacher" for k in per_robot):
+        return []
+    lines = [
+        "## Students against their teachers (training robots)",
+        "",
+        f"Share of the teacher's mean return [paired 95% bootstrap interval over robots]; verdict on >= {STUDENT_SHARE:.0%}: "
+        "*yes* when the whole interval is above it, *no* when below, *unclear* when it straddles. In brackets after the "
+        "task: the teacher's and its untrained policy's mean returns.",
+        "",
+        "| task (teacher / untrained) | " + " | ".join(students) + " |",
+        "|---|" + "---|" * len(students),
+    ]
+    rng = np.random.default_rng(0)
+    for task in profile.teachers.tasks:
+        teacher = per_robot.get(("teacher", task, "train"), {})
+        if not teacher:
+            continue
+        untrained = per_robot.get(("teacher-untrained", task, "train"), {})
+        floor = f"{np.mean(list(untrained.values())):.1f}" if untrained else "–"
+        cells = [f"{task} ({np.mean(list(teacher.values())):.1f} / {floor})"]
+        for model in students:
+            student = per_robot.get((model, task, "train"), {})
+            robots = sorted(set(teacher) & set(student))
+            if not robots:
+                cells.append("–")
+                continue
+            t, v = np.array([teacher[r] for r in robots]), np.array([student[r] for r in robots])
+            picks = rng.integers(0, len(robots), size=(draws, len(robots)))
+            with np.errstate(divide="ignore", invalid="ignore"):
+                shares = v[picks].mean(1) / t[picks].mean(1)
+            lo, hi = interval(shares)
+            verdict = "yes" if lo >= STUDENT_SHARE else "no" if hi < STUDENT_SHARE else "unclear"
+            cells.append(f"{v.mean():.1f}: {v.mean() / t.mean():.0%} [{lo:.0%}, {hi:.0%}] {verdict}")
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
 def _episodes_per_robot(rows: list[dict[str, str]]) -> dict[tuple[str, str, str], int]:
     """Episodes per robot of each (model, task, split) (the most any robot has)."""
     counts: dict[tuple[str, str, str], dict[str, int]] = defaultdict(lambda: defaultdict(int))
@@ -231,9 +281,6 @@ def _percent(part: float, whole: float) -> str:
 
 
 #: What the student must keep of its teacher's return, and a deployed actor of the student's.
-STUDENT_SHARE, DEPLOYED_SHARE = 0.9, 0.95
-
-
 def findings(profile: Profile, groups: dict[tuple[str, str, str], list[float]], exports: list[dict]) -> list[str]:
     """The run's answers, from the evaluation (mean over robots of deterministic returns) and the exports:
     teachers against the same policy before training, the student against its teachers, zero-shot on
@@ -453,6 +500,8 @@ def report(profile: Profile, out: Path, command: str = "") -> str:
             "![returns](report/returns.png)",
             "",
             *findings(profile, groups, [json.loads(p.read_text()) for p in export_reports(out)]),
+            "",
+            *student_shares(profile, rows),
             "",
             *zero_shot_comparison(profile, rows),
         ]
