@@ -16,10 +16,10 @@ STAGES=(teachers students transfer finish merge report)
 # longest first, so that the two workers end a stage together
 jobs_teachers=("teachers $P --task Obstacle" "teachers $P --task VT" "teachers $P --task Incline" "teachers $P --task Patrol"
                "teachers $P --task FT" "grl $P")
-jobs_students=("distill $P --students divmorph" "distill $P --students distilled" "hyperdistill $P")
-# The deployment student (width 64, ~3 h) opens the transfer stage, which does not need it (export and
-# evaluation do): its core would otherwise wait idle at the students' barrier.
-jobs_transfer=("distill $P --students deploy-g1k1")
+jobs_students=("distill $P --students divmorph" "distill $P --students distilled")
+# The deployment student (width 64, ~3 h) and HyperDistill open the transfer stage, which needs neither
+# (export and evaluation do): their cores would otherwise wait idle at the students' barrier.
+jobs_transfer=("distill $P --students deploy-g1k1" "hyperdistill $P")
 for seed in 0 1 2; do for task in PointNav Exploration Escape; do jobs_transfer+=("transfer $P --task $task --seeds $seed"); done; done
 # the evaluation in two shares (one per worker), merged and finished by the plain evaluate before the report
 jobs_finish=("evaluate $P --part 1/2" "evaluate $P --part 2/2" "export $P")
