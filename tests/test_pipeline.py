@@ -189,6 +189,43 @@ def test_two_parts_and_a_merge_give_the_whole_evaluation(finished_run, tmp_path)
         cli([*base, "--part", "3/2"])
 
 
+def test_an_evaluation_keeps_each_transfer_seed_apart(tmp_path):
+    """A transfer arm's seeds are separate jobs: one seed's complete rows never stand for the others'
+    (an interrupted evaluation evaluates the missing seeds), and seeds pooled by an older file without
+    the seed column are evaluated again rather than kept beside the new rows."""
+    from sb3_divmorph.pipeline.evaluate import complete_rows, job_key, write_rows
+
+    robots = [Path("a.xml"), Path("b.xml")]
+    arm = tmp_path / "transfer" / "Escape" / "scratch"
+    jobs = {job_key("transfer-scratch", arm / f"seed-{seed}", "Escape", "novel"): (robots, 2) for seed in (0, 1)}
+    assert sorted(key[3] for key in jobs) == ["0", "1"]
+    assert job_key("transfer-scratch", arm, "Escape", "novel")[3] == "0"  # a run begun before seeds existed
+    assert job_key("teacher", tmp_path / "teachers" / "FT", "FT", "train")[3] == ""
+    rows = [
+        {
+            "model": "transfer-scratch",
+            "task": "Escape",
+            "split": "novel",
+            "seed": "0",
+            "morphology": r.stem,
+            "episode": e,
+            "return": 1.0,
+            "length": 5,
+        }
+        for r in robots
+        for e in range(2)
+    ]
+    write_rows(tmp_path / "returns.csv", rows)
+    kept = complete_rows([tmp_path / "returns.csv"], jobs)
+    assert {row["seed"] for row in kept} == {"0"} and len(kept) == 4  # seed 1 is still to do
+    pooled = [{**row, "seed": ""} for row in rows] * 2  # two seeds' rows under one key (an older file)
+    write_rows(tmp_path / "returns.csv", pooled)
+    assert complete_rows([tmp_path / "returns.csv"], jobs) == []
+    other = [{**row, "model": "teacher", "task": "FT", "split": "train", "seed": ""} for row in rows]
+    write_rows(tmp_path / "returns.csv", other)  # a model this checkout no longer has keeps its rows
+    assert len(complete_rows([tmp_path / "returns.csv"], jobs)) == 4
+
+
 def read_returns(path: Path) -> dict[tuple[str, ...], float]:
     with open(path, newline="") as f:
         return {(r["model"], r["task"], r["split"], r["morphology"], r["episode"]): float(r["return"]) for r in csv.DictReader(f)}
@@ -768,6 +805,9 @@ def test_student_shares_pair_the_robots_and_judge_the_90_percent_bar_by_the_inte
     assert ft["student"].endswith("yes") and "97%" in ft["student"]
     assert ft["student-distilled"].endswith("no")
     assert ft["hyperdistill"].endswith(("no", "unclear")) and "86%" in ft["hyperdistill"]
+    negative = [{**row, "return": row["return"] - 1000} for row in rows if row["model"] in ("teacher", "student")]
+    ft = next(line for line in R.student_shares(profile, negative) if line.startswith("| FT ("))
+    assert "n/a" in ft and "yes" not in ft  # no share of a teacher whose return is below 0
 
 
 def test_report_figures_label_axes_and_give_each_task_its_own_scale(tmp_path, monkeypatch):

@@ -50,7 +50,7 @@ from sb3_divmorph.pipeline.grid import job_builder
 from unimal_envs.contract import TASK_NAMES
 from unimal_envs.instructions import shipped_embeddings
 
-COLUMNS = ["model", "task", "split", "morphology", "episode", "return", "length"]
+COLUMNS = ["model", "task", "split", "morphology", "episode", "return", "length", "seed"]  # seed: a transfer run's
 PARTS = "parts"  # evaluate/parts/: the shares of an evaluation that several processes run (--part k/n)
 
 
@@ -217,19 +217,20 @@ def evaluate(
     if not selected:
         # What is already evaluated -- a finished evaluation (which grows with the models finished
         # after it, e.g. a student distilled later), an interrupted one, or the parts of a shared
-        # one -- is kept when it is complete: every robot and episode of that model, task and split.
+        # one -- is kept when it is complete: every robot and episode of that job.
         sources = [target, *sorted((folder / PARTS).glob("*.csv"))]
-        rows = complete_rows(sources, {(label, task, split): robots_and_count(label, split) for label, _, task, split in jobs})
-        evaluated = {(row["model"], row["task"], row["split"]) for row in rows}
-        todo = [job for job in jobs if (job[0], job[2], job[3]) not in evaluated]
+        rows = complete_rows(sources, {job_key(*job): robots_and_count(job[0], job[3]) for job in jobs})
+        evaluated = {row_key(row) for row in rows}
+        todo = [job for job in jobs if job_key(*job) not in evaluated]
         if part is not None:
             # a share fixed by the job's place in the plan, not by what is done, so that parts
-            # started (or restarted) at different times never take the same job
+            # started (or restarted) at different times on the same finished models share no job
             target = folder / PARTS / f"part-{part[0]}-of-{part[1]}.csv"
-            share = {(job[0], job[2], job[3]) for job in jobs[part[0] - 1 :: part[1]]}
-            todo = [job for job in todo if (job[0], job[2], job[3]) in share]
-            rows = [row for row in rows if (row["model"], row["task"], row["split"]) in share]
-        if not todo and part is None and is_done(folder):
+            share = {job_key(*job) for job in jobs[part[0] - 1 :: part[1]]}
+            todo = [job for job in todo if job_key(*job) in share]
+            rows = [row for row in rows if row_key(row) in share]
+        elif not todo and is_done(folder):
+            shutil.rmtree(folder / PARTS, ignore_errors=True)
             print(f"[evaluate] skipped, already evaluated in {folder}")
             return folder
         if len(todo) < len(jobs):
@@ -245,7 +246,8 @@ def evaluate(
                 found = evaluate_model(
                     model, task, robots, count, profile.max_episode_steps, profile.seed, env_kwargs=profile_env_kwargs(profile)
                 )
-        rows += [{"model": label, "task": task, "split": split, **row} for row in found]
+        seed = job_key(label, model, task, split)[3]
+        rows += [{"model": label, "task": task, "split": split, "seed": seed, **row} for row in found]
         if not selected:  # an interruption loses at most the (model, task, split) under way
             write_rows(target, rows)
     write_rows(target, rows)
@@ -279,20 +281,37 @@ def write_rows(path: Path, rows: list[dict[str, Any]]) -> None:
     atomic_write_text(path, buffer.getvalue())
 
 
-def complete_rows(sources: list[Path], expected: dict[tuple[str, str, str], tuple[list[Path], int]]) -> list[dict[str, str]]:
-    """The rows of ``sources`` for each (model, task, split) of ``expected`` that has exactly its
+def job_key(label: str, model: Path, task: str, split: str) -> tuple[str, str, str, str]:
+    """``(model label, task, split, seed)`` of an evaluation job; the seed tells a transfer arm's runs
+    apart (``""`` for the other models: one run each)."""
+    if not label.startswith("transfer-"):
+        return label, task, split, ""
+    name = Path(model).name  # seed-<n>/, or the arm's folder itself for a run begun before seeds existed
+    return label, task, split, name.removeprefix("seed-") if name.startswith("seed-") else "0"
+
+
+def row_key(row: dict[str, Any]) -> tuple[str, str, str, str]:
+    """The :func:`job_key` of a ``returns.csv`` row (``seed`` is missing from files written before it was)."""
+    return row["model"], row["task"], row["split"], str(row.get("seed") or "")
+
+
+def complete_rows(sources: list[Path], expected: dict[tuple[str, str, str, str], tuple[list[Path], int]]) -> list[dict[str, str]]:
+    """The rows of ``sources`` for each job (:func:`job_key`) of ``expected`` that has exactly its
     robots x episodes (the first source that has them wins; partial or stale ones are dropped), and
-    those of the first source for any other (a model no longer in this checkout keeps its rows)."""
-    kept: dict[tuple[str, str, str], list[dict[str, str]]] = {}
+    those of the first source for a model that is not expected at all (a model no longer in this
+    checkout keeps its rows; rows of an expected model under another key -- a transfer arm's seeds
+    pooled before the seed column -- are evaluated again instead)."""
+    models = {(key[0], key[1], key[2]) for key in expected}
+    kept: dict[tuple[str, str, str, str], list[dict[str, str]]] = {}
     for source in sources:
-        found: dict[tuple[str, str, str], list[dict[str, str]]] = {}
+        found: dict[tuple[str, str, str, str], list[dict[str, str]]] = {}
         for row in read_rows(source):
-            found.setdefault((row["model"], row["task"], row["split"]), []).append(row)
+            found.setdefault(row_key(row), []).append(row)
         for key, rows in found.items():
             if key in kept:
                 continue
             if key not in expected:
-                if source == sources[0]:
+                if source == sources[0] and key[:3] not in models:
                     kept[key] = rows
                 continue
             robots, episodes = expected[key]

@@ -13,13 +13,17 @@ touches no begun stage (say, the transfer budget before any transfer ran) is sim
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import hashlib
 import json
 import platform
 import shutil
 import subprocess
+import tempfile
 import time
 from importlib import metadata
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -197,10 +201,16 @@ def check_and_record(
     :raises ConfigError: a begun stage's settings changed and neither ``force`` nor ``redo`` covers
         it (the message lists the stages and keys); an unknown stage in ``redo``.
     """
-    path = Path(out) / RECORD
     unknown = [stage for stage in redo if stage not in STAGE_KEYS]
     if unknown:
         raise ConfigError(f"unknown stage(s) {unknown} for --redo; stages: {list(STAGE_KEYS)}")
+    # commands started side by side on one run (a worker per core) each append to its history
+    with _locked(Path(out)):
+        return _check_and_record(out, profile, command, force, redo)
+
+
+def _check_and_record(out: Path, profile: Profile, command: str, force: bool, redo: tuple[str, ...] | list[str]) -> dict[str, Any]:
+    path = Path(out) / RECORD
     config = configuration(profile)
     device = resolve_device(profile.device)
     if profile.device == "auto":
@@ -243,3 +253,21 @@ def check_and_record(
     }
     atomic_write_json(path, record)
     return record
+
+
+@contextlib.contextmanager
+def _locked(out: Path) -> Iterator[None]:
+    """An exclusive lock on the run ``out``'s record for the block (a lock file in the temporary folder,
+    so that the run folder gets nothing new); none where ``fcntl`` is missing (Windows)."""
+    try:
+        import fcntl
+    except ImportError:
+        yield
+        return
+    name = hashlib.sha1(str(Path(out).resolve()).encode()).hexdigest()[:16]
+    with open(Path(tempfile.gettempdir()) / f"divmorph-run-{name}.lock", "a") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)

@@ -188,6 +188,7 @@ def zero_shot_comparison(profile: Profile, rows: list[dict[str, str]], draws: in
     return lines
 
 
+#: What the student must keep of its teacher's return, and a deployed actor of the student's.
 STUDENT_SHARE, DEPLOYED_SHARE = 0.9, 0.95
 
 
@@ -229,6 +230,9 @@ def student_shares(profile: Profile, rows: list[dict[str, str]], draws: int = BO
                 continue
             t, v = np.array([teacher[r] for r in robots]), np.array([student[r] for r in robots])
             picks = rng.integers(0, len(robots), size=(draws, len(robots)))
+            if (t[picks].mean(1) <= 0).any():  # a share of a return at or below 0 is no share
+                cells.append(f"{v.mean():.1f}: n/a (teacher's mean return not above 0)")
+                continue
             with np.errstate(divide="ignore", invalid="ignore"):
                 shares = v[picks].mean(1) / t[picks].mean(1)
             lo, hi = interval(shares)
@@ -280,7 +284,6 @@ def _percent(part: float, whole: float) -> str:
     return f"{100 * part / whole:.0f}%" if np.isfinite(part) and np.isfinite(whole) and whole > 0 else "n/a"
 
 
-#: What the student must keep of its teacher's return, and a deployed actor of the student's.
 def findings(profile: Profile, groups: dict[tuple[str, str, str], list[float]], exports: list[dict]) -> list[str]:
     """The run's answers, from the evaluation (mean over robots of deterministic returns) and the exports:
     teachers against the same policy before training, the student against its teachers, zero-shot on
