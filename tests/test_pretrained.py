@@ -62,15 +62,13 @@ def test_the_obstacle_teacher_gets_past_its_blocks_on_a_fresh_clone(official_tra
 @pytest.mark.parametrize(
     "folder, policy",
     [
-        ("student", "DivMorphPolicy"),
         ("students/distilled", "MetaMorphPolicy"),
-        ("students/deploy-g1k1", "DivMorphPolicy"),
     ],
 )
 def test_the_students_load_with_their_normalisers(folder, policy):
-    model = PPO.load(RUN / folder / "model.zip", device="cpu")
+    model = PPO.load(stage_model(RUN100 / folder), device="cpu")
     assert type(model.policy).__name__ == policy
-    assert stage_normalizer(RUN / folder) is not None
+    assert stage_normalizer(RUN100 / folder) is not None
 
 
 @pytest.mark.parametrize(
@@ -78,6 +76,9 @@ def test_the_students_load_with_their_normalisers(folder, policy):
     [
         "teachers/FT",
         "teachers/Obstacle",
+        "student",
+        "students/distilled",
+        "students/deploy-g1k1",
         "hyperdistill/student",
         "students/no-kdiv-transformer",
         "students/no-kdiv-decoder",

@@ -21,7 +21,7 @@ check=$RUN/checks/$label
 python benchmarks/slim_models.py --write "$RUN/$folder"
 tmp=$(mktemp -d)
 start=$(date +%s)
-divmorph evaluate --run "$RUN" --model teacher --model "$label" --split train --episodes 1 \
+divmorph evaluate --run "$RUN" --model teacher --model teacher-untrained --model "$label" --split train --episodes 1 \
   --task FT --task VT --task Incline --task Obstacle --task Patrol --into "$tmp" --no-progress
 seconds=$(( $(date +%s) - start ))
 mkdir -p "$check"
