@@ -33,6 +33,7 @@ import torch as th
 
 from sb3_divmorph.pipeline.branch import branch
 from sb3_divmorph.pipeline.folders import transfer_folder
+from sb3_divmorph.pipeline.runs import log_file
 from sb3_divmorph.pipeline.provenance import recorded_profile
 from sb3_divmorph.pipeline.transfer import transfer_run
 
@@ -98,7 +99,7 @@ def write_report(args: argparse.Namespace, seconds: float) -> None:
     for variant in names:
         for arm in ARMS:
             for seed in args.seeds:
-                frame = pd.read_csv(transfer_folder(args.out / variant, args.task, arm, seed) / "eval.csv")
+                frame = pd.read_csv(log_file(transfer_folder(args.out / variant, args.task, arm, seed) / "eval.csv"))
                 frame = frame[frame.split == "train"].groupby(["timesteps", "robot"], as_index=False)["return"].mean()
                 rows.append(frame.assign(variant=variant, arm=arm, seed=seed))
     data = pd.concat(rows)
@@ -153,7 +154,7 @@ def explained_variance(args: argparse.Namespace, variant: str, arm: str) -> floa
     """Mean ``train/explained_variance`` over the second half of each seed's updates."""
     means = []
     for seed in args.seeds:
-        progress = pd.read_csv(transfer_folder(args.out / variant, args.task, arm, seed) / "logs" / "run-0" / "progress.csv")
+        progress = pd.read_csv(log_file(transfer_folder(args.out / variant, args.task, arm, seed) / "logs" / "run-0" / "progress.csv"))
         values = progress["train/explained_variance"].dropna().to_numpy()
         means.append(values[len(values) // 2 :].mean())
     return float(np.mean(means))

@@ -49,7 +49,7 @@ def learning_curve(folder: str | Path, window: int = 10) -> tuple[np.ndarray, np
             steps = steps[window - 1 :]
         smoothing = f", mean of {window}" if window > 1 else ""
         return steps, returns, f"{len(monitors)} Monitor file(s), {len(episodes)} episodes{smoothing}"
-    logs = sorted(folder.rglob("progress.csv"))
+    logs = sorted({*folder.rglob("progress.csv"), *folder.rglob("progress.csv.gz")})  # (a recorded run ships them packed)
     if logs:
         table = pd.concat([pd.read_csv(f) for f in logs]).dropna(subset=["rollout/ep_rew_mean"])
         table = table.sort_values("time/total_timesteps")

@@ -226,6 +226,40 @@ def test_an_evaluation_keeps_each_transfer_seed_apart(tmp_path):
     assert len(complete_rows([tmp_path / "returns.csv"], jobs)) == 4
 
 
+def test_a_run_with_packed_logs_reads_and_reports_as_before(finished_run, tmp_path):
+    """benchmarks/pack_logs.py gzips a recorded run's finished logs; every reader gives the same numbers,
+    the report the same tables, and a later plain file wins over its packed twin."""
+    import importlib
+    import runpy
+    import sys
+
+    from sb3_divmorph.pipeline.curves import read_eval
+    from sb3_divmorph.pipeline.runs import read_progress
+
+    R = importlib.import_module("sb3_divmorph.pipeline.report")
+    out, profiles = copied_run(finished_run, tmp_path)
+    arm = out / "transfer" / "Escape" / "scratch" / "seed-0"
+    before = (read_progress(out / "student"), read_eval(arm / "eval.csv"), R.read_returns(out / "evaluate" / "returns.csv"))
+    base = ["--profile", "tiny", "--profiles", str(profiles), "--out", str(out), "--no-progress"]
+    assert cli(["report", *base]) == 0
+    summary = (out / "summary.md").read_text()
+    argv = sys.argv
+    try:
+        sys.argv = ["pack_logs.py", "--write", str(out)]
+        runpy.run_path(str(Path(__file__).resolve().parents[1] / "benchmarks" / "pack_logs.py"), run_name="__main__")
+    finally:
+        sys.argv = argv
+    assert not list(out.rglob("progress.csv")) and not list(out.rglob("eval.csv")) and (out / "evaluate" / "returns.csv.gz").is_file()
+    after = (read_progress(out / "student"), read_eval(arm / "eval.csv"), R.read_returns(out / "evaluate" / "returns.csv"))
+    assert before[0].keys() == after[0].keys() and all(np.array_equal(before[0][k], after[0][k], equal_nan=True) for k in before[0])
+    assert before[1:] == after[1:]
+    assert cli(["report", *base]) == 0
+    strip = lambda text: [line for line in text.splitlines() if "finished in" not in line and "Written" not in line]  # noqa: E731
+    assert strip((out / "summary.md").read_text()) == strip(summary)
+    assert cli(["evaluate", *base]) == 0  # nothing to do: the packed evaluation counts
+    assert (out / "evaluate" / "returns.csv.gz").is_file() and not (out / "evaluate" / "returns.csv").exists()
+
+
 def read_returns(path: Path) -> dict[tuple[str, ...], float]:
     with open(path, newline="") as f:
         return {(r["model"], r["task"], r["split"], r["morphology"], r["episode"]): float(r["return"]) for r in csv.DictReader(f)}

@@ -31,6 +31,7 @@ from sb3_divmorph.pipeline.metrics import ArmMetrics, RobotCurves, task_metrics_
 from sb3_divmorph.pipeline.runs import (
     atomic_write_text,
     is_done,
+    read_csv_rows,
     stage_model,
     stage_normalizer,
     task_env_name,
@@ -79,20 +80,17 @@ def robot_venv(env_name: str, robots: list[Path], max_steps: int, seed: int, **e
 
 
 def read_eval(path: Path) -> list[dict[str, Any]]:
-    """Rows of an ``eval.csv`` with numbers parsed (empty when the file does not exist)."""
-    if not path.is_file():
-        return []
-    with open(path) as f:
-        return [
-            {
-                **row,
-                "timesteps": int(row["timesteps"]),
-                "episode": int(row["episode"]),
-                "return": float(row["return"]),
-                "length": int(row["length"]),
-            }
-            for row in csv.DictReader(f)
-        ]
+    """Rows of an ``eval.csv`` (or its packed ``eval.csv.gz``) with numbers parsed (empty when there is none)."""
+    return [
+        {
+            **row,
+            "timesteps": int(row["timesteps"]),
+            "episode": int(row["episode"]),
+            "return": float(row["return"]),
+            "length": int(row["length"]),
+        }
+        for row in read_csv_rows(path)
+    ]
 
 
 def write_eval(path: Path, rows: list[dict[str, Any]]) -> None:

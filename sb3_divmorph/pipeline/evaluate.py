@@ -35,9 +35,11 @@ from sb3_divmorph.pipeline.runs import (
     atomic_write_text,
     has_model,
     is_done,
+    log_file,
     mark_done,
     profile_env_kwargs,
     profile_robots,
+    read_csv_rows,
     robot_observations,
     stage_model,
     transfer_eval_robots,
@@ -183,7 +185,7 @@ def evaluate(
         folder = Path(into) if into is not None else Path("evaluations") / f"{out.resolve().name}-{time.strftime('%Y%m%d-%H%M%S')}"
         if folder.resolve() == (out / "evaluate").resolve():
             raise ValueError(f"{folder} is the run's own evaluation; choose another --into for a selection")
-    elif is_done(folder) and not (folder / "returns.csv").is_file():
+    elif is_done(folder) and log_file(folder / "returns.csv") is None:
         print(f"[evaluate] skipped, already evaluated in {folder}")
         return folder
     unknown_splits = sorted(set(splits or ()) - {"train", "novel"})
@@ -266,11 +268,8 @@ def evaluate(
 
 
 def read_rows(path: Path) -> list[dict[str, str]]:
-    """The rows of a ``returns.csv`` (empty when there is none)."""
-    if not path.is_file():
-        return []
-    with open(path, newline="") as f:
-        return list(csv.DictReader(f))
+    """The rows of a ``returns.csv`` or of its packed twin (empty when there is neither)."""
+    return read_csv_rows(path)
 
 
 def write_rows(path: Path, rows: list[dict[str, Any]]) -> None:
@@ -279,6 +278,7 @@ def write_rows(path: Path, rows: list[dict[str, Any]]) -> None:
     writer.writeheader()
     writer.writerows(rows)
     atomic_write_text(path, buffer.getvalue())
+    path.with_name(path.name + ".gz").unlink(missing_ok=True)  # the packed twin it replaces
 
 
 def job_key(label: str, model: Path, task: str, split: str) -> tuple[str, str, str, str]:

@@ -23,7 +23,6 @@ actor computes the student's actions (max |diff| <= 1e-5), and the evaluation ro
 
 from __future__ import annotations
 
-import csv
 import io
 import json
 from collections import defaultdict
@@ -49,7 +48,7 @@ from sb3_divmorph.pipeline.curves import (  # noqa: E402, F401 -- the metrics ar
     write_metrics,
 )
 from sb3_divmorph.pipeline.metrics import ArmMetrics, mean_curve, robot_interval  # noqa: E402
-from sb3_divmorph.pipeline.runs import atomic_save, profile_robots, write_csv  # noqa: E402
+from sb3_divmorph.pipeline.runs import atomic_save, log_file, profile_robots, read_csv_rows, write_csv  # noqa: E402
 from sb3_divmorph.pipeline.folders import export_reports, transfer_tasks  # noqa: E402
 from sb3_divmorph.pipeline.students import STUDENTS  # noqa: E402
 
@@ -169,8 +168,7 @@ def _curves_figure(profile: Profile, out: Path, name: str, arms: tuple[str, ...]
 
 
 def _read_csv(path: Path) -> list[dict[str, str]]:
-    with open(path) as f:
-        return list(csv.DictReader(f))
+    return read_csv_rows(path)  # (or its packed twin, <path>.gz)
 
 
 DEPLOYED = {"teacher": "Teacher (MetaMorph)", "hyperdistill": "HyperDistill MLP", "student": "DivMorph compact actor"}
@@ -180,7 +178,7 @@ def _deployment_data(profile: Profile, out: Path) -> tuple[dict[str, str], dict[
     """What the deployment figures show: ``(models and their labels, returns by (model, task, split)
     and robot, actor sizes by (model, task))``; ``None`` without an evaluation."""
     returns_file = Path(out) / "evaluate" / "returns.csv"
-    if not returns_file.is_file():
+    if log_file(returns_file) is None:
         return None
     tasks = list(profile.teachers.tasks)
     deployed = dict(DEPLOYED)

@@ -9,7 +9,6 @@ training run, ``evaluate/returns.csv`` and ``gates.npz``, ``export/*/report.json
 
 from __future__ import annotations
 
-import csv
 import json
 import platform
 import time
@@ -39,7 +38,7 @@ from sb3_divmorph.pipeline.figures import (  # noqa: E402, F401 -- _correlation,
     write_metrics,
 )
 from sb3_divmorph.pipeline.metrics import BOOTSTRAP, EFFICIENCY_FRACTION, interval, robot_interval  # noqa: E402
-from sb3_divmorph.pipeline.runs import atomic_write_text, read_progress  # noqa: E402
+from sb3_divmorph.pipeline.runs import atomic_write_text, log_file, log_files, read_csv_rows, read_progress  # noqa: E402
 
 
 def _curve(ax, progress: dict[str, np.ndarray], key: str, label: str) -> bool:
@@ -100,8 +99,8 @@ def plot_curves(profile: Profile, out: Path, target: Path) -> None:
 
 
 def read_returns(path: Path) -> list[dict[str, str]]:
-    with open(path) as f:
-        return list(csv.DictReader(f))
+    """The rows of an evaluation's ``returns.csv`` (or its packed ``returns.csv.gz``)."""
+    return read_csv_rows(path)
 
 
 def returns_table(rows: list[dict[str, str]]) -> tuple[list[str], dict[tuple[str, str, str], list[float]]]:
@@ -359,9 +358,12 @@ def training_seconds(folder: Path) -> float | None:
     """Wall time a training run spent learning: the last ``time/time_elapsed`` of each attempt
     (``logs/run-*``; a resumed run restarts SB3's clock), summed. ``None`` without logs."""
     total, found = 0.0, False
-    for log in Path(folder).glob("logs/run-*/progress.csv"):
-        with open(log) as f:
-            elapsed = [float(row["time/time_elapsed"]) for row in csv.DictReader(f) if row.get("time/time_elapsed")]
+    for log in log_files(Path(folder), "logs/run-*/progress.csv"):
+        elapsed = [
+            float(row["time/time_elapsed"])
+            for row in read_csv_rows(log.with_suffix("") if log.suffix == ".gz" else log)
+            if row.get("time/time_elapsed")
+        ]
         if elapsed:
             total, found = total + max(elapsed), True
     return total if found else None
@@ -480,7 +482,7 @@ def report(profile: Profile, out: Path, command: str = "") -> str:
         ]
 
     returns_file = out / "evaluate" / "returns.csv"
-    if returns_file.is_file():
+    if log_file(returns_file) is not None:
         rows = read_returns(returns_file)
         table, groups = returns_table(rows)
         episodes = profile.evaluate.episodes

@@ -11,6 +11,7 @@ complete checkpoint and loses at most one interval. Callbacks with state of thei
 from __future__ import annotations
 
 import csv
+import gzip
 import hashlib
 import io
 import json
@@ -472,12 +473,38 @@ def seed_everything(seed: int, threads: int) -> None:
     th.manual_seed(seed)
 
 
+# -- logs that ship packed -----------------------------------------------------------------
+# A recorded run ships its finished stages' CSV logs gzip-compressed (``progress.csv.gz``,
+# ``eval.csv.gz``, ``returns.csv.gz``: benchmarks/pack_logs.py) to keep the repository small; every
+# reader takes either form, and a plain file, written later, wins over its packed twin.
+def log_file(path: Path) -> Path | None:
+    """``path`` if it exists, else its packed twin ``<path>.gz`` if that exists, else ``None``."""
+    path = Path(path)
+    packed = path.with_name(path.name + ".gz")
+    return path if path.is_file() else packed if packed.is_file() else None
+
+
+def read_csv_rows(path: Path) -> list[dict[str, str]]:
+    """The rows of the CSV ``path`` or of its packed twin (empty when there is neither)."""
+    found = log_file(path)
+    if found is None:
+        return []
+    with gzip.open(found, "rt", newline="") if found.suffix == ".gz" else open(found, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def log_files(folder: Path, pattern: str) -> list[Path]:
+    """The CSV logs ``folder.glob(pattern)`` finds, each in the form :func:`log_file` reads (a file
+    and its packed twin count once)."""
+    names = {p.with_suffix("") if p.suffix == ".gz" else p for p in (*folder.glob(pattern), *folder.glob(pattern + ".gz"))}
+    return [found for name in sorted(names) if (found := log_file(name)) is not None]
+
+
 def read_progress(folder: Path) -> dict[str, np.ndarray]:
     """All ``progress.csv`` rows of a training run (resumed attempts concatenated), by column."""
     rows: list[dict[str, str]] = []
-    for log in sorted((folder / "logs").glob("run-*/progress.csv"), key=lambda p: int(p.parent.name.split("-")[1])):
-        with open(log) as f:
-            rows += list(csv.DictReader(f))
+    for log in sorted(log_files(folder / "logs", "run-*/progress.csv"), key=lambda p: int(p.parent.name.split("-")[1])):
+        rows += read_csv_rows(log.with_suffix("") if log.suffix == ".gz" else log)
     columns: dict[str, list[float]] = defaultdict(list)
     keys = {k for row in rows for k in row}
     for row in rows:
