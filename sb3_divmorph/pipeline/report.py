@@ -359,11 +359,7 @@ def training_seconds(folder: Path) -> float | None:
     (``logs/run-*``; a resumed run restarts SB3's clock), summed. ``None`` without logs."""
     total, found = 0.0, False
     for log in log_files(Path(folder), "logs/run-*/progress.csv"):
-        elapsed = [
-            float(row["time/time_elapsed"])
-            for row in read_csv_rows(log.with_suffix("") if log.suffix == ".gz" else log)
-            if row.get("time/time_elapsed")
-        ]
+        elapsed = [float(row["time/time_elapsed"]) for row in read_csv_rows(log) if row.get("time/time_elapsed")]
         if elapsed:
             total, found = total + max(elapsed), True
     return total if found else None

@@ -485,8 +485,10 @@ def log_file(path: Path) -> Path | None:
 
 
 def read_csv_rows(path: Path) -> list[dict[str, str]]:
-    """The rows of the CSV ``path`` or of its packed twin (empty when there is neither)."""
-    found = log_file(path)
+    """The rows of the CSV ``path`` or of its packed twin (empty when there is neither); ``path`` may
+    name the packed file itself (as :func:`log_files` gives it)."""
+    path = Path(path)
+    found = path if path.suffix == ".gz" and path.is_file() else log_file(path)
     if found is None:
         return []
     with gzip.open(found, "rt", newline="") if found.suffix == ".gz" else open(found, newline="") as f:
@@ -504,7 +506,7 @@ def read_progress(folder: Path) -> dict[str, np.ndarray]:
     """All ``progress.csv`` rows of a training run (resumed attempts concatenated), by column."""
     rows: list[dict[str, str]] = []
     for log in sorted(log_files(folder / "logs", "run-*/progress.csv"), key=lambda p: int(p.parent.name.split("-")[1])):
-        rows += read_csv_rows(log.with_suffix("") if log.suffix == ".gz" else log)
+        rows += read_csv_rows(log)
     columns: dict[str, list[float]] = defaultdict(list)
     keys = {k for row in rows for k in row}
     for row in rows:
