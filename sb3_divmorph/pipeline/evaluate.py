@@ -267,11 +267,6 @@ def evaluate(
     return folder
 
 
-def read_rows(path: Path) -> list[dict[str, str]]:
-    """The rows of a ``returns.csv`` or of its packed twin (empty when there is neither)."""
-    return read_csv_rows(path)
-
-
 def write_rows(path: Path, rows: list[dict[str, Any]]) -> None:
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=COLUMNS)
@@ -305,7 +300,7 @@ def complete_rows(sources: list[Path], expected: dict[tuple[str, str, str, str],
     kept: dict[tuple[str, str, str, str], list[dict[str, str]]] = {}
     for source in sources:
         found: dict[tuple[str, str, str, str], list[dict[str, str]]] = {}
-        for row in read_rows(source):
+        for row in read_csv_rows(source):
             found.setdefault(row_key(row), []).append(row)
         for key, rows in found.items():
             if key in kept:
