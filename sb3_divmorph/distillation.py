@@ -267,7 +267,7 @@ class DistillationDataset:
         """Write the stored states, their labels and the ring position to ``path`` (``.npz``)."""
         arrays = {f"obs/{key}": value[: self.size] for key, value in self.obs.items()}
         if self.size:
-            arrays.update(mean=self.mean[: self.size], std=self.std[: self.size], task=self.task[: self.size])
+            arrays.update({name: getattr(self, name)[: self.size] for name in self._label_arrays()})
         meta = np.array([self.capacity, self.size, self._next], dtype=np.int64)
         with open(path, "wb") as f:  # a file object: np.savez would append .npz to a bare name
             np.savez(f, meta=meta, **arrays)
@@ -279,16 +279,27 @@ class DistillationDataset:
         :param capacity: the capacity the caller expects; a file of another capacity is an error
             (its ring position would not mean the same rows).
         """
+        dataset = cls(capacity)
         with np.load(path) as saved:
             saved_capacity, size, next_row = (int(v) for v in saved["meta"])
             if saved_capacity != capacity:
                 raise ValueError(f"{path} holds a dataset of capacity {saved_capacity}, expected {capacity}")
-            dataset = cls(capacity)
-            if size:
-                obs = {name.split("/", 1)[1]: saved[name] for name in saved.files if name.startswith("obs/")}
-                dataset.add(obs, saved["mean"], saved["std"], saved["task"])
-        dataset._next = next_row
+            for name in saved.files:
+                if name == "meta":
+                    continue
+                value = saved[name]
+                if size < capacity:  # the rows not yet written stay zero, as in a fresh dataset
+                    value = np.concatenate([value, np.zeros((capacity - size, *value.shape[1:]), dtype=value.dtype)])
+                if name.startswith("obs/"):  # a full dataset takes the loaded arrays as they are: no second copy
+                    dataset.obs[name.split("/", 1)[1]] = value
+                else:
+                    setattr(dataset, name, value)
+        dataset.size, dataset._next = size, next_row
         return dataset
+
+    def _label_arrays(self) -> tuple[str, ...]:
+        """The per-state arrays besides the observations (subclasses add theirs)."""
+        return ("mean", "std", "task")
 
     def batches(self, batch_size: int, rng: np.random.Generator):
         """Shuffled minibatches over the stored states: ``(obs, mean, std, task)``."""

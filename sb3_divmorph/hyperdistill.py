@@ -45,6 +45,8 @@ Deployment: for one robot the MLP is generated once (:meth:`HyperDistillMLP.from
 from __future__ import annotations
 
 import math
+import os
+import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -569,6 +571,9 @@ class TeacherRollouts(DistillationDataset):
         self.actions[rows] = actions
         self.add(obs, mean, std, task)
 
+    def _label_arrays(self) -> tuple[str, ...]:
+        return (*super()._label_arrays(), "actions")
+
     def batches_with_actions(self, batch_size: int, rng: np.random.Generator):
         """Shuffled minibatches ``(obs, mean, std, task, action)``."""
         order = rng.permutation(self.size)
@@ -578,7 +583,7 @@ class TeacherRollouts(DistillationDataset):
 
 
 def collect_teacher_rollouts(
-    teachers: Mapping[int, Teacher], venv: VecEnv, n_samples: int, seed: int = 0, capacity: int | None = None
+    teachers: Mapping[int, Teacher], venv: VecEnv, n_samples: int, seed: int = 0, capacity: int | None = None, verbose: int = 0
 ) -> TeacherRollouts:
     """Roll out the teachers (each state acted on by its own task's teacher, sampling from its Gaussian).
 
@@ -588,6 +593,7 @@ def collect_teacher_rollouts(
     :param n_samples: states to collect (rounded up to whole vector steps).
     :param seed: seed of the action noise.
     :param capacity: dataset capacity (default ``n_samples`` rounded up).
+    :param verbose: 1: a line at every tenth of the states collected (count, rate).
     """
     rng = np.random.default_rng(seed)
     normalizer = find_vec_wrapper(venv, VecNormalize)
@@ -596,12 +602,18 @@ def collect_teacher_rollouts(
     obs = venv.reset()
     low, high = venv.action_space.low, venv.action_space.high
     action_dim = int(np.prod(venv.action_space.shape))
-    for _ in range(steps):
+    start, report_every = time.perf_counter(), max(1, steps // 10)
+    for step in range(steps):
         raw = normalizer.get_original_obs() if normalizer is not None else {k: np.array(v) for k, v in obs.items()}
         mean, std, tasks = teacher_labels(teachers, raw, action_dim)
         actions = (mean + std * rng.standard_normal(mean.shape)).astype(np.float32)
         dataset.add_with_actions(raw, mean, std, tasks, actions)
         obs, _, _, _ = venv.step(np.clip(actions, low, high))
+        if verbose and ((step + 1) % report_every == 0 or step + 1 == steps):
+            elapsed = time.perf_counter() - start
+            print(
+                f"[hyperdistill] teacher rollouts: {dataset.size} of {steps * venv.num_envs} states ({dataset.size / elapsed:.0f} states/s)"
+            )
     return dataset
 
 
@@ -635,6 +647,8 @@ def fit_offline(
     learning_rate: float = 3e-4,
     max_grad_norm: float | None = None,
     seed: int = 0,
+    checkpoint: str | Path | None = None,
+    verbose: int = 0,
 ) -> list[float]:
     """Fit the student to teacher rollouts by minibatch Adam; returns the mean loss of every epoch.
 
@@ -647,16 +661,28 @@ def fit_offline(
     :param learning_rate: Adam learning rate (authors: 1e-3 / 3e-4 / 1e-4).
     :param max_grad_norm: gradient clipping (``None``: none).
     :param seed: shuffling seed.
+    :param checkpoint: a file written (atomically) after every epoch with the student, the optimiser,
+        the shuffling state and the losses so far; when it exists the fit resumes from it and ends
+        as an uninterrupted fit would have. The caller removes it once the student is saved.
+    :param verbose: 1: a line per epoch (mean loss, seconds).
     """
     if loss not in LOSSES:
         raise ValueError(f"unknown distillation loss {loss!r}; choose from {list(LOSSES)}")
     optimizer = th.optim.Adam(policy.parameters(), lr=learning_rate)
     rng = np.random.default_rng(seed)
     device = policy.device
-    history = []
+    history: list[float] = []
+    if checkpoint is not None and Path(checkpoint).is_file():
+        state = th.load(checkpoint, map_location=device, weights_only=False)
+        policy.load_state_dict(state["policy"])
+        optimizer.load_state_dict(state["optimizer"])
+        rng.bit_generator.state = state["rng"]
+        history = list(state["history"])
+        if verbose:
+            print(f"[hyperdistill] offline fit: resuming after epoch {len(history)} of {epochs} ({checkpoint})")
     policy.set_training_mode(True)
-    for _ in range(epochs):
-        losses = []
+    for epoch in range(len(history), epochs):
+        start, losses = time.perf_counter(), []
         for raw, t_mean, t_std, _, t_action in dataset.batches_with_actions(batch_size, rng):
             obs, _ = policy.obs_to_tensor(raw if normalizer is None else normalizer.normalize_obs(raw))
             value = distillation_loss(
@@ -674,8 +700,23 @@ def fit_offline(
             optimizer.step()
             losses.append(value.item())
         history.append(float(np.mean(losses)))
+        if checkpoint is not None:
+            _save_fit_state(Path(checkpoint), policy, optimizer, rng, history)
+        if verbose:
+            print(
+                f"[hyperdistill] offline fit: epoch {epoch + 1} of {epochs}, {loss} {history[-1]:.4g} ({time.perf_counter() - start:.0f} s)"
+            )
     policy.set_training_mode(False)
     return history
+
+
+def _save_fit_state(path: Path, policy: nn.Module, optimizer: th.optim.Optimizer, rng: np.random.Generator, history: list[float]) -> None:
+    """Write the offline fit's state next to ``path`` and rename it over ``path`` (a kill leaves the old one)."""
+    staging = path.with_name(f".staging-{path.name}")
+    th.save(
+        {"policy": policy.state_dict(), "optimizer": optimizer.state_dict(), "rng": rng.bit_generator.state, "history": history}, staging
+    )
+    os.replace(staging, path)
 
 
 # -- deployment ------------------------------------------------------------------------------------

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import json
 import subprocess
 import sys
@@ -22,6 +23,7 @@ from sb3_divmorph.distillation import DAggerCallback, ImitationPPO, SpaceMismatc
 from sb3_divmorph.hyperdistill import (
     HyperDistillMLP,
     HyperDistillPolicy,
+    TeacherRollouts,
     collect_teacher_rollouts,
     distillation_loss,
     fit_offline,
@@ -89,6 +91,31 @@ def test_offline_imitation_error_falls_to_a_small_fraction(teacher, loss, fracti
     after = imitation_error(student, dataset, venv)
     assert history[-1] < history[0]
     assert after < fraction * before, (before, after)
+
+
+def test_a_killed_offline_fit_resumes_to_the_student_of_an_uninterrupted_one(teacher, tmp_path):
+    venv = multitask_venv()
+    dataset = collect_teacher_rollouts(teacher, venv, 96, seed=0)
+    # the stage keeps its states on disk: they read back whole, the teacher's sampled actions included
+    dataset.save(tmp_path / "rollouts.npz")
+    loaded = TeacherRollouts.load(tmp_path / "rollouts.npz", capacity=dataset.capacity)
+    for name in ("mean", "std", "task", "actions"):
+        np.testing.assert_array_equal(getattr(loaded, name), getattr(dataset, name))
+    np.testing.assert_array_equal(loaded.obs["proprioceptive"], dataset.obs["proprioceptive"])
+
+    def student():
+        th.manual_seed(0)
+        return HyperDistillPolicy(venv.observation_space, venv.action_space, lambda _: 0.0, **STUDENT)
+
+    settings = dict(loss="nll", batch_size=32, learning_rate=3e-3, seed=5)
+    whole = student()
+    expected = fit_offline(whole, dataset, venv, epochs=3, **settings)
+    checkpoint = tmp_path / "offline-fit.pt"
+    fit_offline(student(), dataset, venv, epochs=1, checkpoint=checkpoint, **settings)  # killed after epoch 1
+    resumed = student()  # a fresh process: the initial weights again, then the checkpoint
+    assert fit_offline(resumed, loaded, venv, epochs=3, checkpoint=checkpoint, **settings) == expected
+    for a, b in zip(whole.parameters(), resumed.parameters()):
+        assert th.equal(a, b)
 
 
 def test_dagger_trains_the_student(teacher):
@@ -219,11 +246,9 @@ def test_bad_input_gives_clear_errors(trained_student, tmp_path):
         load_student(tmp_path / "meta.zip")
 
 
-def test_pipeline_trains_modumorph_teachers_distils_and_exports(tmp_path):
-    from test_pipeline import TINY, write_profiles
-
-    from divmorph.cli import main as cli
-    from sb3_divmorph.pipeline.config import ConfigError, load_profile
+def _hyperdistill_profile() -> dict:
+    """The tiny pipeline profile with a HyperDistill stage (one task, ModuMorph teachers of 64 steps)."""
+    from test_pipeline import TINY
 
     profile = json.loads(json.dumps(TINY))
     profile["teachers"].update(tasks=["FT"], n_timesteps=64, policy_kwargs=dict(TINY["teachers"]["policy_kwargs"], hypernet_dim=8))
@@ -239,6 +264,16 @@ def test_pipeline_trains_modumorph_teachers_distils_and_exports(tmp_path):
         "n_steps": 32,
         "buffer_size": 256,
     }
+    return profile
+
+
+def test_pipeline_trains_modumorph_teachers_distils_and_exports(tmp_path):
+    from test_pipeline import write_profiles
+
+    from divmorph.cli import main as cli
+    from sb3_divmorph.pipeline.config import ConfigError, load_profile
+
+    profile = _hyperdistill_profile()
     path = tmp_path / "profiles.yml"
     path.write_text(yaml.safe_dump({"tiny": profile}))
     out = tmp_path / "run"
@@ -250,6 +285,8 @@ def test_pipeline_trains_modumorph_teachers_distils_and_exports(tmp_path):
     reports = [json.loads(p.read_text()) for p in (out / "hyperdistill" / "export").glob("*/report.json")]
     assert len(reports) == 2 and all(r["max_abs_diff"] <= 1e-5 and r["mlp_weights"] > 0 for r in reports)
     assert all((p / "mlp.pt").is_file() and (p / "mlp.onnx").is_file() for p in (out / "hyperdistill" / "export").iterdir())
+    # the resume files (the states, the fit's checkpoint) are gone once the student is saved
+    assert sorted(p.name for p in (out / "hyperdistill" / "student").iterdir()) == ["done.json", "logs", "model.zip"]
     student = load_student(out / "hyperdistill" / "student" / "model.zip")
     assert student.task_input == "index" and student.observation_statistics == "teachers"  # the profile's defaults
     # the student normalises FT's states with the FT teacher's statistics (no normaliser of its own)
@@ -420,3 +457,28 @@ def test_student_on_its_teachers_statistics_sees_what_each_teacher_sees(teacher,
         student.get_distribution({**obs, "task_index": th.full_like(obs["task_index"], TASK_NAMES.index("Incline"))})
     with pytest.raises(ValueError, match="observation_statistics must be one of"):
         HyperDistillPolicy(venv.observation_space, venv.action_space, lambda _: 0.0, observation_statistics="student", **STUDENT)
+
+
+def test_a_stage_killed_in_its_offline_fit_reads_its_states_back(tmp_path, monkeypatch, capsys):
+    stage = importlib.import_module("sb3_divmorph.pipeline.hyperdistill")  # the package re-exports a function of that name
+    from sb3_divmorph.pipeline.config import load_profile
+
+    path = tmp_path / "profiles.yml"
+    path.write_text(yaml.safe_dump({"tiny": _hyperdistill_profile()}))
+    profile, out = load_profile("tiny", path), tmp_path / "run"
+
+    class Killed(Exception):
+        pass
+
+    def killed(*args, **kwargs):
+        raise Killed
+
+    with monkeypatch.context() as patch:
+        patch.setattr(stage, "fit_offline", killed)
+        with pytest.raises(Killed):
+            stage.train_student(profile, out, progress_bar=False)
+    assert (out / "hyperdistill" / "student" / stage.ROLLOUTS).is_file()
+    monkeypatch.setattr(stage, "collect_teacher_rollouts", killed)  # a second collection would fail the test
+    folder = stage.train_student(profile, out, progress_bar=False)
+    assert "128 teacher-rollout states read from rollouts.npz" in capsys.readouterr().out
+    assert (folder / "model.zip").is_file() and not (folder / stage.ROLLOUTS).exists()

@@ -17,12 +17,16 @@ Runs when the profile has a ``hyperdistill`` section (``divmorph hyperdistill`` 
    TorchScript (``mlp.pt``) and ONNX (``mlp.onnx``), checked against the student (max |diff| <= 1e-5)
    and reported with its size against the teacher's actor (``hyperdistill/export/<robot>-<task>/``).
 
-The student is saved once, at the end of training (no mid-run checkpoints: the offline phase is short).
+Resumable: the teacher-rollout states are written to ``student/rollouts.npz`` once collected (with the
+student's ``VecNormalize`` when it keeps its own statistics) and the offline fit checkpoints after every
+epoch (``student/offline-fit.pt``), so a killed stage resumes from its last epoch; both are removed
+once the student is saved. The DAgger phase, when there is one, starts over.
 """
 
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -35,7 +39,14 @@ from stable_baselines3.common.vec_env import VecNormalize
 from sb3_divmorph.compact import actor_inputs, actor_parameter_count, batch1_latency, export_torchscript
 from sb3_divmorph.deployment import export_onnx
 from sb3_divmorph.distillation import DAggerCallback, ImitationPPO, Teacher, load_normalizer
-from sb3_divmorph.hyperdistill import HyperDistillMLP, HyperDistillPolicy, collect_teacher_rollouts, fit_offline, load_student
+from sb3_divmorph.hyperdistill import (
+    HyperDistillMLP,
+    HyperDistillPolicy,
+    TeacherRollouts,
+    collect_teacher_rollouts,
+    fit_offline,
+    load_student,
+)
 from sb3_divmorph.pipeline.config import ConfigError, Profile, teacher_policy
 from sb3_divmorph.pipeline.folders import TEACHER_RUN, load_teachers, teacher_folder
 from sb3_divmorph.pipeline.grid import Job, run_grid
@@ -58,6 +69,8 @@ from unimal_envs.contract import TASK_NAMES, observation_space
 from unimal_envs.tasks import TASKS
 
 NORM_OBS_KEYS = ["proprioceptive"]
+#: The student folder's resume files, removed once the student is saved.
+ROLLOUTS, ROLLOUTS_NORMALIZER, FIT_CHECKPOINT = "rollouts.npz", "rollouts-vecnormalize.pkl", "offline-fit.pt"
 #: Largest accepted difference between an exported MLP and the student.
 TOLERANCE = 1e-5
 
@@ -123,6 +136,10 @@ def train_student(profile: Profile, out: Path, progress_bar: bool = True) -> Pat
                 "hyperdistill.observation_statistics: teachers needs them alike (or use 'own')"
             )
         statistics = dict(observation_statistics="teachers", normalized_keys=list(next(iter(keys), NORM_OBS_KEYS)))
+    dataset = None
+    if cfg.rollout_samples > 0:
+        print(f"[hyperdistill] {cfg.rollout_samples} teacher-rollout states, {cfg.epochs} epochs of {cfg.loss} -> {folder}")
+        dataset, venv = _teacher_rollouts(folder, teachers, venv, cfg.rollout_samples, seed)
     th.manual_seed(seed)
     model = ImitationPPO(
         HyperDistillPolicy,
@@ -143,11 +160,18 @@ def train_student(profile: Profile, out: Path, progress_bar: bool = True) -> Pat
         "task_input": cfg.task_input,
         "observation_statistics": cfg.observation_statistics,
     }
-    if cfg.rollout_samples > 0:
-        print(f"[hyperdistill] {cfg.rollout_samples} teacher-rollout states, {cfg.epochs} epochs of {cfg.loss} -> {folder}")
-        dataset = collect_teacher_rollouts(teachers, venv, cfg.rollout_samples, seed=seed)
+    if dataset is not None:
         history = fit_offline(
-            model.policy, dataset, venv if own_statistics else None, cfg.loss, cfg.epochs, cfg.batch_size, cfg.learning_rate, seed=seed
+            model.policy,
+            dataset,
+            venv if own_statistics else None,
+            cfg.loss,
+            cfg.epochs,
+            cfg.batch_size,
+            cfg.learning_rate,
+            seed=seed,
+            checkpoint=folder / FIT_CHECKPOINT,
+            verbose=1,
         )
         info.update(offline_loss_first=history[0], offline_loss_last=history[-1], offline_samples=dataset.size)
         for epoch, value in enumerate(history):
@@ -171,7 +195,29 @@ def train_student(profile: Profile, out: Path, progress_bar: bool = True) -> Pat
         atomic_save(folder / NORMALIZER, lambda p: venv.save(str(p)))
         info["normalizer"] = True
     mark_done(folder, **info)
+    for scratch in (ROLLOUTS, ROLLOUTS_NORMALIZER, FIT_CHECKPOINT):  # gigabytes of states, not needed again
+        (folder / scratch).unlink(missing_ok=True)
     return folder
+
+
+def _teacher_rollouts(folder: Path, teachers: dict[int, Teacher], venv, n_samples: int, seed: int):
+    """The teacher-rollout states of the student in ``folder``: collected once and written there, read back
+    on a resume. Returns ``(dataset, venv)``; a ``VecNormalize`` of the student's own comes back with the
+    statistics the collection gave it."""
+    path, statistics = folder / ROLLOUTS, folder / ROLLOUTS_NORMALIZER
+    own = isinstance(venv, VecNormalize)
+    if path.is_file() and (statistics.is_file() or not own):
+        dataset = TeacherRollouts.load(path, capacity=math.ceil(n_samples / venv.num_envs) * venv.num_envs)
+        print(f"[resume] {folder}: {dataset.size} teacher-rollout states read from {path.name}")
+        if own:
+            venv = VecNormalize.load(str(statistics), venv.venv)
+        return dataset, venv
+    dataset = collect_teacher_rollouts(teachers, venv, n_samples, seed=seed, verbose=1)
+    folder.mkdir(parents=True, exist_ok=True)
+    if own:  # before the states: a resume reads the states only when the statistics are there too
+        atomic_save(statistics, lambda p: venv.save(str(p)))
+    atomic_save(path, dataset.save)
+    return dataset, venv
 
 
 def export_mlp(profile: Profile, out: Path, robot_file: Path, task: str, steps: int = 32) -> dict[str, Any]:
