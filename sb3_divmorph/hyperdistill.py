@@ -140,6 +140,17 @@ class MLPWeights(NamedTuple):
     w_out: th.Tensor
     b_out: th.Tensor
 
+    def per_robot(self) -> list[MLPWeights]:
+        """The U robots' MLPs, one each (the leading U dimension dropped).
+
+        Split by ``unbind``, whose backward stacks the robots' gradients once; indexing robot by robot
+        would make every index's backward allocate a gradient of the whole (U, ...) tensor, quadratic in
+        U (a batch of hundreds of robot x task pairs then spends its time zero-filling).
+        """
+        hidden = [list(zip(w.unbind(0), b.unbind(0))) for w, b in self.hidden]
+        parts = zip(self.w_in.unbind(0), self.b_in.unbind(0), self.w_out.unbind(0), self.b_out.unbind(0))
+        return [MLPWeights(w_in, b_in, [layer[u] for layer in hidden], w_out, b_out) for u, (w_in, b_in, w_out, b_out) in enumerate(parts)]
+
 
 class HyperDistillNetwork(nn.Module):
     """The HN-MLP student: context -> MLP weights, and the MLP run on the robot's observations.
@@ -251,20 +262,19 @@ class HyperDistillNetwork(nn.Module):
         return rows, cols
 
     @staticmethod
-    def run_mlp(
-        weights: MLPWeights, index: int, proprio: th.Tensor, extero: th.Tensor | None, rows: th.Tensor, cols: th.Tensor
-    ) -> th.Tensor:
-        """Robot ``index``'s MLP on its real limbs: (n, L*P) flat proprioception (+ (n, E)) -> (n, len(cols)).
+    def run_mlp(weights: MLPWeights, proprio: th.Tensor, extero: th.Tensor | None, rows: th.Tensor, cols: th.Tensor) -> th.Tensor:
+        """One robot's MLP (``weights`` of :meth:`MLPWeights.per_robot`) on its real limbs: (n, L*P) flat
+        proprioception (+ (n, E)) -> (n, len(cols)).
 
         Only the real limbs' rows and columns are multiplied, exactly as in the deployed
         :class:`HyperDistillMLP` (same operations in the same order, so both agree to float rounding).
         """
-        h = th.relu(proprio[:, rows] @ weights.w_in[index][rows] + weights.b_in[index])
+        h = th.relu(proprio[:, rows] @ weights.w_in[rows] + weights.b_in)
         if extero is not None:
             h = th.cat([h, extero], dim=-1)
         for w, b in weights.hidden:
-            h = th.relu(h @ w[index] + b[index])
-        return h @ weights.w_out[index][:, cols] + weights.b_out[index][cols]
+            h = th.relu(h @ w + b)
+        return h @ weights.w_out[:, cols] + weights.b_out[cols]
 
     def forward(self, observations: Mapping[str, th.Tensor]) -> th.Tensor:
         """(B, L * slots) action means (0 on padded tokens' slots) from a preprocessed observation dict."""
@@ -276,7 +286,7 @@ class HyperDistillNetwork(nn.Module):
         proprio = th.where(padding[..., None], zero, proprio).flatten(1)  # NaN-safe: padded rows never read
         context = self.context_input(observations, padding)  # one group per (robot, task) with a task input
         robots = RobotBatch.from_context(context, self._encode, padding)
-        weights = self.generate(robots.embedding)
+        weights = self.generate(robots.embedding).per_robot()
         extero = self.encode_extero(observations)
         groups = proprio[robots.order].split(robots.counts)
         extero_groups = extero[robots.order].split(robots.counts) if extero is not None else [None] * len(groups)
@@ -285,7 +295,7 @@ class HyperDistillNetwork(nn.Module):
         for u, (p, x) in enumerate(zip(groups, extero_groups)):
             rows, cols = self.real_indices(th.nonzero(robots.embedding[u, :, -1] > 0.5).flatten())
             samples = robots.order[start : start + len(p)]
-            out[samples[:, None], cols[None, :]] = self.run_mlp(weights, u, p, x, rows, cols)
+            out[samples[:, None], cols[None, :]] = self.run_mlp(weights[u], p, x, rows, cols)
             start += len(p)
         return out
 

@@ -118,7 +118,8 @@ class RobotBatch(NamedTuple):
         if len(self.counts) == 1:
             return (x.transpose(0, 1) @ weight[0]).transpose(0, 1) + bias[0]
         groups = x[self.order].split(self.counts)
-        out = [(g.transpose(0, 1) @ weight[u]).transpose(0, 1) + bias[u] for u, g in enumerate(groups)]
+        # unbind, not weight[u]: each index's backward would allocate a gradient of all U robots' weights
+        out = [(g.transpose(0, 1) @ w).transpose(0, 1) + b for g, w, b in zip(groups, weight.unbind(0), bias.unbind(0))]
         return th.cat(out)[self.restore]
 
 
