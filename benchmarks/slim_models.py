@@ -113,31 +113,38 @@ def _statistics(normalizer: VecNormalize) -> dict[str, np.ndarray]:
     return out
 
 
-def actions(model_data: bytes, normalizer: VecNormalize, batches: dict) -> tuple[PPO, np.ndarray]:
-    """The model, and its deterministic actions beside its unclipped action means on ``batches``."""
+def actions(model_data: bytes, normalizer: VecNormalize | None, batches: dict) -> tuple[PPO, np.ndarray]:
+    """The model, and its deterministic actions beside its unclipped action means on ``batches``
+    (normalised by ``normalizer``; ``None``: a model that normalises inside its policy, as HyperDistill's)."""
     model = PPO.load(io.BytesIO(model_data), device="cpu")
-    normalizer.training = False
+    if normalizer is not None:
+        normalizer.training = False
     rows = []
     for batch in batches.values():
-        normalized = normalizer.normalize_obs(batch)
+        normalized = batch if normalizer is None else normalizer.normalize_obs(batch)
         with th.no_grad():
             means = model.policy.get_distribution(model.policy.obs_to_tensor(normalized)[0]).distribution.mean.numpy()
         rows.append(np.concatenate([model.predict(normalized, deterministic=True)[0], means], axis=1))
     return model, np.concatenate(rows)
 
 
-def compare(old_model: bytes, old_norm: bytes, new_model: bytes, new_norm: bytes, batches: dict) -> list[str]:
-    """The differences between two versions of a model (empty: they are the same model)."""
+def compare(old_model: bytes, old_norm: bytes | None, new_model: bytes, new_norm: bytes | None, batches: dict) -> list[str]:
+    """The differences between two versions of a model (empty: they are the same model); a model
+    without a ``vecnormalize.pkl`` has ``None`` for its normaliser."""
     problems = []
-    old_n, new_n = pickle.loads(old_norm), pickle.loads(new_norm)
-    old_stats, new_stats = _statistics(old_n), _statistics(new_n)
-    if old_stats.keys() != new_stats.keys() or not all(np.array_equal(old_stats[k], new_stats[k]) for k in old_stats):
-        problems.append("normaliser statistics differ")
-    for name in ("clip_obs", "clip_reward", "epsilon", "gamma", "norm_obs", "norm_reward", "norm_obs_keys"):
-        if getattr(old_n, name) != getattr(new_n, name):
-            problems.append(f"normaliser {name} differs")
+    old_n = None if old_norm is None else pickle.loads(old_norm)
+    new_n = None if new_norm is None else pickle.loads(new_norm)
+    if (old_n is None) != (new_n is None):
+        problems.append("one version has a normaliser, the other none")
+    elif old_n is not None and new_n is not None:
+        old_stats, new_stats = _statistics(old_n), _statistics(new_n)
+        if old_stats.keys() != new_stats.keys() or not all(np.array_equal(old_stats[k], new_stats[k]) for k in old_stats):
+            problems.append("normaliser statistics differ")
+        for name in ("clip_obs", "clip_reward", "epsilon", "gamma", "norm_obs", "norm_reward", "norm_obs_keys"):
+            if getattr(old_n, name) != getattr(new_n, name):
+                problems.append(f"normaliser {name} differs")
     old, old_actions = actions(old_model, old_n, batches)
-    new, new_actions = actions(new_model, pickle.loads(new_norm), batches)
+    new, new_actions = actions(new_model, None if new_norm is None else pickle.loads(new_norm), batches)
     if type(old.policy) is not type(new.policy):
         problems.append(f"policy class {type(old.policy).__name__} -> {type(new.policy).__name__}")
     a, b = old.policy.state_dict(), new.policy.state_dict()
@@ -153,6 +160,10 @@ def compare(old_model: bytes, old_norm: bytes, new_model: bytes, new_norm: bytes
     if old_actions.dtype != new_actions.dtype or not np.array_equal(old_actions, new_actions):
         problems.append(f"deterministic actions or action means differ (max |diff| {np.abs(old_actions - new_actions).max():.3g})")
     return problems
+
+
+def _sizes(old: bytes | None, new: bytes | None) -> str:
+    return "none" if old is None or new is None else f"{len(old):,} -> {len(new):,} B"
 
 
 def at_commit(commit: str, path: str) -> bytes:
@@ -175,16 +186,18 @@ def main(argv: list[str] | None = None) -> int:
     failed, pending = [], []
     for folder in folders:
         model_path, norm_path = ROOT / folder / "model.zip", ROOT / folder / "vecnormalize.pkl"
+        has_norm = norm_path.is_file()  # HyperDistill's student holds its teachers' statistics: no file
         if args.against:
-            old_model, old_norm = at_commit(args.against, f"{folder}/model.zip"), at_commit(args.against, f"{folder}/vecnormalize.pkl")
-            new_model, new_norm = model_path.read_bytes(), norm_path.read_bytes()
+            old_model = at_commit(args.against, f"{folder}/model.zip")
+            old_norm = at_commit(args.against, f"{folder}/vecnormalize.pkl") if has_norm else None
+            new_model, new_norm = model_path.read_bytes(), norm_path.read_bytes() if has_norm else None
         else:
-            old_model, old_norm = model_path.read_bytes(), norm_path.read_bytes()
-            new_model, new_norm = slim_model(old_model), slim_normalizer(old_norm)
+            old_model, old_norm = model_path.read_bytes(), norm_path.read_bytes() if has_norm else None
+            new_model, new_norm = slim_model(old_model), None if old_norm is None else slim_normalizer(old_norm)
         problems = compare(old_model, old_norm, new_model, new_norm, batches)
         n = sum(len(b["proprioceptive"]) for b in batches.values())
         print(
-            f"| `{folder}` | {len(old_model):,} -> {len(new_model):,} B | {len(old_norm):,} -> {len(new_norm):,} B | "
+            f"| `{folder}` | {len(old_model):,} -> {len(new_model):,} B | {_sizes(old_norm, new_norm)} | "
             f"{'bit-identical' if not problems else 'DIFFERENT'} | "
             f"{'bit-identical on ' + str(n) if not problems else '; '.join(problems)} |"
         )
@@ -195,6 +208,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.write:
         for folder, new_model, new_norm in pending:
             for name, data in (("model.zip", new_model), ("vecnormalize.pkl", new_norm)):
+                if data is None:
+                    continue
                 target = ROOT / folder / name
                 with tempfile.NamedTemporaryFile(dir=target.parent, delete=False) as tmp:
                     tmp.write(data)

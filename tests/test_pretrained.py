@@ -17,6 +17,7 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_divmorph import MetaMorphPolicy
+from sb3_divmorph.hyperdistill import load_student
 from sb3_divmorph.pipeline.config import load_profile
 from sb3_divmorph.pipeline.evaluate import evaluate_model, evaluation_plan
 from sb3_divmorph.pipeline.runs import stage_model, stage_normalizer, trained_env_kwargs
@@ -98,6 +99,17 @@ def test_the_student_walks_like_its_teacher_on_a_fresh_clone(official_train):
     whole episode far forward (1451-2136 on seeds 0-2 when the run was recorded; the teacher 1780-2531)."""
     rows = evaluate_model(RUN100 / "student", "FT", [official_train / "xml" / f"{WALKER}.xml"], 1, 1000, 0)
     assert rows[0]["length"] == 1000 and rows[0]["return"] > 1000
+
+
+def test_the_hyperdistill_student_walks_on_its_teachers_statistics(official_train):
+    """The HyperDistill baseline ships without a normaliser of its own: it holds each task's teacher's
+    statistics, and its generated MLP walks the FT teacher's best robot (1067 when the run was recorded)."""
+    folder = RUN100 / "hyperdistill" / "student"
+    student = load_student(stage_model(folder))
+    assert stage_normalizer(folder) is None and student.observation_statistics == "teachers"
+    assert student.teacher_set.sum() == len(TEACHERS100)
+    rows = evaluate_model(folder, "FT", [official_train / "xml" / f"{WALKER}.xml"], 1, 1000, 0)
+    assert rows[0]["length"] == 1000 and rows[0]["return"] > 600
 
 
 @pytest.mark.parametrize(
