@@ -1060,6 +1060,19 @@ def test_transfer_curves_roll_out_the_first_eval_robots_of_each_split(finished_r
         load_profile("tiny", profiles, overrides={"transfer.eval_robots": 0})
 
 
+def test_transfer_curves_sample_robots_across_the_whole_set(finished_run, tmp_path):
+    """The curves' robots spread from the first robot of a split to its last, not a prefix of it (robot
+    files sort by family: a prefix would stand for one family only)."""
+    from sb3_divmorph.pipeline.runs import profile_robots, transfer_eval_robots
+
+    _, profiles = copied_run(finished_run, tmp_path)
+    profile = load_profile("tiny", profiles, overrides={"train_robots": 3, "transfer.eval_robots": 2})
+    robots = profile_robots(profile, "train")
+    assert len(robots) == 3 and transfer_eval_robots(profile, "train") == [robots[0], robots[2]]
+    profile = load_profile("tiny", profiles, overrides={"train_robots": 3, "transfer.eval_robots": 5})
+    assert transfer_eval_robots(profile, "train") == robots  # more than there are: every robot
+
+
 @pytest.mark.parametrize("task", ["Escape", "PointNav", "PushBoxIncline", "ManipulateBox"])
 def test_every_arm_sees_its_novel_tasks_inputs_under_one_optimiser_rule(finished_run, tmp_path, task):
     """Perturbing an input the novel task observes (Escape: height map; PointNav: goal; the box
