@@ -273,17 +273,18 @@ class DistillationDataset:
             np.savez(f, meta=meta, **arrays)
 
     @classmethod
-    def load(cls, path: str | Path, capacity: int) -> DistillationDataset:
+    def load(cls, path: str | Path, capacity: int | None = None) -> DistillationDataset:
         """The dataset :meth:`save` wrote to ``path``.
 
         :param capacity: the capacity the caller expects; a file of another capacity is an error
-            (its ring position would not mean the same rows).
+            (its ring position would not mean the same rows). ``None``: the saved one.
         """
-        dataset = cls(capacity)
         with np.load(path) as saved:
             saved_capacity, size, next_row = (int(v) for v in saved["meta"])
-            if saved_capacity != capacity:
+            if capacity is not None and saved_capacity != capacity:
                 raise ValueError(f"{path} holds a dataset of capacity {saved_capacity}, expected {capacity}")
+            dataset = cls(saved_capacity)
+            capacity = saved_capacity
             for name in saved.files:
                 if name == "meta":
                     continue

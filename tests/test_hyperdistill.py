@@ -98,7 +98,7 @@ def test_a_killed_offline_fit_resumes_to_the_student_of_an_uninterrupted_one(tea
     dataset = collect_teacher_rollouts(teacher, venv, 96, seed=0)
     # the stage keeps its states on disk: they read back whole, the teacher's sampled actions included
     dataset.save(tmp_path / "rollouts.npz")
-    loaded = TeacherRollouts.load(tmp_path / "rollouts.npz", capacity=dataset.capacity)
+    loaded = TeacherRollouts.load(tmp_path / "rollouts.npz")
     for name in ("mean", "std", "task", "actions"):
         np.testing.assert_array_equal(getattr(loaded, name), getattr(dataset, name))
     np.testing.assert_array_equal(loaded.obs["proprioceptive"], dataset.obs["proprioceptive"])

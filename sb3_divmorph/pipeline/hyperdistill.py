@@ -26,7 +26,6 @@ once the student is saved. The DAgger phase, when there is one, starts over.
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 from typing import Any
 
@@ -207,7 +206,7 @@ def _teacher_rollouts(folder: Path, teachers: dict[int, Teacher], venv, n_sample
     path, statistics = folder / ROLLOUTS, folder / ROLLOUTS_NORMALIZER
     own = isinstance(venv, VecNormalize)
     if path.is_file() and (statistics.is_file() or not own):
-        dataset = TeacherRollouts.load(path, capacity=math.ceil(n_samples / venv.num_envs) * venv.num_envs)
+        dataset = TeacherRollouts.load(path)
         print(f"[resume] {folder}: {dataset.size} teacher-rollout states read from {path.name}")
         if own:
             venv = VecNormalize.load(str(statistics), venv.venv)
