@@ -68,6 +68,7 @@ def test_the_obstacle_teacher_gets_past_its_blocks_on_a_fresh_clone(official_tra
     [
         ("student", "DivMorphPolicy"),
         ("students/distilled", "MetaMorphPolicy"),
+        ("students/deploy-g1k1", "DivMorphPolicy"),
     ],
 )
 def test_the_students_load_with_their_normalisers(folder, policy):
