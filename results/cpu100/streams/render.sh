@@ -24,3 +24,4 @@ for who in teacher student; do
   divmorph record $source --morphologies novel --robot "$NOVEL" --width 192 --height 144 --steps 150 --out $V/$who-FT-novel-$NOVEL-3s.gif --no-progress
 done
 divmorph record $RUN/teachers/FT --morphologies unimals100-train --robot "$TRAIN" --width 480 --height 360 --out $V/teacher-FT-train-$TRAIN.mp4 --no-progress
+divmorph record $RUN/teachers/FT --morphologies unimals100-train --robot "$TRAIN" --width 192 --height 144 --steps 150 --out $V/teacher-FT-train-$TRAIN-3s.gif --no-progress
