@@ -1074,6 +1074,20 @@ def test_transfer_curves_sample_robots_across_the_whole_set(finished_run, tmp_pa
     assert transfer_eval_robots(profile, "train") == robots  # more than there are: every robot
 
 
+def test_the_transfer_figures_name_the_robots_their_curves_roll_out(finished_run, tmp_path):
+    """A transfer figure says how many robots and episodes each curve point averages -- those of
+    ``transfer.eval_robots``/``eval_episodes``, not the size of the split (the cpu100 figures said
+    "mean of 100 robots" over curves of 20 robots x 3 episodes)."""
+    from sb3_divmorph.pipeline.figures import make_figure
+
+    out, profiles = copied_run(finished_run, tmp_path)
+    profile = load_profile("tiny", profiles, overrides={"train_robots": 3, "transfer.eval_robots": 2, "transfer.eval_episodes": 2})
+    assert make_figure(profile, out, "transfer-train") is not None
+    with open(out / "report" / "figures" / "transfer-train.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert rows and {(r["robots"], r["episodes"]) for r in rows} == {("2", "2")}
+
+
 @pytest.mark.parametrize("task", ["Escape", "PointNav", "PushBoxIncline", "ManipulateBox"])
 def test_every_arm_sees_its_novel_tasks_inputs_under_one_optimiser_rule(finished_run, tmp_path, task):
     """Perturbing an input the novel task observes (Escape: height map; PointNav: goal; the box

@@ -48,7 +48,14 @@ from sb3_divmorph.pipeline.curves import (  # noqa: E402, F401 -- the metrics ar
     write_metrics,
 )
 from sb3_divmorph.pipeline.metrics import ArmMetrics, mean_curve, robot_interval  # noqa: E402
-from sb3_divmorph.pipeline.runs import atomic_save, log_file, profile_robots, read_csv_rows, write_csv  # noqa: E402
+from sb3_divmorph.pipeline.runs import (  # noqa: E402
+    atomic_save,
+    log_file,
+    profile_robots,
+    read_csv_rows,
+    transfer_eval_robots,
+    write_csv,
+)
 from sb3_divmorph.pipeline.folders import export_reports, transfer_tasks  # noqa: E402
 from sb3_divmorph.pipeline.students import STUDENTS  # noqa: E402
 
@@ -58,8 +65,8 @@ from sb3_divmorph.pipeline.students import STUDENTS  # noqa: E402
 DPI = 80
 #: Each figure's caption: what its lines, bands, bars and error bars are.
 CAPTIONS = {
-    "transfer-train": "deterministic return on the training robots during transfer; line = mean over seeds (each seed: mean "
-    "over robots), band = ±1 sd over seeds",
+    "transfer-train": "deterministic return on the training robots during transfer (transfer.eval_robots of them, spread "
+    "over the set); line = mean over seeds (each seed: mean over those robots and their episodes), band = ±1 sd over seeds",
     "transfer-novel": "the same on the novel robots (never trained on); band = ±1 sd over seeds",
     "deployment": "bars = mean over robots of deterministic episodes, error bars = sd over robots; sizes: stored actor "
     "weights, mean over exported robots (log scale)",
@@ -126,7 +133,10 @@ def _curves_figure(profile: Profile, out: Path, name: str, arms: tuple[str, ...]
     rows: list[dict[str, Any]] = []
     fig, axes = plt.subplots(len(splits), len(tasks), figsize=(5.2 * len(tasks), 3.9 * len(splits)), squeeze=False)
     for r, split in enumerate(splits):
-        n_robots = len(profile_robots(profile, split))
+        # the curves roll out transfer.eval_robots of the split (spread over it), eval_episodes each
+        n_robots, n_split = len(transfer_eval_robots(profile, split)), len(profile_robots(profile, split))
+        episodes = profile.transfer.eval_episodes
+        spread = f" of {n_split}" if n_robots < n_split else ""
         for c, task in enumerate(tasks):
             ax = axes[r][c]
             seeds: set[int] = set()
@@ -149,12 +159,13 @@ def _curves_figure(profile: Profile, out: Path, name: str, arms: tuple[str, ...]
                         "sd_return": s,
                         "seeds": " ".join(map(str, sorted(curves))),
                         "robots": n_robots,
+                        "episodes": episodes,
                     }
                     for x, m, s in zip(steps, mean, sd)
                 ]
             ax.set_xlabel("env steps")
-            ax.set_ylabel(f"episode return (deterministic, mean of {n_robots} robots)")
-            ax.set_title(f"{task}: {n_robots} {SPLIT_WORDS[split]}, seeds {sorted(seeds) or '-'}", fontsize=9)
+            ax.set_ylabel(f"episode return (deterministic; {n_robots} robots x {episodes} episodes)")
+            ax.set_title(f"{task}: {n_robots}{spread} {SPLIT_WORDS[split]}, seeds {sorted(seeds) or '-'}", fontsize=9)
             if ax.lines:
                 outside_legend(ax)
     if not rows:
@@ -162,7 +173,11 @@ def _curves_figure(profile: Profile, out: Path, name: str, arms: tuple[str, ...]
         return None
     fig.suptitle(title)
     folder = figures_folder(out)
-    write_csv(folder / f"{name}.csv", rows, ["figure", "task", "split", "arm", "timesteps", "mean_return", "sd_return", "seeds", "robots"])
+    write_csv(
+        folder / f"{name}.csv",
+        rows,
+        ["figure", "task", "split", "arm", "timesteps", "mean_return", "sd_return", "seeds", "robots", "episodes"],
+    )
     _save(fig, folder / f"{name}.png")
     return folder / f"{name}.png"
 

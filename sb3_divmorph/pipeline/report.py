@@ -38,7 +38,14 @@ from sb3_divmorph.pipeline.figures import (  # noqa: E402, F401 -- _correlation,
     write_metrics,
 )
 from sb3_divmorph.pipeline.metrics import BOOTSTRAP, EFFICIENCY_FRACTION, interval, robot_interval  # noqa: E402
-from sb3_divmorph.pipeline.runs import atomic_write_text, log_file, log_files, read_csv_rows, read_progress  # noqa: E402
+from sb3_divmorph.pipeline.runs import (  # noqa: E402
+    atomic_write_text,
+    log_file,
+    log_files,
+    read_csv_rows,
+    read_progress,
+    transfer_eval_robots,
+)
 
 
 def _curve(ax, progress: dict[str, np.ndarray], key: str, label: str) -> bool:
@@ -448,8 +455,9 @@ def report(profile: Profile, out: Path, command: str = "") -> str:
         lines += [
             "## Transfer metrics",
             "",
-            f"Deterministic evaluations every {profile.transfer.eval_every} env steps on the training and the novel robots "
-            f"({profile.transfer.eval_episodes} episode(s) per robot); mean over seeds and robots [95% bootstrap interval, "
+            f"Deterministic evaluations every {profile.transfer.eval_every} env steps on "
+            f"{len(transfer_eval_robots(profile, 'train'))} training and {len(transfer_eval_robots(profile, 'novel'))} novel robots "
+            f"(spread over each set; {profile.transfer.eval_episodes} episode(s) per robot); mean over seeds and robots [95% bootstrap interval, "
             "seeds and robots resampled]. AUC: area under the curve / steps (the mean return over training). Level: "
             f"{EFFICIENCY_FRACTION:.0%} of the way from scratch's zero-shot return to the best arm's final return; steps to "
             "hold the level: the env step from which the arm's mean curve stays at or above it to the end (not held: its last "
