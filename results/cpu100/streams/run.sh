@@ -12,7 +12,7 @@ QUEUE="$RUN/streams/queue"
 P="--profile cpu100 --out $RUN --no-progress"
 mkdir -p "$QUEUE"
 
-STAGES=(teachers students transfer finish merge report)
+STAGES=(teachers students transfer finish merge report control)
 # longest first, so that the two workers end a stage together
 jobs_teachers=("teachers $P --task Obstacle" "teachers $P --task VT" "teachers $P --task Incline" "teachers $P --task Patrol"
                "teachers $P --task FT" "grl $P")
@@ -26,6 +26,11 @@ jobs_finish=("evaluate $P --part 1/2" "evaluate $P --part 2/2" "export $P")
 # one worker merges the shares (and evaluates what a lost share left); then one writes the report
 jobs_merge=("evaluate $P")
 jobs_report=("report --run $RUN --no-progress")
+# a control after the report: scratch on each novel task for 4x the race's budget (seed 0), in a run
+# folder of its own, to show where scratch gets (at 500k steps it learns little) and to turn the
+# race's lower bounds on the speed-up over scratch into numbers where it gets there
+C="--profile cpu100 --out results/cpu100-scratch-long --no-progress --arms scratch --seeds 0 --set transfer.n_timesteps=2000000"
+jobs_control=("transfer $C --task PointNav" "transfer $C --task Exploration" "transfer $C --task Escape")
 
 alive() { [ -f "$1/pid" ] && kill -0 "$(cat "$1/pid")" 2> /dev/null; }
 
