@@ -16,6 +16,9 @@
 #      (SB3's VecEnv path and DevicePPO), with the rollout/update split;
 #   3. a paper-size FT teacher on the 100 robots (the `gpu` profile) for the time left (over a minute).
 # WORLDS="128 512" picks step 1's worlds per robot; PPO_SHARE=60 keeps 40% of step 2's time for step 3.
+# STEPS="3" runs only the teacher (steps 1 and 2 were measured already); TEACHER_SET="key=value ..." adds
+# --set overrides to it. The teacher's last checkpoint comes back too (ckpt.tgz.part-*), so that it can
+# be evaluated on the CPU machine beside the CPU run.
 # Warp compiles MuJoCo Warp's kernels on a fresh machine (~4 minutes for FT and 1 more for VT on an
 # H200, 2026-11-26); the steps after the first reuse them. The kernel cache does not travel: it is
 # ~76 MB compressed, more than a job brings back (64 MiB) or carries beside the parts.
@@ -40,31 +43,40 @@ export PYTHONPATH=/tmp/site:$PWD UNIMAL_DATA=$PWD/.gpu/data PYTHONUNBUFFERED=1 M
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
 python3 -c "import torch; print('torch', torch.__version__, torch.cuda.get_device_name(0))"
 
+STEPS=${STEPS:-1 2 3}
+want() { [[ " $STEPS " == *" $1 "* ]]; }
+
+want 1 && {
 stamp "1. env steps/s on CUDA (100 official robots; worlds per robot: ${WORLDS:=32 128 512})"
 # shellcheck disable=SC2086  # WORLDS is a list
 timeout -k 20 -s INT "$(share 55)" python3 benchmarks/batched_throughput.py --morphologies unimals100-train \
   --tasks FT VT --robots 100 --worlds $WORLDS --devices cuda --ppo-presets --count-robots 0 \
   --seconds 3 --out "$res/batched_throughput_gpu.md"
 echo "step 1 exit $?"
+}
 
+want 2 && {
 stamp "2. PPO end to end on CUDA (100 official robots)"
 # the paper size first (issue 28's target is for it); no single-env CPU rows (CPU numbers live elsewhere)
 timeout -k 20 -s INT "$(share ${PPO_SHARE:-100})" python3 benchmarks/batched_throughput.py --morphologies unimals100-train \
   --tasks --robots --devices cuda --ppo-robots 100 --ppo-worlds 128 --ppo-presets paper small --ppo-single-envs 0 \
   --count-robots 0 --out "$res/batched_ppo_gpu.md"
 echo "step 2 exit $?"
+}
 
 # PPO_SHARE=60 leaves 40% of what is left after step 1 to the teacher (a first session measured it already)
-if [ "$(share 100)" -gt 60 ]; then
+if want 3 && [ "$(share 100)" -gt 60 ]; then
   stamp "3. paper-size FT teacher (gpu profile, 100 official robots)"
   timeout -k 20 -s INT "$(share 100)" python3 -m divmorph teachers --profile gpu --out /tmp/gpu-run \
-    --train-robots unimals100-train --task FT --no-progress --set teachers.checkpoint_every=1000000
+    --train-robots unimals100-train --task FT --no-progress --set teachers.checkpoint_every=1000000 $(for kv in ${TEACHER_SET:-}; do printf -- "--set %s " "$kv"; done)
   echo "step 3 exit $?"
 fi
 
 stamp "packing"
 # the teacher's run without its checkpoints (40 MB each at the paper size: more than a job brings back)
 [ -d /tmp/gpu-run ] && mkdir -p "$res/gpu-run" && tar -C /tmp/gpu-run --exclude=checkpoints -cf - . 2>/dev/null | tar -C "$res/gpu-run" -xf -
+latest=$(ls -d /tmp/gpu-run/teachers/FT/checkpoints/step-* 2>/dev/null | sort | tail -1)
+[ -n "$latest" ] && tar -C "$(dirname "$latest")" -czf /tmp/ckpt.tgz "$(basename "$latest")" && split -b 15M /tmp/ckpt.tgz "$OUT/ckpt.tgz.part-"
 tar -C "$res" -czf /tmp/results.tgz . && split -b 15M /tmp/results.tgz "$OUT/results.tgz.part-"
 ls -la "$OUT"
 stamp "done"
