@@ -117,6 +117,21 @@ def test_episodes_are_averaged_per_robot_and_seeds_share_steps_and_robots():
     assert np.allclose(mean, curves.mean()[1] + 10) and np.allclose(sd, 10.0)
 
 
+def test_seeds_evaluated_at_different_steps_are_compared_over_their_whole_curves():
+    """Resumed runs evaluate at the checkpoint and every eval_every from it, so seeds' steps drift apart
+    (here they share step 0 alone); the metrics must still read every seed's whole curve."""
+    every_100 = np.array([0, 100, 200, 300, 400, 500, 502], float)
+    resumed = np.array([0, 100, 200, 250, 350, 450, 501], float)  # resumed at 150, evaluated there and every 100 on
+    seeds = [run(every_100, steps=every_100), run(resumed, steps=resumed + np.array([0, 50, 0, 0, 0, 0, 0]))]
+    m = by_arm(task_metrics_from_curves("Escape", "train", {"scratch": seeds}))["scratch"]
+    assert m.seeds == 2
+    assert m.final > 400, f"the final return is the curves' end, not their shared step 0: {m.final}"
+    assert m.auc == pytest.approx(250, rel=0.05), "the mean return over training: a line from 0 to ~500"
+    steps, mean, _ = mean_curve([(s.steps, s.values[0]) for s in seeds])
+    assert steps[0] == 0 and steps[-1] == 501 and len(steps) > 2, steps
+    np.testing.assert_allclose(mean[[0, -1]], [0, 501])
+
+
 def test_metrics_leave_out_a_seed_whose_run_is_still_going(tmp_path):
     """A run in progress has a shorter curve; counted, it would cut every seed's curve to its last step."""
     from sb3_divmorph.pipeline.config import load_profile

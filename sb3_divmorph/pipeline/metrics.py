@@ -97,12 +97,33 @@ def _areas(steps: np.ndarray, curves: np.ndarray) -> np.ndarray:
 
 
 def mean_curve(curves: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(steps, mean, sd)`` over seeds, on the evaluation steps every seed has."""
-    common = sorted(set.intersection(*(set(s.tolist()) for s, _ in curves))) if curves else []
-    values = np.array([[r[list(s).index(x)] for x in common] for s, r in curves]) if common else np.zeros((0, 0))
-    if not common:
+    """``(steps, mean, sd)`` over seeds, on :func:`common_grid` (each seed linear between its evaluations)."""
+    grid = common_grid([np.asarray(s, float) for s, _ in curves]) if curves else np.array([])
+    if not len(grid):
         return np.array([]), np.array([]), np.array([])
-    return np.array(common, float), values.mean(0), values.std(0)
+    values = np.array([on_grid(np.asarray(s, float), np.asarray(r, float), grid) for s, r in curves])
+    return grid, values.mean(0), values.std(0)
+
+
+def common_grid(steps: list[np.ndarray]) -> np.ndarray:
+    """The steps at which seeds' curves are compared: every seed's evaluation steps (their union) within
+    the span all of them cover; empty when they cover no common span.
+
+    Seeds need not evaluate at the same steps: a run resumed from a checkpoint evaluates there and
+    every ``eval_every`` steps from it, so resumed seeds' steps drift apart (the exact steps they share
+    can be step 0 alone).
+    """
+    if not steps or any(not len(s) for s in steps):
+        return np.array([])
+    start, end = max(s.min() for s in steps), min(s.max() for s in steps)
+    grid = np.unique(np.concatenate(steps))
+    return grid[(grid >= start) & (grid <= end)]
+
+
+def on_grid(steps: np.ndarray, values: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """``values`` (..., T) at ``steps`` read at ``grid`` (linear between evaluations, as the metrics assume)."""
+    flat = values.reshape(-1, len(steps))
+    return np.array([np.interp(grid, steps, row) for row in flat]).reshape(*values.shape[:-1], len(grid))
 
 
 @dataclass
@@ -137,16 +158,16 @@ class RobotCurves:
 
 
 def stack_seeds(runs: list[RobotCurves]) -> tuple[np.ndarray, np.ndarray]:
-    """``(steps, values (S, R, T))`` on the steps and robots every seed has.
+    """``(steps, values (S, R, T))`` on :func:`common_grid` and the robots every seed has.
 
-    :raises ValueError: the seeds share no evaluation step or no robot.
+    :raises ValueError: the seeds' evaluations cover no common span or share no robot.
     """
-    steps = sorted(set.intersection(*(set(r.steps.tolist()) for r in runs)))
+    grid = common_grid([r.steps for r in runs])
     robots = sorted(set.intersection(*(set(r.robots) for r in runs)))
-    if not steps or not robots:
-        raise ValueError("the seeds' evaluations share no step or no robot")
-    values = np.stack([r.values[np.ix_([r.robots.index(x) for x in robots], [list(r.steps).index(s) for s in steps])] for r in runs])
-    return np.array(steps, float), values
+    if not len(grid) or not robots:
+        raise ValueError("the seeds' evaluations cover no common span of steps or share no robot")
+    values = np.stack([on_grid(r.steps, r.values[[r.robots.index(x) for x in robots]], grid) for r in runs])
+    return grid, values
 
 
 def bootstrap_curves(values: np.ndarray, draws: int = BOOTSTRAP, seed: int = 0) -> np.ndarray:
