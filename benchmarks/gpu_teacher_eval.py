@@ -27,7 +27,8 @@ import torch
 
 from sb3_divmorph.pipeline.config import load_profile
 from sb3_divmorph.pipeline.curves import evaluate_model
-from sb3_divmorph.pipeline.runs import profile_robots
+from sb3_divmorph.pipeline.metrics import robot_interval
+from sb3_divmorph.pipeline.runs import profile_robots, read_csv_rows
 
 ROOT = Path(__file__).resolve().parents[1]
 COLUMNS = ["model", "task", "split", "morphology", "episode", "return", "length"]
@@ -59,7 +60,8 @@ def main() -> None:
             rows += [{"model": args.label, "task": args.task, "split": split, **row} for row in found]
             print(f"{split}: {len(found)} episodes in {time.time() - start:.0f} s", flush=True)
         write_rows(args.out, rows)
-    table = comparison(read_rows(args.out), read_rows(run_returns(args.run)), args.task)
+    # the run's rows: its plain returns.csv or the packed twin, whichever read_csv_rows takes
+    table = comparison(read_csv_rows(args.out), read_csv_rows(args.run / "evaluate" / "returns.csv"), args.task)
     print(table)
     if args.summary:
         args.summary.write_text(table + "\n")
@@ -99,23 +101,10 @@ def per_robot(rows: list[dict[str, str]], split: str, task: str, models: set[str
 
 
 def fmt(values: np.ndarray, sign: bool = False) -> str:
-    """``mean [low, high]``: a 95% bootstrap interval over robots (10,000 resamples, seed 0)."""
-    means = values[np.random.default_rng(0).integers(0, len(values), (10_000, len(values)))].mean(axis=1)
-    low, high = np.percentile(means, [2.5, 97.5])
+    """``mean [low, high]``: the 95% bootstrap interval over robots the run's report uses."""
+    low, high = robot_interval(values)
     f = "{:+.0f}" if sign else "{:.0f}"
     return f"{f.format(values.mean())} [{f.format(low)}, {f.format(high)}]"
-
-
-def run_returns(run: Path) -> Path:
-    """The evaluation stage's rows (a plain file written later wins over the packed one)."""
-    plain = run / "evaluate" / "returns.csv"
-    return plain if plain.exists() else plain.with_suffix(".csv.gz")
-
-
-def read_rows(path: Path) -> list[dict[str, str]]:
-    opener = gzip.open if path.suffix == ".gz" else open
-    with opener(path, "rt") as f:
-        return list(csv.DictReader(f))
 
 
 def write_rows(path: Path, rows: list[dict]) -> None:
