@@ -11,14 +11,14 @@ all three. Deterministic evaluations are elsewhere (results/gpu-h200/README.md).
 from __future__ import annotations
 
 import argparse
-import csv
-import gzip
 from pathlib import Path
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+
+from sb3_divmorph.pipeline.runs import read_csv_rows  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "results"
@@ -84,18 +84,16 @@ def read_progress(path: Path) -> list[list[dict[str, float]]]:
     """The rows of an SB3 ``progress.csv`` (plain or gzipped) that logged a training return, as floats,
     split into training segments (a new segment where the step count goes back or a ``segment``
     column changes: a run resumed from its checkpoint)."""
-    opener = gzip.open if path.suffix == ".gz" else open
     segments: list[list[dict[str, float]]] = []
     last_steps, last_segment = float("-inf"), None
-    with opener(path, "rt") as f:
-        for row in csv.DictReader(f):
-            if not row.get("rollout/ep_rew_mean"):
-                continue
-            steps = float(row["time/total_timesteps"])
-            if not segments or row.get("segment") != last_segment or steps <= last_steps:
-                segments.append([])
-            segments[-1].append({"time/total_timesteps": steps, "rollout/ep_rew_mean": float(row["rollout/ep_rew_mean"])})
-            last_steps, last_segment = steps, row.get("segment")
+    for row in read_csv_rows(path):
+        if not row.get("rollout/ep_rew_mean"):
+            continue
+        steps = float(row["time/total_timesteps"])
+        if not segments or row.get("segment") != last_segment or steps <= last_steps:
+            segments.append([])
+        segments[-1].append({"time/total_timesteps": steps, "rollout/ep_rew_mean": float(row["rollout/ep_rew_mean"])})
+        last_steps, last_segment = steps, row.get("segment")
     return segments
 
 
