@@ -189,6 +189,27 @@ def test_two_parts_and_a_merge_give_the_whole_evaluation(finished_run, tmp_path)
         cli([*base, "--part", "3/2"])
 
 
+def test_parts_of_a_finished_evaluation_merge_the_models_finished_after_it(finished_run, tmp_path):
+    """A run evaluated once grows (a transfer seed finishes later): ``--part 1/2`` and ``--part 2/2``
+    roll out only the new model, and the plain evaluation afterwards merges those rows into the
+    finished ``returns.csv`` instead of calling the run already evaluated and dropping them."""
+    out, profiles = copied_run(finished_run, tmp_path)
+    returns = out / "evaluate" / "returns.csv"
+    whole = read_returns(returns)
+    assert (out / "evaluate" / "done.json").is_file()
+    header, *lines = returns.read_text().splitlines()
+    later = [line for line in lines if line.startswith("transfer-scratch,")]  # "finished after the evaluation"
+    assert later
+    returns.write_text("\n".join([header, *(line for line in lines if line not in later)]) + "\n")
+    base = ["evaluate", "--profile", "tiny", "--profiles", str(profiles), "--out", str(out), "--no-progress"]
+    assert cli([*base, "--part", "1/2"]) == 0 and cli([*base, "--part", "2/2"]) == 0
+    parted = {key for k in (1, 2) for key in read_returns(out / "evaluate" / "parts" / f"part-{k}-of-2.csv")}
+    assert {key for key in whole if key[0] == "transfer-scratch"} <= parted
+    assert cli([*base]) == 0
+    assert read_returns(returns) == pytest.approx(whole, rel=1e-5)
+    assert not (out / "evaluate" / "parts").exists()
+
+
 def test_an_evaluation_keeps_each_transfer_seed_apart(tmp_path):
     """A transfer arm's seeds are separate jobs: one seed's complete rows never stand for the others'
     (an interrupted evaluation evaluates the missing seeds), and seeds pooled by an older file without

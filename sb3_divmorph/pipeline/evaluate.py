@@ -231,8 +231,8 @@ def evaluate(
             share = {job_key(*job) for job in jobs[part[0] - 1 :: part[1]]}
             todo = [job for job in todo if job_key(*job) in share]
             rows = [row for row in rows if row_key(row) in share]
-        elif not todo and is_done(folder):
-            shutil.rmtree(folder / PARTS, ignore_errors=True)
+        elif not todo and is_done(folder) and not sources[1:]:
+            # (with parts there, their rows -- of models finished after this evaluation -- are merged below)
             print(f"[evaluate] skipped, already evaluated in {folder}")
             return folder
         if len(todo) < len(jobs):
