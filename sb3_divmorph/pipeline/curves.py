@@ -43,16 +43,19 @@ EVAL_FILE = "eval.csv"
 EVAL_COLUMNS = ["timesteps", "split", "robot", "episode", "return", "length"]
 
 
-def rollout_returns(model: BaseAlgorithm, venv: VecEnv, robots: list[Path], episodes: int, normalize=None) -> list[dict[str, Any]]:
-    """Deterministic episode returns of ``model`` on ``venv`` (one env per robot, monitored).
+def rollout_returns(
+    model: BaseAlgorithm, venv: VecEnv, robots: list[Path], episodes: int, normalize=None, deterministic: bool = True
+) -> list[dict[str, Any]]:
+    """Episode returns of ``model`` on ``venv`` (one env per robot, monitored).
 
     :param normalize: ``obs -> obs`` applied before the policy (e.g. ``VecNormalize.normalize_obs``).
+    :param deterministic: the policy's mean action (the default); ``False`` samples as in training.
     """
     rows: list[dict[str, Any]] = []
     finished = np.zeros(len(robots), dtype=int)
     obs = venv.reset()
     while (finished < episodes).any():
-        actions, _ = model.predict(normalize(obs) if normalize else obs, deterministic=True)
+        actions, _ = model.predict(normalize(obs) if normalize else obs, deterministic=deterministic)
         obs, _, dones, infos = venv.step(actions)
         for i in np.flatnonzero(dones):
             if finished[i] < episodes:
@@ -284,12 +287,14 @@ def evaluate_model(
     seed: int,
     instruction: str | None = None,
     env_kwargs: dict[str, Any] | None = None,
+    deterministic: bool = True,
 ) -> list[dict[str, Any]]:
-    """Deterministic returns of the model saved in ``folder`` on each robot doing ``task``.
+    """Returns of the model saved in ``folder`` on each robot doing ``task`` (deterministic by default).
 
     :param instruction: the task's instruction in other words (default: the built-in one).
     :param env_kwargs: further env arguments; default: those the model's run trained with
         (:func:`~sb3_divmorph.pipeline.runs.trained_env_kwargs`), so that it sees the observations it learnt on.
+    :param deterministic: ``False`` samples actions from the policy, as training does.
     """
     if env_kwargs is None:
         env_kwargs = trained_env_kwargs(folder)
@@ -299,6 +304,6 @@ def evaluate_model(
         venv = VecNormalize.load(str(statistics), venv)
         venv.training, venv.norm_reward = False, False
     model = PPO.load(stage_model(folder), device="cpu")
-    rows = rollout_returns(model, venv, robots, episodes)
+    rows = rollout_returns(model, venv, robots, episodes, deterministic=deterministic)
     venv.close()
     return [{"morphology": row.pop("robot"), **row} for row in rows]
