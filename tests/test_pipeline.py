@@ -162,6 +162,21 @@ def test_the_evaluation_reuses_a_transfer_runs_final_evaluation_only_when_it_is_
     assert final_evaluation(folder, "novel", robots[:1], 1) is None
 
 
+def test_an_evaluation_samples_actions_only_when_asked(finished_run):
+    """``deterministic=False`` rolls out sampled actions (as in training): other returns from the same
+    seed; the default repeats itself."""
+    from sb3_divmorph.pipeline.evaluate import evaluate_model
+    from sb3_divmorph.pipeline.runs import profile_robots
+
+    out, profiles = finished_run
+    profile = load_profile("tiny", profiles)
+    robots = profile_robots(profile, "train")
+    folder = out / "teachers" / "FT"
+    roll = lambda **kw: [r["return"] for r in evaluate_model(folder, "FT", robots, 1, 50, profile.seed, **kw)]  # noqa: E731
+    assert roll() == roll()
+    assert roll(deterministic=False) != pytest.approx(roll(), abs=1e-6)
+
+
 def test_two_parts_and_a_merge_give_the_whole_evaluation(finished_run, tmp_path):
     """``evaluate --part 1/2`` and ``--part 2/2`` (one process per core) take disjoint shares; the plain
     evaluation afterwards merges them, rolls nothing out again, and writes what one process would."""
