@@ -9,7 +9,9 @@ episodes) and measures, against the level the race fixed for each task and split
 (:func:`sb3_divmorph.pipeline.metrics.level_for`; it is not recomputed with the control in it), the
 steps scratch needs to hold it: each arm's speed-up is then the control's steps / the arm's steps
 (from the race's ``transfer/<task>/metrics.csv``), still a lower bound where the control never holds
-the level. Intervals resample robots (the control has one seed). Writes ``control.csv``,
+the level. It also gives, for each arm, the steps from which the control holds that arm's final
+return: what the arm's budget is worth in scratch's steps. Intervals resample robots (the control
+has one seed). Writes ``control.csv``,
 ``control.md`` and ``control.png`` into the control's folder.
 """
 
@@ -82,6 +84,8 @@ def control_rows(race: Path, control: Path, task: str, split: str) -> list[dict]
                 "control_final": at[budget],
                 "speedup_vs_control": speedup,
                 "speedup_is_lower_bound": bound,
+                # what the arm's budget is worth in scratch's steps: where the control holds the arm's final return
+                "control_steps_to_arm_final": steps_to_hold(steps, point, float(metric["final"])),
             }
         )
     return rows
@@ -151,13 +155,13 @@ def markdown(rows: list[dict], command: str, seconds: float) -> str:
         )
     lines += [
         "",
-        "| task | split | arm | arm's final (race) | arm holds the level from | speed-up over the control |",
-        "|---|---|---|---:|---|---|",
+        "| task | split | arm | arm's final (race) | arm holds the level from | speed-up over the control | the control holds the arm's final from |",
+        "|---|---|---|---:|---|---|---|",
     ]
     for row in rows:
         lines.append(
             f"| {row['task']} | {row['split']} | {LABELS.get(row['arm'], row['arm'])} | {row['arm_final']:.1f} | "
-            f"{_fmt_steps(row['arm_steps_to_level'])} | {_fmt_speedup(row)} |"
+            f"{_fmt_steps(row['arm_steps_to_level'])} | {_fmt_speedup(row)} | {_fmt_steps(row['control_steps_to_arm_final'])} |"
         )
     return "\n".join(lines) + "\n"
 
