@@ -39,13 +39,16 @@ jobs_report=("report --run $RUN --no-progress")
 # (evaluation curves every 200k steps rather than 50k: at 50k they would cost more steps than training)
 C="--profile cpu100 --out results/cpu100-scratch-long --no-progress --arms scratch --seeds 0 --set transfer.n_timesteps=2000000 --set transfer.eval_every=200000"
 jobs_control=("transfer $C --task PointNav" "transfer $C --task Exploration" "transfer $C --task Escape")
-# ModuMorph and GRL at seeds 1 and 2 on PointNav and Escape (added while the control ran, for the
-# issue's >= 3 seeds of every arm), in the control stage so that a core the control leaves idle takes
-# them. Exploration (where no arm learnt at seed 0) keeps them at seed 0: the session's time. Afterwards
-# a plain `evaluate` and `report` on the run take the new runs in.
+# ModuMorph and GRL at seeds 1 and 2 (added while the control ran, for the issue's >= 3 seeds of every
+# arm), in the control stage so that a core the control leaves idle takes them: PointNav and Escape
+# first, Exploration (where no arm learnt at seed 0) last. Afterwards a plain `evaluate` and `report`
+# on the run take the new runs in.
 for seed in 1 2; do for task in PointNav Escape; do for arm in modumorph grl; do
   jobs_control+=("transfer $P --task $task --seeds $seed --arms $arm")
 done; done; done
+# (slowest first: the two workers end together)
+jobs_control+=("transfer $P --task Exploration --seeds 1 --arms modumorph" "transfer $P --task Exploration --seeds 1 --arms grl"
+               "transfer $P --task Exploration --seeds 2 --arms grl" "transfer $P --task Exploration --seeds 2 --arms modumorph")
 
 alive() { [ -f "$1/pid" ] && kill -0 "$(cat "$1/pid")" 2> /dev/null; }
 
