@@ -28,6 +28,7 @@ import numpy as np
 
 from sb3_divmorph.pipeline.curves import seed_robot_curves
 from sb3_divmorph.pipeline.metrics import bootstrap_curves, interval, stack_seeds, steps_to_hold
+from sb3_divmorph.pipeline.metrics import speedup as metrics_speedup
 from sb3_divmorph.pipeline.runs import read_csv_rows
 
 SPLITS = ("train", "novel")
@@ -62,14 +63,7 @@ def control_rows(race: Path, control: Path, task: str, split: str) -> list[dict]
     rows = []
     for metric in race_metrics:
         arm_steps = float(metric["steps_to_level"]) if metric["steps_to_level"] else None
-        speedup, bound = None, False
-        if arm_steps is not None:
-            if arm_steps == 0:
-                speedup = math.inf
-            elif held is None:
-                speedup, bound = budget / arm_steps, True
-            else:
-                speedup = held / arm_steps
+        speedup, bound = metrics_speedup(held, arm_steps, budget)  # the race's own rule, the control as scratch
         rows.append(
             {
                 "task": task,
