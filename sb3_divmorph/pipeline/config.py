@@ -283,10 +283,17 @@ class Profile:
     #: (``DIR/xml/*.xml``, e.g. the official unimals_100 set), relative paths resolved like files
     train_set: str = "train"
     #: the novel robots, used only for evaluation; robots of the training list are never among them
-    #: (so one directory can serve both: the novel robots are then the ones after the training ones)
+    #: (so one directory can serve both: the novel robots are then the ones after the training ones).
+    #: With the official training robots, the official held-out robots (``unimals100-test``): the
+    #: split the field reports zero-shot on
     novel_set: str = "novel"
     train_robots: int | None = None
     novel_robots: int | None = None
+    #: an out-of-distribution robot set, evaluated zero-shot and reported apart from the novel robots
+    #: (split ``ood``), e.g. the shipped generated ``novel`` set beside official training robots
+    #: (taller, lighter, random designs: ``results/morphology_sets.md``); ``None``: none
+    ood_set: str | None = None
+    ood_robots: int | None = None
     max_episode_steps: int = 1000
     #: what body heights in the robots' proprioception are measured from, in every env of the run
     #: (``gym.make(..., height_reference=...)``): ``world`` (MetaMorph's convention, default) or

@@ -29,6 +29,7 @@ from sb3_divmorph.pipeline.arms import ARMS
 from sb3_divmorph.pipeline.config import Profile
 from sb3_divmorph.pipeline.metrics import ArmMetrics, RobotCurves, task_metrics_from_curves
 from sb3_divmorph.pipeline.runs import (
+    SPLITS,
     atomic_write_text,
     is_done,
     read_csv_rows,
@@ -226,9 +227,9 @@ def seed_robot_curves(out: Path, task: str, arm: str, split: str, finished_only:
 
 
 def task_metrics(profile: Profile, out: Path, task: str) -> list[ArmMetrics]:
-    """Metrics of every arm with finished runs on ``task``, both splits (see :mod:`~sb3_divmorph.pipeline.metrics`)."""
+    """Metrics of every arm with finished runs on ``task``, every robot split with curves (see :mod:`~sb3_divmorph.pipeline.metrics`)."""
     metrics = []
-    for split in ("train", "novel"):
+    for split in SPLITS:
         runs = {arm: list(curves.values()) for arm in ARMS if (curves := seed_robot_curves(out, task, arm, split, finished_only=True))}
         if runs:
             metrics += task_metrics_from_curves(task, split, runs)

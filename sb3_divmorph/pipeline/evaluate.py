@@ -1,4 +1,4 @@
-"""Stage 5 — evaluation: per-morphology returns on train and novel robots, and gate activations.
+"""Stage 5 — evaluation: per-morphology returns on train, novel (and out-of-distribution) robots, and gate activations.
 
 Every model of the run is rolled out deterministically, one env per robot, for ``episodes``
 episodes of at most ``max_episode_steps``: teachers on their task, next to the same policy before
@@ -39,6 +39,7 @@ from sb3_divmorph.pipeline.runs import (
     mark_done,
     profile_env_kwargs,
     profile_robots,
+    profile_splits,
     read_csv_rows,
     robot_observations,
     stage_model,
@@ -81,6 +82,14 @@ def final_evaluation(folder: Path, split: str, robots: list[Path], episodes: int
     if sorted((row["robot"], row["episode"]) for row in rows) != sorted((r.stem, e) for r in robots for e in range(episodes)):
         return None
     return [{"morphology": row["robot"], "episode": row["episode"], "return": row["return"], "length": row["length"]} for row in rows]
+
+
+def _can_evaluate(label: str, folder: Path, split: str) -> bool:
+    """Whether a job can run: a transfer run whose model is not in this checkout (a recorded run
+    ships only its curves) is evaluated only on the splits its curves cover."""
+    if not label.startswith("transfer-") or has_model(folder):
+        return True
+    return any(row["split"] == split for row in read_eval(Path(folder) / EVAL_FILE))
 
 
 def transfer_robots_and_episodes(
@@ -163,7 +172,7 @@ def evaluate(
     :param models: model labels to evaluate (``teacher``, ``teacher-untrained``, ``student``,
         ``student-<name>``, ``hyperdistill``, ``transfer-<arm>``); default all.
     :param tasks: tasks to evaluate on; default all.
-    :param splits: ``train`` and/or ``novel`` robots; default both.
+    :param splits: ``train``, ``novel`` and/or ``ood`` robots; default every split of the profile.
     :param episodes: episodes per robot (default: the profile's ``evaluate.episodes``).
     :param into: the folder for ``returns.csv`` of a selection (default ``evaluations/<run>-<time>/``
         in the working folder).
@@ -188,12 +197,13 @@ def evaluate(
     elif is_done(folder) and log_file(folder / "returns.csv") is None:
         print(f"[evaluate] skipped, already evaluated in {folder}")
         return folder
-    unknown_splits = sorted(set(splits or ()) - {"train", "novel"})
+    run_splits = profile_splits(profile)
+    unknown_splits = sorted(set(splits or ()) - set(run_splits))
     if unknown_splits:
-        raise ValueError(f"unknown robot split(s) {unknown_splits}; choose train and/or novel")
+        raise ValueError(f"unknown robot split(s) {unknown_splits} for profile {profile.name!r}; choose from {list(run_splits)}")
     if episodes is not None and episodes < 1:
         raise ValueError(f"episodes must be at least 1, got {episodes}")
-    splits_robots = {split: profile_robots(profile, split) for split in (splits or ("train", "novel"))}
+    splits_robots = {split: profile_robots(profile, split) for split in (splits or run_splits)}
     plan = evaluation_plan(profile, out)
     if not plan:
         raise FileNotFoundError(f"nothing to evaluate in {out}: run the teachers/distill/transfer stages first")
@@ -213,7 +223,7 @@ def evaluate(
             return transfer_robots_and_episodes(profile, split, splits_robots[split], episodes, episodes_given=selected_episodes)
         return splits_robots[split], episodes
 
-    jobs = [(label, model, task, split) for label, model, task in plan for split in splits_robots]
+    jobs = [(label, model, task, split) for label, model, task in plan for split in splits_robots if _can_evaluate(label, model, split)]
     rows: list[dict] = []
     target = folder / "returns.csv"
     if not selected:
@@ -260,7 +270,7 @@ def evaluate(
         print(f"[evaluate] {len(jobs)} model x task x split evaluation(s), {episodes} episode(s) per robot -> {folder}")
         return folder
     if has_model(student_folder(out)):  # (a skipped student has no gates)
-        gates = student_gates(out, splits_robots["train"] + splits_robots["novel"], profile.seed, **profile_env_kwargs(profile))
+        gates = student_gates(out, [r for robots in splits_robots.values() for r in robots], profile.seed, **profile_env_kwargs(profile))
         atomic_save(folder / "gates.npz", lambda p: np.savez(p, **gates))
     mark_done(folder, rows=len(rows))
     shutil.rmtree(folder / PARTS, ignore_errors=True)  # merged into returns.csv

@@ -52,6 +52,7 @@ from sb3_divmorph.pipeline.runs import (  # noqa: E402
     atomic_save,
     log_file,
     profile_robots,
+    profile_splits,
     read_csv_rows,
     transfer_eval_robots,
     write_csv,
@@ -67,7 +68,7 @@ DPI = 80
 CAPTIONS = {
     "transfer-train": "deterministic return on the training robots during transfer (transfer.eval_robots of them, spread "
     "over the set); line = mean over seeds (each seed: mean over those robots and their episodes), band = ±1 sd over seeds",
-    "transfer-novel": "the same on the novel robots (never trained on); band = ±1 sd over seeds",
+    "transfer-novel": "the same on held-out robots (never trained on: novel, and out-of-distribution where recorded); band = ±1 sd over seeds",
     "deployment": "bars = mean over robots of deterministic episodes, error bars = sd over robots; sizes: stored actor "
     "weights, mean over exported robots (log scale)",
     "pareto": "each deployable actor's size (stored weights, mean over exported robots, log scale) against its mean "
@@ -76,7 +77,7 @@ CAPTIONS = {
     "gates": "Pearson correlation of the gate vectors of two tasks (left) or two robots (right)",
 }
 FIGURES = tuple(CAPTIONS)
-SPLIT_WORDS = {"train": "training robots", "novel": "novel robots"}
+SPLIT_WORDS = {"train": "training robots", "novel": "novel robots", "ood": "out-of-distribution robots"}
 
 
 def figures_folder(out: Path) -> Path:
@@ -230,10 +231,11 @@ def deployment_figure(profile: Profile, out: Path) -> Path | None:
         return None
     rows = []
     # one panel per task and robot split (tasks' returns differ in scale), sizes in a last column
-    fig = plt.figure(figsize=(2.9 * len(tasks) + 4.5, 7.6))
-    grid = fig.add_gridspec(2, len(tasks) + 1, width_ratios=[1] * len(tasks) + [1.6])
+    splits = profile_splits(profile)
+    fig = plt.figure(figsize=(2.9 * len(tasks) + 4.5, 3.8 * len(splits)))
+    grid = fig.add_gridspec(len(splits), len(tasks) + 1, width_ratios=[1] * len(tasks) + [1.6])
     x = np.arange(len(models))
-    for r, split in enumerate(("train", "novel")):
+    for r, split in enumerate(splits):
         n_robots = len(profile_robots(profile, split))
         for c, task in enumerate(tasks):
             ax = fig.add_subplot(grid[r, c])
@@ -250,7 +252,7 @@ def deployment_figure(profile: Profile, out: Path) -> Path | None:
             ax.set_title(f"{task}, {n_robots} {SPLIT_WORDS[split]}", fontsize=8)
             if c == 0:
                 ax.set_ylabel("episode return (deterministic)")
-            if r == 1:
+            if r == len(splits) - 1:
                 ax.set_xlabel("model (legend)")
     handles = [plt.Rectangle((0, 0), 1, 1, color=f"C{i}") for i in range(len(models))]
     fig.legend(handles, [f"{i + 1}: {deployed[m]}" for i, m in enumerate(models)], loc="lower center", ncol=min(len(models), 3), fontsize=8)
@@ -404,15 +406,22 @@ def make_figure(profile: Profile, out: Path, name: str) -> Path | None:
     seeds = list(profile.transfer.seeds)
     if name == "transfer-train":
         return _curves_figure(profile, out, name, MAIN_ARMS, ("train",), f"Transfer to novel tasks on the training robots (seeds {seeds})")
+    # the held-out robots' curves: the novel robots and, where a run recorded them, the out-of-distribution ones
+    held_out = tuple(
+        split
+        for split in profile_splits(profile)[1:]
+        if any(seed_curves(out, task, arm, split) for task in transfer_tasks(profile, out) for arm in MAIN_ARMS)
+    )
     if name == "transfer-novel":
-        return _curves_figure(profile, out, name, MAIN_ARMS, ("novel",), f"Transfer to novel tasks on novel robots (seeds {seeds})")
+        return _curves_figure(
+            profile, out, name, MAIN_ARMS, held_out or ("novel",), f"Transfer to novel tasks on held-out robots (seeds {seeds})"
+        )
     if name == "ablation":
         ablations = [arm for arm in ABLATION_ARMS if arm != "divmorph"]
-        if not any(
-            seed_curves(out, task, arm, split) for task in transfer_tasks(profile, out) for arm in ablations for split in ("train", "novel")
-        ):
+        splits = ("train", *held_out)
+        if not any(seed_curves(out, task, arm, split) for task in transfer_tasks(profile, out) for arm in ablations for split in splits):
             return None  # DivMorph alone is no ablation figure
-        return _curves_figure(profile, out, name, ABLATION_ARMS, ("train", "novel"), f"Ablations of DivMorph (seeds {seeds})")
+        return _curves_figure(profile, out, name, ABLATION_ARMS, splits, f"Ablations of DivMorph (seeds {seeds})")
     if name == "deployment":
         return deployment_figure(profile, out)
     if name == "pareto":

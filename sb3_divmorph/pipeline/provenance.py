@@ -45,7 +45,7 @@ STAGE_KEYS: dict[str, tuple[str, ...]] = {
     "grl": (*_BASE, "teachers", "grl"),
     "transfer": (*_BASE, *_NOVEL, "teachers", "student", "distill", "grl", "transfer"),
     "export": (*_BASE, *_NOVEL, "teachers", "student", "distill", "transfer", "export"),
-    "evaluate": (*_BASE, *_NOVEL, "teachers", "student", "distill", "hyperdistill", "grl", "transfer", "evaluate"),
+    "evaluate": (*_BASE, *_NOVEL, "ood_set", "ood_robots", "teachers", "student", "distill", "hyperdistill", "grl", "transfer", "evaluate"),
 }
 #: packages whose versions a result depends on
 PACKAGES = ("divmorph", "torch", "stable-baselines3", "gymnasium", "mujoco", "numpy")

@@ -28,6 +28,7 @@ from sb3_divmorph.pipeline.students import STUDENTS  # noqa: E402
 from sb3_divmorph.pipeline.provenance import RECORD, SUPERSEDED  # noqa: E402
 from sb3_divmorph.pipeline.figures import (  # noqa: E402, F401 -- _correlation, plot_gates re-exported
     CAPTIONS,
+    SPLIT_WORDS,
     _correlation,
     distinct_selections,
     make_figures,
@@ -39,6 +40,7 @@ from sb3_divmorph.pipeline.figures import (  # noqa: E402, F401 -- _correlation,
 )
 from sb3_divmorph.pipeline.metrics import BOOTSTRAP, EFFICIENCY_FRACTION, interval, robot_interval  # noqa: E402
 from sb3_divmorph.pipeline.runs import (  # noqa: E402
+    SPLITS,
     atomic_write_text,
     log_file,
     log_files,
@@ -120,20 +122,27 @@ def returns_table(rows: list[dict[str, str]]) -> tuple[list[str], dict[tuple[str
     per_robot = robot_means(rows)
     groups = {key: list(robots.values()) for key, robots in per_robot.items()}
     episodes = _episodes_per_robot(rows)
+    # the out-of-distribution robots get a column only when the run evaluated some
+    splits = [split for split in SPLITS if split != "ood" or any(key[2] == "ood" for key in groups)]
+    header = {
+        "train": "train robots: mean return [95% CI] (robots x episodes)",
+        "novel": "novel robots: mean return [95% CI]",
+        "ood": "out-of-distribution robots: mean return [95% CI]",
+    }
     lines = [
-        "| model | task | train robots: mean return [95% CI] (robots x episodes) | novel robots: mean return [95% CI] |",
-        "|---|---|---|---|",
+        "| model | task | " + " | ".join(header[split] for split in splits) + " |",
+        "|---|---|" + "---|" * len(splits),
     ]
     for model, task in sorted({(m, t) for m, t, _ in groups}, key=lambda mt: (mt[1], mt[0])):
         cells = []
-        for split in ("train", "novel"):
+        for split in splits:
             values = np.asarray(groups.get((model, task, split), []))
             if values.size:
                 lo, hi = robot_interval(values)
                 cells.append(f"{values.mean():.1f} [{lo:.1f}, {hi:.1f}] ({values.size} x {episodes[(model, task, split)]})")
             else:
                 cells.append("–")
-        lines.append(f"| {model} | {task} | {cells[0]} | {cells[1]} |")
+        lines.append(f"| {model} | {task} | " + " | ".join(cells) + " |")
     return lines, groups
 
 
@@ -145,53 +154,59 @@ def robot_means(rows: list[dict[str, str]]) -> dict[tuple[str, str, str], dict[s
     return {key: {robot: float(np.mean(values)) for robot, values in robots.items()} for key, robots in returns.items()}
 
 
-def zero_shot_comparison(profile: Profile, rows: list[dict[str, str]], draws: int = BOOTSTRAP) -> list[str]:
+def zero_shot_comparison(profile: Profile, rows: list[dict[str, str]], draws: int = BOOTSTRAP, split: str = "novel") -> list[str]:
     """The paper's zero-shot claim, per training task: does the DivMorph student keep more of its return
     on the novel robots than the HyperDistill student? *Kept* is the mean over novel robots / the mean
     over training robots; the interval resamples the training and the novel robots independently, with
-    the same draws for both models (both ran on the same robots), so the difference is paired."""
+    the same draws for both models (both ran on the same robots), so the difference is paired.
+
+    :param split: the held-out robots: ``novel`` (the paper's comparison) or ``ood`` (the profile's
+        out-of-distribution set, reported apart)."""
     per_robot = robot_means(rows)
     models = ("student", "hyperdistill")
     if not any(key[0] == "hyperdistill" for key in per_robot):
         return []
+    words = {"novel": "novel robots", "ood": f"out-of-distribution robots (`{profile.ood_set}`)"}[split]
     lines = [
-        "## Zero-shot to novel robots: the DivMorph student against HyperDistill",
+        f"## Zero-shot to {words}: the DivMorph student against HyperDistill",
         "",
-        "*Kept*: mean return on the novel robots / mean on the training robots (each robot's return the mean of its "
-        "episodes); 95% bootstrap intervals resampling training and novel robots independently, the same draws for "
+        f"*Kept*: mean return on the {words} / mean on the training robots (each robot's return the mean of its "
+        "episodes); 95% bootstrap intervals resampling training and held-out robots independently, the same draws for "
         "both models (a paired difference). The paper's claim holds on a task when the difference's interval is above 0.",
         "",
-        "| task (training / novel robots) | DivMorph student: novel / train, kept [95% CI] | HyperDistill: novel / train, kept [95% CI] | difference in kept [95% CI] | absolute novel return, student - HyperDistill [95% CI] |",
+        "| task (training / held-out robots) | DivMorph student: held-out / train, kept [95% CI] | HyperDistill: held-out / train, kept [95% CI] | difference in kept [95% CI] | absolute held-out return, student - HyperDistill [95% CI] |",
         "|---|---|---|---|---|",
     ]
     rng = np.random.default_rng(0)
+    found = False
     for task in profile.teachers.tasks:
-        splits = {(m, s): per_robot.get((m, task, s), {}) for m in models for s in ("train", "novel")}
-        robots = {s: sorted(set(splits[("student", s)]) & set(splits[("hyperdistill", s)])) for s in ("train", "novel")}
-        if not robots["train"] or not robots["novel"]:
+        splits = {(m, s): per_robot.get((m, task, s), {}) for m in models for s in ("train", split)}
+        robots = {s: sorted(set(splits[("student", s)]) & set(splits[("hyperdistill", s)])) for s in ("train", split)}
+        if not robots["train"] or not robots[split]:
             continue
-        values = {(m, s): np.array([splits[(m, s)][r] for r in robots[s]]) for m in models for s in ("train", "novel")}
-        picks = {s: rng.integers(0, len(robots[s]), size=(draws, len(robots[s]))) for s in ("train", "novel")}
+        found = True
+        values = {(m, s): np.array([splits[(m, s)][r] for r in robots[s]]) for m in models for s in ("train", split)}
+        picks = {s: rng.integers(0, len(robots[s]), size=(draws, len(robots[s]))) for s in ("train", split)}
         kept, novel = {}, {}
         for m in models:
-            train_means, novel_means = values[(m, "train")][picks["train"]].mean(1), values[(m, "novel")][picks["novel"]].mean(1)
+            train_means, novel_means = values[(m, "train")][picks["train"]].mean(1), values[(m, split)][picks[split]].mean(1)
             with np.errstate(divide="ignore", invalid="ignore"):
                 kept[m] = novel_means / train_means
             novel[m] = novel_means
         means = {key: float(v.mean()) for key, v in values.items()}
-        points = {m: means[(m, "novel")] / means[(m, "train")] for m in models}
-        cells = [f"{task} ({len(robots['train'])} / {len(robots['novel'])} robots)"]
+        points = {m: means[(m, split)] / means[(m, "train")] for m in models}
+        cells = [f"{task} ({len(robots['train'])} / {len(robots[split])} robots)"]
         for m in models:
             lo, hi = interval(kept[m])
-            cells.append(f"{means[(m, 'novel')]:.1f} / {means[(m, 'train')]:.1f}, {points[m]:.2f} [{lo:.2f}, {hi:.2f}]")
+            cells.append(f"{means[(m, split)]:.1f} / {means[(m, 'train')]:.1f}, {points[m]:.2f} [{lo:.2f}, {hi:.2f}]")
         lo, hi = interval(kept["student"] - kept["hyperdistill"])
         a_lo, a_hi = interval(novel["student"] - novel["hyperdistill"])
         cells += [
             f"{points['student'] - points['hyperdistill']:+.2f} [{lo:+.2f}, {hi:+.2f}]",
-            f"{means[('student', 'novel')] - means[('hyperdistill', 'novel')]:+.1f} [{a_lo:+.1f}, {a_hi:+.1f}]",
+            f"{means[('student', split)] - means[('hyperdistill', split)]:+.1f} [{a_lo:+.1f}, {a_hi:+.1f}]",
         ]
         lines.append("| " + " | ".join(cells) + " |")
-    return lines
+    return lines if found else []
 
 
 #: What the student must keep of its teacher's return, and a deployed actor of the student's.
@@ -266,10 +281,13 @@ def plot_returns(groups: dict[tuple[str, str, str], list[float]], target: Path, 
     for ax, task in zip(axes.flat, tasks):
         models = sorted({m for m, t, _ in groups if t == task})
         x = np.arange(len(models))
-        for offset, split in ((-0.2, "train"), (0.2, "novel")):
+        splits = [split for split in SPLITS if any((m, task, split) in groups for m in models)]
+        width = 0.8 / max(len(splits), 1)
+        for i, split in enumerate(splits):
             means = [np.mean(groups.get((m, task, split), [np.nan])) for m in models]
             sds = [np.std(groups.get((m, task, split), [np.nan])) for m in models]
-            ax.bar(x + offset, means, 0.4, yerr=sds, label=f"{split} robots", capsize=2)
+            offset = (i - (len(splits) - 1) / 2) * width
+            ax.bar(x + offset, means, width, yerr=sds, label=SPLIT_WORDS[split], capsize=2)
         ax.set_xticks(x, models, rotation=45, ha="right", fontsize=7)
         ax.set_title(task, fontsize=9)
         ax.set_ylabel("episode return (deterministic)")
@@ -513,6 +531,8 @@ def report(profile: Profile, out: Path, command: str = "") -> str:
             *student_shares(profile, rows),
             "",
             *zero_shot_comparison(profile, rows),
+            "",
+            *zero_shot_comparison(profile, rows, split="ood"),
         ]
     gates_file = out / "evaluate" / "gates.npz"
     if gates_file.is_file():
@@ -575,5 +595,9 @@ def _robots_sentence(profile: Profile) -> str:
     if profile.novel_set == profile.train_set:
         start = (profile.train_robots or 0) + 1
         span = f"{start}-{start + profile.novel_robots - 1}" if profile.novel_robots else f"{start} onward"
-        return f"{train}; novel: robots {span} of `{profile.novel_set}` (the ones after the training robots)"
-    return f"{train}; novel: the first {count(profile.novel_robots)} of `{profile.novel_set}` (never a training robot)"
+        sentence = f"{train}; novel: robots {span} of `{profile.novel_set}` (the ones after the training robots)"
+    else:
+        sentence = f"{train}; novel: the first {count(profile.novel_robots)} of `{profile.novel_set}` (never a training robot)"
+    if profile.ood_set is not None:
+        sentence += f"; out of distribution (reported apart): the first {count(profile.ood_robots)} of `{profile.ood_set}`"
+    return sentence

@@ -117,11 +117,30 @@ def robot_files(robot_set: str, count: int | None, exclude: Sequence[Path] = ())
     return files if count is None else files[:count]
 
 
+#: The robot splits of a run: the robots it trains on, the novel robots of zero-shot evaluation, and
+#: an out-of-distribution set reported apart (only when the profile names an ``ood_set``).
+SPLITS = ("train", "novel", "ood")
+
+
+def profile_splits(profile: Profile) -> tuple[str, ...]:
+    """The robot splits a profile evaluates on: ``train``, ``novel`` and, with an ``ood_set``, ``ood``."""
+    return SPLITS if profile.ood_set is not None else SPLITS[:2]
+
+
 def profile_robots(profile: Profile, split: str) -> list[Path]:
-    """The profile's ``train`` or ``novel`` robots; novel robots never include a training robot."""
+    """The profile's ``train``, ``novel`` or ``ood`` robots; the other splits never include a training robot.
+
+    :raises ValueError: an unknown split, or ``ood`` in a profile without an ``ood_set``.
+    """
+    if split not in SPLITS:
+        raise ValueError(f"unknown robot split {split!r}; choose from {list(SPLITS)}")
     train = robot_files(profile.train_set, profile.train_robots)
     if split == "train":
         return train
+    if split == "ood":
+        if profile.ood_set is None:
+            raise ValueError(f"profile {profile.name!r} has no out-of-distribution robots (ood_set)")
+        return robot_files(profile.ood_set, profile.ood_robots, exclude=train)
     return robot_files(profile.novel_set, profile.novel_robots, exclude=train)
 
 
@@ -204,7 +223,9 @@ def robot_set_record(profile: Profile) -> dict[str, Any]:
     """Which robot sets a profile uses, resolved: names, folders, robot counts and, for the official
     sets, the source and checksum manifest they were fetched with (so results name their robots)."""
     record: dict[str, Any] = {}
-    for split, name in (("train", profile.train_set), ("novel", profile.novel_set)):
+    for split, name in (("train", profile.train_set), ("novel", profile.novel_set), ("ood", profile.ood_set)):
+        if name is None:
+            continue
         files = profile_robots(profile, split)
         folder = files[0].parent.parent if files[0].parent.name == "xml" else files[0].parent
         # Where the set was read on this machine, with the home folder as ~ (no user's paths in results).

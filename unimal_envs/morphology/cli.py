@@ -70,7 +70,9 @@ def _parser() -> argparse.ArgumentParser:
 def _fetch(args: argparse.Namespace) -> int:
     folders = O.fetch(args.source, args.sets, cache=args.cache, force=args.force, progress=True)
     for name, folder in folders.items():
-        print(f'{name}: {O.OFFICIAL_SETS[name].count} robots in {folder}  (morphologies="{name}")')
+        spec = O.OFFICIAL_SETS[name]
+        copies = f" ({len(spec.byte_copies)} byte copies of training robots left out)" if spec.byte_copies else ""
+        print(f'{name}: {spec.robots} robots in {folder}{copies}  (morphologies="{name}")')
     return 0
 
 

@@ -24,7 +24,7 @@ import mujoco
 import numpy as np
 
 from unimal_envs import contract as C
-from unimal_envs.morphology.cache import OFFICIAL_SETS, official_set_dir
+from unimal_envs.morphology.cache import OFFICIAL_SETS, SUBSETS, official_set_dir
 from unimal_envs.morphology.errors import MorphologyError  # noqa: F401 -- raised here, importable from here
 
 TORSO = "torso/0"
@@ -352,19 +352,25 @@ def shipped_set_dir(name: str) -> Path:
 #: The official sets, fetched into a cache by ``python -m unimal_envs.morphology fetch``
 #: (:mod:`unimal_envs.morphology.official`).
 OFFICIAL_SET_NAMES = tuple(OFFICIAL_SETS)
+#: Named parts of the official sets: ``unimals100-val`` (10 training robots held out for choices
+#: about generalisation) and ``unimals100-fit`` (the other 90).
+SUBSET_NAMES = tuple(SUBSETS)
 
 
 def is_set_name(name: object) -> bool:
-    """Whether ``name`` names a robot set (shipped or official) rather than a path."""
-    return isinstance(name, str) and (name in SHIPPED_SETS or name in OFFICIAL_SET_NAMES)
+    """Whether ``name`` names a robot set (shipped, official or a part of one) rather than a path."""
+    return isinstance(name, str) and (name in SHIPPED_SETS or name in OFFICIAL_SET_NAMES or name in SUBSET_NAMES)
 
 
 def set_dir(name: str) -> Path:
-    """Folder of a named set: a shipped one, or an official one from the cache.
+    """Folder of a named set: a shipped one, or an official one from the cache (a part of an
+    official set lives in its parent's folder).
 
     :raises MorphologyError: unknown name, or an official set that is not fetched yet (the message
         gives the fetch command).
     """
+    if name in SUBSET_NAMES:
+        return official_set_dir(SUBSETS[name].parent)
     if name in OFFICIAL_SET_NAMES:
         return official_set_dir(name)
     return shipped_set_dir(name)
@@ -374,7 +380,9 @@ def morphology_files(morphologies: str | Path | Iterable[str | Path]) -> list[Pa
     """Resolve the ``morphologies=`` argument of the envs to a sorted list of MJCF files.
 
     :param morphologies: ``"train"`` or ``"novel"`` (shipped sets), ``"unimals100-train"``,
-        ``"unimals100-test"`` or ``"unimals100-mutants"`` (the official sets, once fetched), a
+        ``"unimals100-test"`` (97 held-out robots: the byte copies of training robots are left out)
+        or ``"unimals100-mutants"`` (the official sets, once fetched), ``"unimals100-val"`` /
+        ``"unimals100-fit"`` (10 training robots held out for choices, and the other 90), a
         directory in the unimals_100 layout (``DIR/xml/*.xml``) or holding ``*.xml`` directly, one
         ``.xml`` file, or a list of files and robot names (a name is looked up in the shipped sets
         and the official sets fetched on this machine).
@@ -382,7 +390,12 @@ def morphology_files(morphologies: str | Path | Iterable[str | Path]) -> list[Pa
     """
     if isinstance(morphologies, (str, Path)):
         if is_set_name(morphologies):
-            return morphology_files(set_dir(morphologies))
+            files = morphology_files(set_dir(morphologies))
+            if morphologies in SUBSET_NAMES:
+                return SUBSETS[str(morphologies)].select(files)
+            # a cache fetched before the byte copies were left out still holds them
+            copies = OFFICIAL_SETS[morphologies].byte_copies if morphologies in OFFICIAL_SETS else {}
+            return [f for f in files if f.stem not in copies]
         path = Path(morphologies)
         if path.is_dir():
             xml_dir = path / "xml" if (path / "xml").is_dir() else path
@@ -393,7 +406,7 @@ def morphology_files(morphologies: str | Path | Iterable[str | Path]) -> list[Pa
         if path.suffix == ".xml":
             return morphology_files([path])
         choices = (
-            f"use one of {list(SHIPPED_SETS + OFFICIAL_SET_NAMES)}, a directory of MJCF files (DIR/xml/*.xml), or a list of .xml paths"
+            f"use one of {list(SHIPPED_SETS + OFFICIAL_SET_NAMES + SUBSET_NAMES)}, a directory of MJCF files (DIR/xml/*.xml), or a list of .xml paths"
         )
         if isinstance(morphologies, Path) or len(path.parts) > 1 or str(morphologies).startswith((".", "~")):
             # written as a path: say so, rather than calling it an unknown set name

@@ -13,15 +13,18 @@ set name                 folder in the archive           robots   notes
 =======================  ==============================  =======  ====================================
 ``unimals100-train``     ``data/train``                  100      the official training robots
                                                                   (checksums verified)
-``unimals100-test``      ``data/test``                   102      held-out robots; 4 are byte copies of
-                                                                  training robots (see the spec, §0)
+``unimals100-test``      ``data/test``                   97       the official held-out robots, the novel
+                                                                  split of zero-shot evaluation: the
+                                                                  folder's 102 less the 5 that are byte
+                                                                  copies of training robots
+                                                                  (:data:`TEST_BYTE_COPIES`), left out
 ``unimals100-mutants``   ``data/train_mutate_1000``      1000     mutated training robots (HyperDistill)
 =======================  ==============================  =======  ====================================
 
 Each set lands in ``<cache>/<set name>/{xml,metadata}`` (the unimals_100 layout) with a
 ``MANIFEST.json`` (source, per-file SHA-256) written last. Fetching is
 
-* **verified**: the expected number of robots, a metadata file per robot, every robot loads through
+* **verified**: the expected number of robots in the archive, a metadata file per robot, every robot loads through
   :func:`~unimal_envs.morphology.loader.load_morphology`, and the training robots match the
   checksums shipped in ``unimal_envs/data/unimals100_train.sha256``;
 * **atomic**: a set is unpacked and verified in a staging folder of the cache and renamed into
@@ -51,6 +54,7 @@ from pathlib import Path, PurePosixPath
 from unimal_envs.morphology.cache import (  # noqa: F401 -- where a set lives and whether it is there; re-exported
     MANIFEST,
     OFFICIAL_SETS,
+    TEST_BYTE_COPIES,
     SHORT_NAMES,
     OfficialSet,
     cache_root,
@@ -153,6 +157,12 @@ def _verify(staging: Path, spec: OfficialSet, files: dict[str, bytes]) -> None:
     missing = [p for p in xml if PurePosixPath(p).stem not in meta]
     if missing:
         raise FetchError(f"{spec.name}: no metadata json for {missing[:5]}")
+    if spec.byte_copies:
+        copies = byte_copies_of_training(files)
+        if copies != spec.byte_copies:
+            raise FetchError(
+                f"{spec.name}: the robots that are byte copies of training robots are {copies}, expected {spec.byte_copies}"
+            )
     if spec.name == "unimals100-train":
         expected = training_checksums()
         bad = sorted(rel for rel, digest in expected.items() if rel not in files or hashlib.sha256(files[rel]).hexdigest() != digest)
@@ -171,8 +181,21 @@ def _verify(staging: Path, spec: OfficialSet, files: dict[str, bytes]) -> None:
             raise FetchError(f"{spec.name}: a robot does not load: {err}") from None
 
 
+def byte_copies_of_training(files: dict[str, bytes]) -> dict[str, str]:
+    """``{robot: training robot}`` for every ``xml/<robot>.xml`` of ``files`` whose bytes are those
+    of an official training robot's MJCF (by the shipped SHA-256 checksums)."""
+    training = {digest: PurePosixPath(rel).stem for rel, digest in training_checksums().items() if rel.startswith("xml/")}
+    copies = {}
+    for rel, data in files.items():
+        if rel.startswith("xml/") and rel.endswith(".xml"):
+            original = training.get(hashlib.sha256(data).hexdigest())
+            if original is not None:
+                copies[PurePosixPath(rel).stem] = original
+    return dict(sorted(copies.items()))
+
+
 def _install(cache: Path, spec: OfficialSet, files: dict[str, bytes], source: str) -> Path:
-    """Write, verify and atomically move one set into the cache."""
+    """Write, verify and atomically move one set into the cache (less its byte copies of training robots)."""
     staging = Path(tempfile.mkdtemp(prefix=f".staging-{spec.name}-", dir=cache))
     try:
         for rel, data in files.items():
@@ -180,12 +203,17 @@ def _install(cache: Path, spec: OfficialSet, files: dict[str, bytes], source: st
             target.parent.mkdir(parents=True, exist_ok=True)
             target.write_bytes(data)
         _verify(staging, spec, files)
+        left_out = {f"{kind}/{name}.{ext}" for name in spec.byte_copies for kind, ext in (("xml", "xml"), ("metadata", "json"))}
+        for rel in left_out:
+            (staging / rel).unlink(missing_ok=True)
+        kept = {rel: data for rel, data in files.items() if rel not in left_out}
         manifest = {
             "set": spec.name,
             "source": source,
             "folder": f"data/{spec.folder}",
-            "robots": spec.count,
-            "sha256": {rel: hashlib.sha256(data).hexdigest() for rel, data in sorted(files.items())},
+            "robots": spec.robots,
+            "left_out": {name: f"byte copy of training robot {original}" for name, original in spec.byte_copies.items()},
+            "sha256": {rel: hashlib.sha256(data).hexdigest() for rel, data in sorted(kept.items())},
         }
         (staging / MANIFEST).write_text(json.dumps(manifest, indent=1) + "\n")
         final = cache / spec.name
@@ -273,7 +301,7 @@ def fetch(
             if not collected[spec.name]:
                 raise FetchError(f"{text} holds no data/{spec.folder}/xml folder (set {spec.name})")
             if progress:
-                print(f"verifying {spec.name} ({spec.count} robots)", flush=True)
+                print(f"verifying {spec.name} ({spec.robots} robots)", flush=True)
             result[spec.name] = _install(root, spec, collected[spec.name], text)
     finally:
         if download is not None and download.exists():
