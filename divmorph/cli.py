@@ -159,7 +159,13 @@ def _parser(overview: bool = False) -> argparse.ArgumentParser:
         help="only this model label (repeatable): teacher, teacher-untrained, student, student-<name>, hyperdistill, transfer-<arm>",
     )
     p.add_argument("--task", action="append", dest="eval_tasks", help="only this task (repeatable)")
-    p.add_argument("--split", action="append", dest="splits", choices=("train", "novel", "ood"), help="only these robots (repeatable; ood: the profile's out-of-distribution set)")
+    p.add_argument(
+        "--split",
+        action="append",
+        dest="splits",
+        choices=("train", "novel", "ood"),
+        help="only these robots (repeatable; ood: the profile's out-of-distribution set)",
+    )
     p.add_argument("--episodes", type=int, default=None, help="episodes per robot (default: the profile's evaluate.episodes)")
     p.add_argument(
         "--into",

@@ -405,9 +405,7 @@ def morphology_files(morphologies: str | Path | Iterable[str | Path]) -> list[Pa
             return files
         if path.suffix == ".xml":
             return morphology_files([path])
-        choices = (
-            f"use one of {list(SHIPPED_SETS + OFFICIAL_SET_NAMES + SUBSET_NAMES)}, a directory of MJCF files (DIR/xml/*.xml), or a list of .xml paths"
-        )
+        choices = f"use one of {list(SHIPPED_SETS + OFFICIAL_SET_NAMES + SUBSET_NAMES)}, a directory of MJCF files (DIR/xml/*.xml), or a list of .xml paths"
         if isinstance(morphologies, Path) or len(path.parts) > 1 or str(morphologies).startswith((".", "~")):
             # written as a path: say so, rather than calling it an unknown set name
             kind = "not a directory" if path.exists() else "no such directory"

@@ -160,9 +160,7 @@ def _verify(staging: Path, spec: OfficialSet, files: dict[str, bytes]) -> None:
     if spec.byte_copies:
         copies = byte_copies_of_training(files)
         if copies != spec.byte_copies:
-            raise FetchError(
-                f"{spec.name}: the robots that are byte copies of training robots are {copies}, expected {spec.byte_copies}"
-            )
+            raise FetchError(f"{spec.name}: the robots that are byte copies of training robots are {copies}, expected {spec.byte_copies}")
     if spec.name == "unimals100-train":
         expected = training_checksums()
         bad = sorted(rel for rel, digest in expected.items() if rel not in files or hashlib.sha256(files[rel]).hexdigest() != digest)
