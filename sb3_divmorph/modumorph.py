@@ -54,7 +54,7 @@ from sb3_divmorph.extractors import (
 )
 from sb3_divmorph.gates import masked_mean
 from sb3_divmorph.layers import DenseLinear
-from sb3_divmorph.policies import PRESETS, MorphologyTransformerPolicy
+from sb3_divmorph.policies import PRESET_SIZES, PRESETS, MorphologyTransformerPolicy
 from sb3_divmorph.transformer import ACTIVATIONS, xavier_init, zero_bias_init
 
 #: ModuMorph's extra sizes per preset (the Transformer sizes are MetaMorph's, ``PRESETS``).
@@ -360,7 +360,7 @@ class ModuMorphPolicy(MorphologyTransformerPolicy):
     is no position embedding to drop out).
     """
 
-    preset_table = {name: {**PRESETS[name], **MODUMORPH_PRESETS[name]} for name in PRESETS}
+    preset_table = {name: {**PRESETS[name], **MODUMORPH_PRESETS[PRESET_SIZES[name]]} for name in PRESETS}
     # its extractor returns a structure (tokens, robot context) that the autocast path does not cast back
     supports_mixed_precision = False
     _modumorph_keys = ("fixed_attention", "hypernetwork", "hypernet_dim")

@@ -11,11 +11,13 @@ key-padding mask, exteroception, and a padded action vector with its own mask.
   ``softmax(TopK)`` gates switch on (knowledge diversion).
 
 Sizes come from a named preset (``"small"``: sized for a 2-core CPU; ``"paper"``: MetaMorph's
-5 layers x width 128, 2 heads, FFN 1024) and any keyword given explicitly overrides it.
+5 layers x width 128, 2 heads, FFN 1024; ``"metamorph"``: the paper sizes with the rest of
+MetaMorph's reference settings too) and any keyword given explicitly overrides it.
 """
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import math
 from collections.abc import Mapping, Sequence
@@ -32,6 +34,7 @@ from torch import nn
 
 from sb3_divmorph.decoders import TokenDecoder, small_uniform_init
 from sb3_divmorph.distributions import MaskedDiagGaussianDistribution
+from sb3_divmorph.transformer import TokenEmbedding
 from sb3_divmorph.extractors import (
     ACT_PADDING_MASK,
     CONTEXT,
@@ -44,7 +47,18 @@ from sb3_divmorph.extractors import (
 from sb3_divmorph.gates import DiversionRouter, GateActivations, masked_mean
 from sb3_divmorph.layers import Factorization, LinearBuilder, batched_square_factors
 
-#: Network sizes shared by both policies.
+#: What the project's presets add to MetaMorph's network (each an option of the policies): a
+#: 35-feature morphology ``context`` row in every token, a hidden layer in the per-token decoders,
+#: and no embedding dropout.
+_PROJECT_DEFAULTS: dict[str, Any] = dict(
+    dropout=0.0,
+    embedding_dropout=0.0,
+    embedding_dropout_in_rollouts=False,
+    transformer_activation="relu",
+    use_context=True,
+)
+
+#: Network settings shared by the policies.
 PRESETS: dict[str, dict[str, Any]] = {
     # ~40x cheaper than "paper" per sample: trains at a few hundred steps/s on 2 CPU cores.
     "small": dict(
@@ -54,8 +68,9 @@ PRESETS: dict[str, dict[str, Any]] = {
         ff_dim=512,
         net_arch=dict(pi=[64], vf=[64]),
         exteroception=dict(hfield=[32, 32], goal=[16], object=[16]),
+        **_PROJECT_DEFAULTS,
     ),
-    # MetaMorph (unimal_spec.md 6.1); decoder hidden [64] is MetaMorph's VT decoder.
+    # MetaMorph's sizes (unimal_spec.md 6.1); decoder hidden [64] is MetaMorph's VT decoder.
     "paper": dict(
         d_model=128,
         n_layers=5,
@@ -63,8 +78,29 @@ PRESETS: dict[str, dict[str, Any]] = {
         ff_dim=1024,
         net_arch=dict(pi=[64], vf=[64]),
         exteroception=dict(hfield=[64, 64], goal=[32], object=[32]),
+        **_PROJECT_DEFAULTS,
+    ),
+    # MetaMorph as its reference code (agrimgupta92/metamorph, configs/ft.yaml and config.py) builds
+    # it: the paper sizes, dropout 0.1 after the position embedding -- applied in rollouts too, since
+    # that code never puts its model in eval mode (deterministic evaluation here stays without it) --,
+    # no input beyond the proprioception (its hardware features included) and a linear per-token
+    # decoder (FT's DECODER_DIMS = []; its VT config has [64], Obstacle [64, 64]: give net_arch).
+    "metamorph": dict(
+        d_model=128,
+        n_layers=5,
+        n_heads=2,
+        ff_dim=1024,
+        net_arch=dict(pi=[], vf=[]),
+        exteroception=dict(hfield=[64, 64], goal=[32], object=[32]),
+        dropout=0.0,
+        embedding_dropout=0.1,
+        embedding_dropout_in_rollouts=True,
+        transformer_activation="relu",
+        use_context=False,
     ),
 }
+#: The preset whose sizes a derived preset takes in the other policies' own tables.
+PRESET_SIZES = {"small": "small", "paper": "paper", "metamorph": "paper"}
 
 #: DivMorph's diversion sizes per preset: a quarter of each d_model-rank layer is tailors, half
 #: of each tailor group active per sample.
@@ -122,10 +158,15 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
     :param n_layers: Transformer layers.
     :param n_heads: attention heads.
     :param ff_dim: Transformer FFN width.
-    :param dropout: Transformer dropout (default 0, see the extractor).
-    :param embedding_dropout: dropout after the position embedding (default 0).
+    :param dropout: Transformer dropout (the preset's: 0, see the extractor).
+    :param embedding_dropout: dropout after the position embedding (the preset's: 0, ``metamorph`` 0.1).
+    :param embedding_dropout_in_rollouts: keep the embedding dropout on when actions are sampled for
+        training (:meth:`forward`, which collects rollouts, with the policy in eval mode), as
+        MetaMorph's code does; :meth:`predict` (deterministic evaluation, deployment) never drops.
+        The preset's: off, ``metamorph`` on.
     :param transformer_activation: ``"relu"`` (MetaMorph) or ``"gelu"``.
-    :param use_context: feed ``context`` into each token next to ``proprioceptive``.
+    :param use_context: feed ``context`` into each token next to ``proprioceptive`` (the preset's:
+        on, ``metamorph`` off).
     :param exteroception: ``{key: MLP widths}`` of the late-fused global encoders.
     :param action_std: standard deviation of the Gaussian (MetaMorph: fixed 0.9); the initial value
         if ``learn_std``.
@@ -154,6 +195,7 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
         "ff_dim",
         "dropout",
         "embedding_dropout",
+        "embedding_dropout_in_rollouts",
         "transformer_activation",
         "use_context",
         "exteroception",
@@ -169,10 +211,11 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
         n_layers: int | None = None,
         n_heads: int | None = None,
         ff_dim: int | None = None,
-        dropout: float = 0.0,
-        embedding_dropout: float = 0.0,
-        transformer_activation: str = "relu",
-        use_context: bool = True,
+        dropout: float | None = None,
+        embedding_dropout: float | None = None,
+        embedding_dropout_in_rollouts: bool | None = None,
+        transformer_activation: str | None = None,
+        use_context: bool | None = None,
         exteroception: Mapping[str, Sequence[int]] | None = None,
         action_std: float = 0.9,
         learn_std: bool = False,
@@ -189,6 +232,7 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
             ff_dim=ff_dim,
             dropout=dropout,
             embedding_dropout=embedding_dropout,
+            embedding_dropout_in_rollouts=embedding_dropout_in_rollouts,
             transformer_activation=transformer_activation,
             use_context=use_context,
             exteroception=exteroception,
@@ -340,10 +384,24 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
         per_token = self.value_net(latent_vf, None if gates is None else gates.detach())
         return masked_mean(per_token, token_padding(obs))
 
+    @contextlib.contextmanager
+    def _rollout_dropout(self):
+        """Switch the token embeddings' dropout on for one pass of a policy in eval mode, when
+        ``embedding_dropout_in_rollouts`` asks for it (see the class docstring)."""
+        on = self.config["embedding_dropout_in_rollouts"] and not self.training and self.config["embedding_dropout"] > 0
+        modules = [m.dropout for m in self.modules() if isinstance(m, TokenEmbedding)] if on else []
+        for module in modules:
+            module.train(True)
+        try:
+            yield
+        finally:
+            for module in modules:
+                module.train(False)
+
     # Each pass solves the Cayley maps of all its orthogonal factors at once (batched_square_factors).
     def forward(self, obs: PyTorchObs, deterministic: bool = False) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
         obs = self._preprocess(obs)
-        with batched_square_factors(self):
+        with batched_square_factors(self), self._rollout_dropout():
             latent_pi, latent_vf, gates = self._latents(obs)
             distribution = self._distribution(latent_pi, obs, gates)
             values = self._value(latent_vf, obs, gates)
@@ -473,7 +531,7 @@ class DivMorphPolicy(MorphologyTransformerPolicy):
     Other arguments: see :class:`MorphologyTransformerPolicy`.
     """
 
-    preset_table = {name: {**PRESETS[name], **DIVMORPH_PRESETS[name]} for name in PRESETS}
+    preset_table = {name: {**PRESETS[name], **DIVMORPH_PRESETS[PRESET_SIZES[name]]} for name in PRESETS}
     required_keys = (CONTEXT, TASK_EMBEDDING)
     _divmorph_keys = (
         "n_morph_tailors",

@@ -164,3 +164,67 @@ def test_a_set_not_fetched_names_the_command(tmp_path, monkeypatch):
         morphology_files("unimals100-test")
     with pytest.raises(MorphologyError, match="fetch --sets mutants"):
         gym.make("Unimal-FT-v0", morphologies="unimals100-mutants")
+
+
+OFFICIAL_TEST = OFFICIAL_TRAIN.parent / "test"
+needs_test_set = pytest.mark.skipif(not (OFFICIAL_TEST / "xml").is_dir(), reason="official unimals_100 test set not available")
+
+
+def copy_test_set(target: Path) -> Path:
+    """A directory source holding ``test/{xml,metadata}`` copied from the official test set."""
+    for sub in ("xml", "metadata"):
+        (target / "test" / sub).mkdir(parents=True)
+        for file in (OFFICIAL_TEST / sub).iterdir():
+            (target / "test" / sub / file.name).write_bytes(file.read_bytes())
+    return target
+
+
+@needs_test_set
+def test_the_test_set_leaves_out_its_byte_copies_of_training_robots(tmp_path, monkeypatch):
+    cache = tmp_path / "cache"
+    folder = O.fetch(copy_test_set(tmp_path / "src"), ["test"], cache=cache)["unimals100-test"]
+    names = sorted(p.stem for p in (folder / "xml").glob("*.xml"))
+    assert len(names) == 97 and not set(names) & set(O.TEST_BYTE_COPIES)
+    assert not any((folder / "metadata" / f"{n}.json").exists() for n in O.TEST_BYTE_COPIES)
+    # what is left holds no training robot's bytes; what was left out is named, each with its original
+    training = {f.read_bytes() for f in (OFFICIAL_TRAIN / "xml").iterdir()}
+    assert not any((folder / "xml" / f"{n}.xml").read_bytes() in training for n in names)
+    for copy, original in O.TEST_BYTE_COPIES.items():
+        assert (OFFICIAL_TEST / "xml" / f"{copy}.xml").read_bytes() == (OFFICIAL_TRAIN / "xml" / f"{original}.xml").read_bytes()
+    manifest = (folder / O.MANIFEST).read_text()
+    assert '"robots": 97' in manifest and all(n in manifest for n in O.TEST_BYTE_COPIES)
+    monkeypatch.setenv("UNIMAL_DATA", str(cache))
+    assert [p.stem for p in morphology_files("unimals100-test")] == names
+
+
+@needs_test_set
+def test_a_test_set_with_another_copy_of_a_training_robot_is_refused(tmp_path):
+    source = copy_test_set(tmp_path / "src")
+    victim = sorted(n for n in (p.stem for p in (source / "test" / "xml").iterdir()) if n not in O.TEST_BYTE_COPIES)[0]
+    training = sorted((OFFICIAL_TRAIN / "xml").iterdir())[-1]
+    (source / "test" / "xml" / f"{victim}.xml").write_bytes(training.read_bytes())
+    with pytest.raises(O.FetchError, match=victim):
+        O.fetch(source, ["test"], cache=tmp_path / "cache")
+    assert not (tmp_path / "cache" / "unimals100-test").exists()
+
+
+@needs_test_set
+def test_a_cache_fetched_with_the_byte_copies_still_lists_97_robots(tmp_path, monkeypatch):
+    # a cache written before the copies were left out: the 102 files and a manifest
+    folder = copy_test_set(tmp_path) / "test"
+    (folder / O.MANIFEST).write_text("{}")
+    folder.rename(tmp_path / "unimals100-test")
+    monkeypatch.setenv("UNIMAL_DATA", str(tmp_path))
+    files = morphology_files("unimals100-test")
+    assert len(files) == 97 and not {f.stem for f in files} & set(O.TEST_BYTE_COPIES)
+
+
+def test_the_validation_split_holds_out_ten_training_robots_of_every_family(tmp_path, monkeypatch):
+    O.fetch(OFFICIAL_TRAIN, ["train"], cache=tmp_path)
+    monkeypatch.setenv("UNIMAL_DATA", str(tmp_path))
+    train, val, fit = (set(p.stem for p in morphology_files(f"unimals100-{s}")) for s in ("train", "val", "fit"))
+    assert len(val) == 10 and len(fit) == 90 and val | fit == train and not val & fit
+    assert {name.split("-")[0] for name in val} == {"floor", "mvt", "vt"}
+    env = gym.make("Unimal-FT-v0", morphologies="unimals100-val")
+    assert {m.name for m in env.unwrapped.morphologies} == val
+    env.close()

@@ -847,6 +847,35 @@ def test_report_gives_robot_intervals_and_answers_the_zero_shot_claim():
     assert float(ft.split("|")[4].split("[")[0]) < 0
 
 
+def test_out_of_distribution_robots_are_a_split_of_their_own_in_the_report():
+    """With an ``ood_set`` the report gives the out-of-distribution robots their own column and their own
+    zero-shot comparison, computed from their rows only (the novel robots' numbers do not change)."""
+    import importlib
+
+    R = importlib.import_module("sb3_divmorph.pipeline.report")
+    profile = load_profile("demo", overrides={"ood_set": "novel"})
+    rows = [
+        {"model": model, "task": "FT", "split": split, "morphology": f"{split}{robot}", "episode": 0, "return": value + robot}
+        for model, values in (("student", (100, 60, 5)), ("hyperdistill", (100, 30, 5)))
+        for split, value in zip(("train", "novel", "ood"), values)
+        for robot in range(6)
+    ]
+    table, _ = R.returns_table(rows)
+    assert "out-of-distribution robots" in table[0] and table[2].count("|") == 6
+    novel = next(line for line in R.zero_shot_comparison(profile, rows) if line.startswith("| FT ("))
+    ood = next(line for line in R.zero_shot_comparison(profile, rows, split="ood") if line.startswith("| FT ("))
+    assert novel.split("|")[5].strip().startswith("+30.0") and ood.split("|")[5].strip().startswith("+0.0")
+    without = [row for row in rows if row["split"] != "ood"]
+    assert R.zero_shot_comparison(profile, without, split="ood") == []
+    assert "out-of-distribution" not in R.returns_table(without)[0][0]
+    from sb3_divmorph.pipeline.runs import profile_robots, profile_splits
+
+    assert profile_splits(profile) == ("train", "novel", "ood") and profile_splits(load_profile("demo")) == ("train", "novel")
+    assert profile_robots(profile, "ood")[0].parent.name in ("novel", "xml")
+    with pytest.raises(ValueError, match="no out-of-distribution robots"):
+        profile_robots(load_profile("demo"), "ood")
+
+
 def test_student_shares_pair_the_robots_and_judge_the_90_percent_bar_by_the_interval():
     """A student at 97% of its teacher on every robot passes; one at 50% fails; one at 100% on half the
     robots and 75% on the other half (86% of the teacher's mean) does not pass. Pairing matters: the

@@ -89,6 +89,39 @@ def test_presets_and_overrides():
         MetaMorphPolicy(SPACE, ACTION_SPACE, lambda _: 3e-4, ortho_init=True)
 
 
+def test_the_metamorph_preset_is_metamorphs_reference_network(tmp_path):
+    """``preset="metamorph"``: the paper sizes, no context input (the actions ignore it), a linear
+    per-token decoder, and embedding dropout 0.1 that MetaMorph's code applies when it samples
+    rollout actions (its model never leaves train mode) but that ``predict`` never applies."""
+    policy = make_policy("metamorph", preset="metamorph", net_arch=None, d_model=None, n_layers=None, ff_dim=None)
+    assert policy.config["d_model"] == 128 and len(policy.pi_features_extractor.encoder.layers) == 5
+    assert policy.mlp_extractor.latent_dim_pi == policy.features_dim  # no hidden decoder layer
+    policy.set_training_mode(False)
+    obs = batch(policy)
+    moved = {**obs, "context": obs["context"] + 1.0}
+    with th.no_grad():
+        first, again = policy.get_distribution(obs).distribution.mean, policy.get_distribution(moved).distribution.mean
+        rollout = [policy(obs, deterministic=True)[0] for _ in range(2)]
+    assert th.equal(first, again)  # context is not an input
+    assert not th.equal(rollout[0], rollout[1])  # dropout while sampling rollouts, in eval mode
+    numpy_obs = {k: v.numpy() for k, v in obs.items()}
+    assert np.array_equal(policy.predict(numpy_obs, deterministic=True)[0], policy.predict(numpy_obs, deterministic=True)[0])
+    # the project's default keeps the context, the decoder layer, and no dropout anywhere
+    default = make_policy("metamorph")
+    default.set_training_mode(False)
+    with th.no_grad():
+        assert th.equal(default(batch(default), deterministic=True)[0], default(batch(default), deterministic=True)[0])
+        assert not th.equal(default.get_distribution(obs).distribution.mean, default.get_distribution(moved).distribution.mean)
+    # the settings travel with a saved policy
+    policy.save(tmp_path / "policy.pth")
+    loaded = MetaMorphPolicy.load(tmp_path / "policy.pth")
+    assert {k: loaded.config[k] for k in ("use_context", "embedding_dropout", "embedding_dropout_in_rollouts")} == {
+        "use_context": False,
+        "embedding_dropout": 0.1,
+        "embedding_dropout_in_rollouts": True,
+    }
+
+
 def test_divmorph_factorizes_transformer_and_decoder():
     policy = make_policy("divmorph")
     layer = policy.pi_features_extractor.encoder.layers[0]
