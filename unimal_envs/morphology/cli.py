@@ -8,6 +8,7 @@ Examples::
     unimal-morphologies stats --compare /path/to/unimals_100/train
     unimal-morphologies fetch                         # the official sets into $UNIMAL_DATA
     unimal-morphologies fetch --sets train --source /path/to/archive.tar.gz
+    unimal-morphologies mutate unimals100-train --kind kinematic --out variations/train-kinematic
 
 Also runnable as ``python -m unimal_envs.morphology``.
 """
@@ -24,6 +25,7 @@ from pathlib import Path
 
 from unimal_envs.morphology import official as O
 from unimal_envs.morphology import sets as S
+from unimal_envs.morphology import variations as V
 from unimal_envs.morphology.loader import MorphologyError, is_set_name, morphology_files
 
 
@@ -55,6 +57,17 @@ def _parser() -> argparse.ArgumentParser:
         help="also show a set (e.g. unimals100-train, once fetched) or a robot directory (xml/ inside); repeatable",
     )  # fmt: skip
     stats.add_argument("--markdown", type=Path, default=None, help="also write the table as markdown to this file")
+    mutate = sub.add_parser("mutate", help="a reproducible set of kinematic or dynamic variations of any robot set (DERL's mutations)")
+    mutate.add_argument("robots", help="a set name (unimals100-train, train, ...) or a robot directory")
+    mutate.add_argument("--kind", choices=list(V.KINDS), required=True, help="kinematic (shape) or dynamic (densities, gears)")
+    mutate.add_argument(
+        "--out", type=Path, default=None,
+        help="the variation set's folder (xml/, metadata/, VARIATIONS.json); default: its name "
+             "<robots>-<kind>-s<seed> in the cache's variations/ folder ($UNIMAL_DATA)",
+    )  # fmt: skip
+    mutate.add_argument("--per-robot", type=int, default=1, help="variants of each robot (default 1)")
+    mutate.add_argument("--seed", type=int, default=0, help="the set's seed (default 0); the same command gives the same files")
+    mutate.add_argument("--quiet", action="store_true", help="no progress bar")
     fetch = sub.add_parser("fetch", help="download the official unimals_100 sets into the cache ($UNIMAL_DATA)")
     fetch.add_argument(
         "--source", default=None,
@@ -65,6 +78,14 @@ def _parser() -> argparse.ArgumentParser:
     fetch.add_argument("--cache", type=Path, default=None, help="cache folder (default $UNIMAL_DATA or ~/.cache/unimal_envs)")
     fetch.add_argument("--force", action="store_true", help="fetch again even if already cached")
     return parser
+
+
+def _mutate(args: argparse.Namespace) -> int:
+    start = time.perf_counter()
+    out = args.out if args.out is not None else V.default_folder(args.robots, args.kind, args.seed)
+    files = V.make_variation_set(args.robots, args.kind, out, per_robot=args.per_robot, seed=args.seed, progress=not args.quiet)
+    print(f'{len(files)} {args.kind} variants of {args.robots} in {out} ({time.perf_counter() - start:.0f} s; morphologies="{out}")')
+    return 0
 
 
 def _fetch(args: argparse.Namespace) -> int:
@@ -167,6 +188,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if args.command == "fetch":
             return _fetch(args)
+        if args.command == "mutate":
+            return _mutate(args)
         return _generate(args) if args.command == "generate" else _stats(args)
     except MorphologyError as err:
         print(f"unimal-morphologies: {err}", file=sys.stderr)
