@@ -62,6 +62,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, default=Path("runs/example"))
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
+    if args.steps < 1:
+        parser.error(f"--steps must be a positive number of env steps, got {args.steps}")
     th.set_num_threads(1)  # small models: a second thread only contends with the simulation
 
     teachers = {TASK_NAMES.index(task): train_teacher(task, args.steps, args.out / "teachers" / task, args.seed) for task in TASKS}

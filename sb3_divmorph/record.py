@@ -169,6 +169,8 @@ def record(args: argparse.Namespace) -> Path:
 
     if args.episodes < 1 or args.steps < 1:
         raise RecordError(f"--episodes and --steps must be at least 1, got {args.episodes} and {args.steps}")
+    if args.out and Path(args.out).suffix.lower() not in (".mp4", ".gif"):
+        raise RecordError(f"--out {args.out}: the video's file name must end in .mp4 or .gif")
     saved = find_model(args.source)
     if args.task is not None:
         if args.task not in TASK_NAMES:

@@ -470,3 +470,38 @@ def test_robot_set_records_name_no_machine_paths():
     record = robot_set_record(load_profile("demo"))
     assert record["train"]["folder"] == "unimal_envs/data/morphologies/train"
     assert not any(entry["folder"].startswith(("/", str(Path.home()))) for entry in record.values())
+
+
+def test_bad_inputs_name_the_problem(tmp_path, capsys):
+    """Each bad input stops with a message that names it (and writes nothing), rather than a
+    backend's error from deep inside (issue 46)."""
+    import argparse
+
+    from divmorph.cli import main as divmorph_main
+    from sb3_divmorph.record import add_arguments
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    with pytest.raises(RecordError, match=r"\.mp4 or \.gif"):
+        record(parser.parse_args([str(tmp_path / "run" / "student"), "--out", str(tmp_path / "clip")]))
+    with pytest.raises(ValueError, match="world_cache_size"):
+        gym.make("Unimal-FT-v0", world_cache_size=-1)
+    with pytest.raises(ValueError, match="reset_noise_scale"):
+        gym.make("Unimal-FT-v0", reset_noise_scale=-1)
+    out = tmp_path / "run"
+    assert divmorph_main(["teachers", "--profile", "demo", "--out", str(out), "--set", "teachers.n_timesteps=-5000"]) == 2
+    message = capsys.readouterr().err
+    assert "--set teachers.n_timesteps=-5000" in message and "positive whole number" in message
+    assert divmorph_main(["teachers", "--profile", "demo", "--out", str(out), "--task", "Escpe"]) == 2
+    assert "unknown task(s) 'Escpe' (did you mean 'Escape'?)" in capsys.readouterr().err
+    assert not (out / "teachers").exists()
+    import subprocess
+    import sys
+
+    done = subprocess.run(
+        [sys.executable, "examples/distill_dagger.py", "--steps", "-1", "--out", str(tmp_path / "example")],
+        capture_output=True,
+        text=True,
+        cwd=Path(__file__).resolve().parents[1],
+    )
+    assert done.returncode == 2 and "--steps must be a positive number" in done.stderr and not (tmp_path / "example").exists()

@@ -166,6 +166,10 @@ class UnimalEnv(gym.Env):
                 f"'proprioceptive' are measured from), got {height_reference!r}"
             )
         self.height_reference = height_reference
+        if not float(reset_noise_scale) >= 0:  # (NaN included)
+            raise ValueError(f"reset_noise_scale is the half-width of the uniform reset noise and must be >= 0, got {reset_noise_scale}")
+        if int(world_cache_size) < 1:
+            raise ValueError(f"world_cache_size is how many compiled worlds are kept and must be >= 1, got {world_cache_size}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
         if render_mode == "human":

@@ -489,8 +489,12 @@ def load_profile(name: str, path: str | Path = DEFAULT_PROFILES, overrides: Mapp
         raise ConfigError(f"unknown profile {name!r}; profiles in {resolve_path(path)}: {sorted(profiles)}")
     try:
         return Profile.from_dict(name, apply_overrides(profiles[name], overrides or {}))
-    except ConfigError as error:  # name the file: the same profile name may live in several
-        raise ConfigError(f"{resolve_path(path)}: {error}") from None
+    except ConfigError as error:
+        # name where the bad value came from: the command line's --set, or the file (the same
+        # profile name may live in several)
+        given = [f"{key}={value!r}" for key, value in (overrides or {}).items() if key in str(error) or key.split(".")[-1] in str(error)]
+        source = f"--set {', '.join(given)} (on profile {name!r} of {resolve_path(path)})" if given else str(resolve_path(path))
+        raise ConfigError(f"{source}: {error}") from None
 
 
 def grl_policy_kwargs(profile: Profile) -> dict[str, Any]:
