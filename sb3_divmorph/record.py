@@ -20,107 +20,24 @@ from __future__ import annotations
 
 import argparse
 import os
-import re
 import sys
-from dataclasses import dataclass
 from pathlib import Path
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
 
-NORMALIZER = "vecnormalize.pkl"
-#: ``Unimal-FT-v0_3`` (rl-zoo's ``<env id>_<run>`` folder names)
-_ZOO_RUN = re.compile(r"^(?P<env>Unimal-[A-Za-z]+-v\d+)_\d+$")
-ALGOS = ("ppo", "a2c")
+# Where a model and its statistics are, and what it was trained on: shared with load_pretrained.
+from sb3_divmorph.pretrained import (  # noqa: E402, F401 -- re-exported (find_model, SavedModel were defined here)
+    ALGOS,
+    NORMALIZER,
+    PretrainedError,
+    SavedModel,
+    find_model,
+)
 
-
-class RecordError(ValueError):
-    """The model, its statistics or the requested env cannot be found or do not fit together."""
-
-
-@dataclass
-class SavedModel:
-    """Where a trained model and its statistics are, and what they were trained on.
-
-    :param model: the ``.zip`` file.
-    :param normalizer: its ``VecNormalize`` statistics (``None``: trained on raw observations).
-    :param env_id: the env it was trained on, when the layout tells (``None`` otherwise).
-    :param algo: ``ppo`` or ``a2c``, when the layout tells.
-    """
-
-    model: Path
-    normalizer: Path | None
-    env_id: str | None
-    algo: str | None
-
-
-def _zoo_normalizes(config: Path) -> bool:
-    """Whether an rl-zoo run's saved ``config.yml`` turned observation normalisation on."""
-    import yaml
-
-    class Loader(yaml.SafeLoader):
-        pass
-
-    # rl-zoo dumps an OrderedDict of [key, value] pairs; read it without unsafe YAML tags
-    Loader.add_constructor(
-        "tag:yaml.org,2002:python/object/apply:collections.OrderedDict",
-        lambda loader, node: dict(loader.construct_sequence(node.value[0], deep=True) if node.value else []),
-    )
-    with open(config) as f:
-        values = yaml.load(f, Loader=Loader) or {}  # noqa: S506 (a SafeLoader subclass)
-    normalize = dict(values).get("normalize", False)
-    if isinstance(normalize, str):
-        return "norm_obs=False" not in normalize.replace(" ", "")
-    return bool(normalize)
-
-
-def find_model(source: str | Path) -> SavedModel:
-    """Locate the model, its statistics, env and algorithm from a file or folder.
-
-    :param source: a ``.zip`` model, a pipeline stage folder (``model.zip``) or an rl-zoo run
-        folder (``logs/<algo>/<env id>_<n>``).
-    :raises RecordError: nothing recordable there, or statistics announced but missing.
-    """
-    from unimal_envs.contract import TASK_NAMES
-
-    source = Path(source)
-    if not source.exists():
-        raise RecordError(f"no such file or directory: {source}")
-    if source.is_dir():
-        zoo = _ZOO_RUN.match(source.name)
-        if (source / "model.zip").is_file():  # divmorph pipeline layout
-            model = source / "model.zip"
-        elif zoo and (source / f"{zoo['env']}.zip").is_file():
-            model = source / f"{zoo['env']}.zip"
-        elif zoo and (source / "best_model.zip").is_file():
-            model = source / "best_model.zip"
-        else:
-            raise RecordError(
-                f"{source} holds no model.zip (divmorph run) nor <env id>.zip (rl-zoo run folder such as logs/ppo/Unimal-FT-v0_1)"
-            )
-    elif source.suffix == ".zip":
-        model = source
-    else:
-        raise RecordError(f"{source} is neither a .zip model nor a run folder")
-
-    folder = model.parent
-    zoo = _ZOO_RUN.match(folder.name)
-    if zoo:
-        env_id = zoo["env"]
-        stats = folder / env_id / NORMALIZER
-        config = folder / env_id / "config.yml"
-        algo = folder.parent.name if folder.parent.name in ALGOS else None
-        if not stats.is_file():
-            if config.is_file() and _zoo_normalizes(config):
-                raise RecordError(f"{config} says the model was trained with normalised observations, but {stats} is missing")
-            stats = None
-        return SavedModel(model, stats, env_id, algo)
-
-    # divmorph pipeline: teachers/<task>, transfer/<task>/<arm>, student (multi-task: no single task)
-    task = next((name for name in (folder.name, folder.parent.name) if name in TASK_NAMES), None)
-    stats = folder / NORMALIZER
-    return SavedModel(model, stats if stats.is_file() else None, f"Unimal-{task}-v0" if task else None, None)
+#: The errors of ``record`` (a model that cannot be found, an unknown task...): those of :mod:`sb3_divmorph.pretrained`.
+RecordError = PretrainedError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -184,13 +101,13 @@ def record(args: argparse.Namespace) -> Path:
     if normalizer_file is not None and not normalizer_file.is_file():
         raise RecordError(f"no such statistics file: {normalizer_file}")
 
-    morphologies = args.morphologies
-    if morphologies is None:  # the model's own robots: a teacher run on other robots would look untrained
-        from sb3_divmorph.pipeline.runs import trained_robots
-
-        morphologies = trained_robots(saved.model) or "train"
-    from sb3_divmorph.pipeline.runs import trained_env_kwargs
-
+    # the model's own robots and env settings (a pipeline run's records, an rl-zoo run's env_kwargs):
+    # a teacher filmed on other robots, or fed other observations, would look untrained
+    settings = dict(saved.env_kwargs)
+    trained_on = settings.pop("morphologies", None)
+    morphologies = args.morphologies if args.morphologies is not None else (trained_on or "train")
+    for key in ("render_mode", "width", "height", "max_episode_steps"):
+        settings.pop(key, None)  # the recording's own
     env = gym.make(
         env_id,
         morphologies=morphologies,
@@ -198,7 +115,7 @@ def record(args: argparse.Namespace) -> Path:
         width=args.width,
         height=args.height,
         max_episode_steps=args.steps,
-        **trained_env_kwargs(saved.model),
+        **settings,
     )
     robots = [m.name for m in env.unwrapped.morphologies]
     unknown = sorted(set(args.robot or []) - set(robots))

@@ -49,7 +49,7 @@ def test_the_load_example_runs_the_shipped_teacher_on_its_robot_with_no_env_flag
     finally:
         sys.argv = argv
     out = capsys.readouterr().out
-    ret = float(out.split(f"{CLIMBER}: return")[1].split()[0])
+    ret = float(out.split(f"{CLIMBER}, episode 0: return")[1].split()[0])
     assert ret > 1000, out
 
 

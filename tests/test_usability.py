@@ -505,3 +505,52 @@ def test_bad_inputs_name_the_problem(tmp_path, capsys):
         cwd=Path(__file__).resolve().parents[1],
     )
     assert done.returncode == 2 and "--steps must be a positive number" in done.stderr and not (tmp_path / "example").exists()
+
+
+def test_load_pretrained_names_the_robot_that_ran_and_keeps_the_run_settings(tmp_path):
+    """``load_pretrained(folder).evaluate`` labels each return with the robot that produced it: a robot's
+    row in a batch equals that robot run alone with the same episode seed (env i of a batch is seeded
+    seed + i). The run's env settings come with the model, and overriding one warns, naming it."""
+    import json
+    import warnings
+
+    from sb3_divmorph.pretrained import load_pretrained
+
+    run = tmp_path / "run"
+    tiny_model(run / "teachers" / "FT", steps=64)
+    (run / "robot_sets.json").write_text(json.dumps({"train": {"set": "train", "robots": ["train-003", "train-001", "train-005"]}}))
+    (run / "run.json").write_text(json.dumps({"configuration": {"height_reference": "ground"}}))
+    model = load_pretrained(run / "teachers" / "FT")
+    assert [r.stem for r in model.robots] == ["train-003", "train-001", "train-005"]
+    assert model.env_id == "Unimal-FT-v0" and model.env_kwargs == {"height_reference": "ground"}
+    together = {row["robot"]: row for row in model.evaluate(max_episode_steps=60, seed=10)}
+    assert sorted(together) == ["train-001", "train-003", "train-005"]
+    for i, robot in enumerate(["train-003", "train-001", "train-005"]):
+        alone = model.evaluate([robot], max_episode_steps=60, seed=10 + i)[0]
+        assert alone == together[robot], robot
+    env = model.make_env("train-001", max_episode_steps=5)
+    assert env.unwrapped.height_reference == "ground" and [m.name for m in env.unwrapped.morphologies] == ["train-001"]
+    obs, _ = env.reset(seed=0)
+    assert model.predict(obs).shape == env.action_space.shape
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model.make_env("train-001", height_reference="world")
+    assert any("height_reference='ground'" in str(w.message) for w in caught)
+
+
+def test_an_rl_zoo_run_is_filmed_and_loaded_on_the_robots_of_its_env_kwargs(tmp_path):
+    """rl-zoo saves ``--env-kwargs`` in ``<env id>/args.yml``: the model's robots and settings come from there."""
+    zoo = tmp_path / "logs" / "ppo" / "Unimal-FT-v0_1"
+    (zoo / "Unimal-FT-v0").mkdir(parents=True)
+    tiny_model(tmp_path / "stage").save(zoo / "Unimal-FT-v0.zip")
+    (tmp_path / "stage" / "vecnormalize.pkl").rename(zoo / "Unimal-FT-v0" / "vecnormalize.pkl")
+    (zoo / "Unimal-FT-v0" / "args.yml").write_text(
+        "!!python/object/apply:collections.OrderedDict\n- - - algo\n    - ppo\n  - - env_kwargs\n"
+        "    - morphologies: [train-004]\n      height_reference: ground\n"
+    )
+    saved = find_model(zoo)
+    assert saved.env_kwargs == {"morphologies": ["train-004"], "height_reference": "ground"} and saved.algo == "ppo"
+    from sb3_divmorph.pretrained import load_pretrained
+
+    model = load_pretrained(zoo)
+    assert [r.stem for r in model.robots] == ["train-004"] and model.normalizer is not None
