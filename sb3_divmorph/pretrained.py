@@ -269,6 +269,7 @@ def load_pretrained(source: str | Path, device: str = "cpu", algo: str | None = 
     name = algo or saved.algo or "ppo"
     if name not in ALGOS:
         raise PretrainedError(f"unknown algorithm {name!r}; choose from {list(ALGOS)}")
-    model = {"ppo": PPO, "a2c": A2C}[name].load(saved.model, device=device)
+    algorithm: type[PPO] | type[A2C] = PPO if name == "ppo" else A2C
+    model = algorithm.load(saved.model, device=device)
     normalizer = load_normalizer(saved.normalizer) if saved.normalizer is not None else None
     return Pretrained(saved, model, normalizer)
