@@ -46,6 +46,7 @@ def _parser(overview: bool = False) -> argparse.ArgumentParser:
         ``sb3_divmorph`` nor torch (seconds saved on every ``--help``).
     """
     parser = argparse.ArgumentParser(prog="divmorph", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--version", action="version", version=f"divmorph {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     def command(name: str, help_text: str) -> argparse.ArgumentParser:
@@ -268,6 +269,16 @@ def _part(text: str) -> tuple[int, int]:
     if not 1 <= k <= n:
         raise argparse.ArgumentTypeError(f"a part K/N needs 1 <= K <= N, got {text!r}")
     return k, n
+
+
+def _version() -> str:
+    """The installed package's version (``unknown`` when run from a tree that is not installed)."""
+    from importlib import metadata
+
+    try:
+        return metadata.version("divmorph")
+    except metadata.PackageNotFoundError:
+        return "unknown"
 
 
 def _robot_path(name: str) -> Path:

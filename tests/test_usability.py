@@ -554,3 +554,18 @@ def test_an_rl_zoo_run_is_filmed_and_loaded_on_the_robots_of_its_env_kwargs(tmp_
 
     model = load_pretrained(zoo)
     assert [r.stem for r in model.robots] == ["train-004"] and model.normalizer is not None
+
+
+def test_the_version_and_gymnasiums_check_env_without_a_display(monkeypatch, capsys):
+    from gymnasium.utils.env_checker import check_env
+
+    from divmorph.cli import main as divmorph_main
+
+    with pytest.raises(SystemExit) as done:
+        divmorph_main(["--version"])
+    assert done.value.code == 0 and capsys.readouterr().out.startswith("divmorph ")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    env = gym.make("Unimal-FT-v0", morphologies=morphology_files("train")[:1])
+    assert env.metadata["render_modes"] == ["rgb_array"]  # what this machine can serve
+    check_env(env.unwrapped)  # makes the env once per listed render mode

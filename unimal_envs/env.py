@@ -43,10 +43,15 @@ SHADOW_CLIP = 50.0
 UNRENDERED_TEXTURE_SIZE = 8
 
 
+def _has_display() -> bool:
+    """Whether a window can open here (on Linux: an X11 or Wayland display is set)."""
+    return not sys.platform.startswith("linux") or bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
 def _check_display() -> None:
     """Refuse ``render_mode="human"`` up front where no window can open: on Linux without an X11
     or Wayland display, MuJoCo's viewer would otherwise fail deep inside GLFW on the first step."""
-    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+    if not _has_display():
         raise RuntimeError(
             "render_mode='human' needs a display, and neither DISPLAY nor WAYLAND_DISPLAY is set; "
             "use render_mode='rgb_array' for frames without a display (MUJOCO_GL=egl), e.g. "
@@ -174,6 +179,9 @@ class UnimalEnv(gym.Env):
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
         if render_mode == "human":
             _check_display()
+        # An instance lists the render modes it can serve here: without a display, not "human"
+        # (so that Gymnasium's check_env, which makes the env once per listed mode, passes headless).
+        self.metadata = {**self.metadata, "render_modes": [m for m in self.metadata["render_modes"] if m != "human" or _has_display()]}
         self.task = make_task(task)
         self.morphologies: list[Morphology] = load_morphologies(morphologies)
         self.arena = self.task.arena
