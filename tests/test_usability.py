@@ -148,8 +148,10 @@ def test_an_override_typo_names_the_profile_file_and_lists_only_ppo_arguments(tm
 def test_names_are_checked_before_anything_is_announced(tmp_path, capsys):
     _, profile = tiny_profile(tmp_path)
     out = tmp_path / "run"
-    with pytest.raises(ConfigError, match="no teacher"):
+    with pytest.raises(ConfigError, match="unknown task"):
         train_teachers(profile, out, ["FT", "Walk"])
+    with pytest.raises(ConfigError, match="no teacher"):
+        train_teachers(profile, out, ["FT", "Escape"])
     with pytest.raises(ConfigError, match=r"\['FT'\] not one of"):
         transfer(profile, out, ["Escape", "FT"])
     with pytest.raises(ConfigError, match=r"unknown task\(s\) \['Nope'\]"):
