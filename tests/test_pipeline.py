@@ -225,6 +225,23 @@ def test_parts_of_a_finished_evaluation_merge_the_models_finished_after_it(finis
     assert not (out / "evaluate" / "parts").exists()
 
 
+def test_an_out_of_distribution_set_is_evaluated_as_its_own_split(finished_run, tmp_path):
+    """``ood_set`` adds the split ``ood``: every model is rolled out on its robots, except a transfer
+    run that ships only its curves (no model) and has none on that split, which is left out rather
+    than failing the evaluation."""
+    out, profiles = copied_run(finished_run, tmp_path)
+    (out / "transfer" / "Escape" / "scratch" / "seed-0" / "model.zip").unlink()  # a recorded run's curves only
+    into = tmp_path / "ood"
+    base = ["evaluate", "--profile", "tiny", "--profiles", str(profiles), "--out", str(out), "--no-progress"]
+    assert cli([*base, "--set", "ood_set=novel", "--set", "ood_robots=2", "--split", "ood", "--into", str(into)]) == 0
+    rows = list(csv.DictReader(open(into / "returns.csv")))
+    assert {r["split"] for r in rows} == {"ood"} and {r["morphology"] for r in rows} == {"novel-000", "novel-001"}
+    models = {r["model"] for r in rows}
+    assert {"teacher", "student", "transfer-divmorph"} <= models and "transfer-scratch" not in models
+    with pytest.raises(SystemExit, match="2"):
+        cli([*base, "--split", "sideways", "--into", str(tmp_path / "x")])
+
+
 def test_an_evaluation_keeps_each_transfer_seed_apart(tmp_path):
     """A transfer arm's seeds are separate jobs: one seed's complete rows never stand for the others'
     (an interrupted evaluation evaluates the missing seeds), and seeds pooled by an older file without
