@@ -10,12 +10,16 @@
 3. PPO trains on the novel task with the zoo's settings; the learngene / selected-tailor update
    ratio actually applied is measured (``rates.measured_ratio()``, about 0.1).
 
-The student folder is a pipeline ``student/`` (``make demo``) or ``examples/distill_dagger.py``'s.
+The student folder is a pipeline ``student/`` (``make demo``, ``results/cpu100/student``) or
+``examples/distill_dagger.py``'s; it runs on the robots and env settings of its run
+(``load_pretrained``). The deterministic return on those robots is printed before and after, and the
+transferred model is saved with its statistics into ``--out`` (``load_pretrained(out)`` loads it).
 """
 
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 from pathlib import Path
 
 import gymnasium as gym
@@ -29,9 +33,14 @@ import sb3_divmorph  # noqa: F401  (policy aliases)
 import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
 from sb3_divmorph.finetune import UnitSelection, prepare_transfer
 from sb3_divmorph.policies import DivMorphPolicy
+from sb3_divmorph.pretrained import Pretrained, PretrainedError, load_pretrained
 from sb3_divmorph.zoo import zoo_hyperparams
 from unimal_envs.contract import NOVEL_TASKS
-from unimal_envs.morphology.loader import morphology_files
+
+
+def mean_return(model: Pretrained, robots: list[Path], task: str, seed: int, steps: int) -> float:
+    """Deterministic return, one episode per robot, with the statistics the model holds."""
+    return float(np.mean([row["return"] for row in model.evaluate(robots, task=task, seed=seed, max_episode_steps=steps)]))
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -45,22 +54,37 @@ def main(argv: list[str] | None = None) -> None:
         help="PPO steps (at least 2 rollouts of 2 x 256: the zoo's "
         "learning rate decays linearly to 0 over the run, so the last update moves nothing)",
     )
-    parser.add_argument("--robots", type=int, default=4, help="first N robots of the train set")
+    parser.add_argument("--robots", type=int, default=4, help="N of the robots the student was trained on, spread over them")
+    parser.add_argument("--eval-steps", type=int, default=1000, help="longest evaluation episode (default 1000)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", type=Path, default=None, help="where the transferred model goes (default runs/transfer-<task>)")
     args = parser.parse_args(argv)
+    if args.steps < 1 or args.robots < 1 or args.eval_steps < 1:
+        parser.error("--steps, --robots and --eval-steps must be at least 1")
     th.set_num_threads(1)  # small models: a second thread only contends with the simulation
+    out = args.out or Path("runs") / f"transfer-{args.task}"
 
+    try:
+        student = load_pretrained(args.student)
+    except PretrainedError as error:
+        parser.error(str(error))
+    if not isinstance(student.model.policy, DivMorphPolicy):
+        parser.error(f"{args.student} holds a {type(student.model.policy).__name__}: transfer with fixed gates needs a DivMorph student")
+    if student.normalizer is None:
+        parser.error(f"{args.student} has no vecnormalize.pkl: the student's observation statistics are needed")
     env_id = f"Unimal-{args.task}-v0"
-    robots = morphology_files("train")[: args.robots]
-    hp = zoo_hyperparams(env_id, overrides=dict(n_envs=2, n_steps=256, batch_size=256, n_epochs=2))
-    venv = make_vec_env(env_id, n_envs=hp.n_envs, seed=args.seed, env_kwargs=dict(morphologies=robots))
-    # the student's observation statistics as a start; the reward statistics start afresh for the task
-    venv = VecNormalize.load(str(args.student / "vecnormalize.pkl"), venv)
-    venv.training, venv.norm_reward, venv.gamma = True, True, hp.ppo_kwargs["gamma"]
+    trained = student.robots
+    robots = [trained[i] for i in np.linspace(0, len(trained) - 1, min(args.robots, len(trained))).round().astype(int)]
+    before = mean_return(student, robots, args.task, args.seed, args.eval_steps)
+    print(f"{args.task}, zero-shot: mean return {before:.1f} on {[r.stem for r in robots]}")
 
-    student = PPO.load(args.student / "model.zip", device="cpu")
-    model = PPO(DivMorphPolicy, venv, policy_kwargs=student.policy_kwargs, seed=args.seed, **hp.ppo_kwargs)
-    model.policy.load_state_dict(student.policy.state_dict())
+    hp = zoo_hyperparams(env_id, overrides=dict(n_envs=2, n_steps=256, batch_size=256, n_epochs=2))
+    venv = make_vec_env(env_id, n_envs=hp.n_envs, seed=args.seed, env_kwargs=dict(morphologies=robots, **student.env_kwargs))
+    # the student's observation statistics as a start; the reward statistics start afresh for the task
+    venv = VecNormalize.load(str(student.saved.normalizer), venv)
+    venv.training, venv.norm_reward, venv.gamma = True, True, hp.ppo_kwargs["gamma"]
+    model = PPO(DivMorphPolicy, venv, policy_kwargs=student.model.policy_kwargs, seed=args.seed, **hp.ppo_kwargs)
+    model.policy.load_state_dict(student.model.policy.state_dict())
 
     # 1. what the gates select: one reset observation per robot, normalised as the student saw it
     probe = gym.make(env_id, morphologies=robots)
@@ -82,6 +106,13 @@ def main(argv: list[str] | None = None) -> None:
         f"transferred for {model.num_timesteps} steps; applied learngene / selected-tailor update ratio "
         f"{rates.measured_ratio():.3f} (configured 0.1)"
     )
+    out.mkdir(parents=True, exist_ok=True)
+    model.save(out / "model.zip")
+    venv.save(str(out / "vecnormalize.pkl"))
+    venv.training = False
+    transferred = Pretrained(replace(student.saved, model=out / "model.zip", env_id=env_id), model, venv)
+    after = mean_return(transferred, robots, args.task, args.seed, args.eval_steps)
+    print(f"{args.task}, after {model.num_timesteps} steps: mean return {after:.1f} (zero-shot {before:.1f}); saved to {out}")
 
 
 if __name__ == "__main__":

@@ -28,7 +28,7 @@ EXAMPLES = REPO / "examples"
 EXAMPLE_RUNS = [
     ("distill_dagger.py", ["--steps", "256", "--out", "run"]),
     ("load_run_model.py", ["run/student", "--task", "FT", "--robots", "1", "--steps", "20"]),
-    ("transfer.py", ["run/student", "--task", "Escape", "--steps", "1024", "--robots", "2"]),
+    ("transfer.py", ["run/student", "--task", "Escape", "--steps", "1024", "--robots", "2", "--eval-steps", "50", "--out", "run/escape"]),
     ("export_actor.py", ["run/student", "--task", "FT", "--robot", "train-000", "--out", "exported"]),
 ]
 
@@ -71,11 +71,16 @@ def test_every_example_and_python_block_runs(tmp_path, monkeypatch, capsys, rest
     assert "labelled states" in out
 
     out = run_example(*EXAMPLE_RUNS[1], monkeypatch, capsys)
-    assert re.search(r"train-000: return -?\d+\.\d over \d+ steps", out)
+    assert re.search(r"train-000, episode 0: return -?\d+\.\d over \d+ steps", out)
 
     out = run_example(*EXAMPLE_RUNS[2], monkeypatch, capsys)
     ratio = float(re.search(r"update ratio (\S+) \(configured 0.1\)", out).group(1))
     assert 0.03 < ratio < 0.3  # the measured learngene / selected-tailor ratio is near its 0.1 target
+    assert re.search(r"zero-shot: mean return -?\d", out) and re.search(r"after \d+ steps: mean return -?\d", out)
+    assert (tmp_path / "run" / "escape" / "model.zip").is_file() and (tmp_path / "run" / "escape" / "vecnormalize.pkl").is_file()
+    with pytest.raises(SystemExit):  # a MetaMorph teacher has no gates to fix: said so, no raw state_dict error
+        run_example("transfer.py", ["run/teachers/FT", "--task", "Escape"], monkeypatch, capsys)
+    assert "needs a DivMorph student" in capsys.readouterr().err
 
     out = run_example(*EXAMPLE_RUNS[3], monkeypatch, capsys)
     assert float(re.search(r"max \|ONNX - student\| over 20 steps (\S+)", out).group(1)) <= 1e-5
