@@ -571,3 +571,44 @@ def test_the_version_and_gymnasiums_check_env_without_a_display(monkeypatch, cap
     env = gym.make("Unimal-FT-v0", morphologies=morphology_files("train")[:1])
     assert env.metadata["render_modes"] == ["rgb_array"]  # what this machine can serve
     check_env(env.unwrapped)  # makes the env once per listed render mode
+
+
+def test_one_seed_is_one_episode_in_record_and_evaluate(tmp_path, capsys, monkeypatch):
+    """``divmorph record --seed S`` films the episode that ``load_pretrained(...).evaluate(seed=S)``
+    (and the examples built on it) reports: the same steps and return for the same robot and seed."""
+    import argparse
+    import re
+
+    from sb3_divmorph.pretrained import load_pretrained
+    from sb3_divmorph.record import add_arguments
+
+    teacher = tmp_path / "run" / "teachers" / "FT"
+    tiny_model(teacher, steps=64)
+    monkeypatch.chdir(tmp_path)
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    for seed in (3, 4):
+        record(
+            parser.parse_args(
+                [
+                    str(teacher),
+                    "--robot",
+                    "train-002",
+                    "--seed",
+                    str(seed),
+                    "--steps",
+                    "30",
+                    "--width",
+                    "32",
+                    "--height",
+                    "32",
+                    "--no-progress",
+                ]
+            )
+        )
+        filmed = re.search(r"episode 0: train-002, (\d+) steps, return (-?[\d.]+)", capsys.readouterr().out)
+        row = load_pretrained(teacher).evaluate(["train-002"], seed=seed, max_episode_steps=30)[0]
+        assert filmed is not None and (int(filmed.group(1)), float(filmed.group(2))) == (
+            row["length"],
+            pytest.approx(row["return"], abs=0.05),
+        )
