@@ -464,3 +464,16 @@ def test_trains_on_multitask_and_routes_tasks_apart(policy):
         gates = model.policy.get_gates(batch)
         assert th.allclose(gates.morphology[0], gates.morphology[1])  # same robot, same morphology gate
         assert not th.allclose(gates.task[0], gates.task[1])  # FT and VT route to different task tailors
+
+
+def test_trpo_trains_a_policy_under_the_math_attention_kernel():
+    """TRPO differentiates twice (Hessian-vector products); under PyTorch's math attention kernel, as
+    docs/policies.md says, it updates the policy (the fused kernel cannot: its error is documented)."""
+    sb3_contrib = pytest.importorskip("sb3_contrib")
+    from torch.nn.attention import SDPBackend, sdpa_kernel
+
+    model = sb3_contrib.TRPO(MetaMorphPolicy, StandInEnv(), n_steps=64, batch_size=32, policy_kwargs=TINY, seed=0)
+    before = {k: v.clone() for k, v in model.policy.state_dict().items()}
+    with sdpa_kernel(SDPBackend.MATH):
+        model.learn(64)
+    assert any(not th.equal(before[k], v) for k, v in model.policy.state_dict().items())
