@@ -166,7 +166,7 @@ def zero_shot_comparison(profile: Profile, rows: list[dict[str, str]], draws: in
     models = ("student", "hyperdistill")
     if not any(key[0] == "hyperdistill" for key in per_robot):
         return []
-    words = {"novel": "novel robots", "ood": f"out-of-distribution robots (`{profile.ood_set}`)"}[split]
+    words = {"novel": f"novel robots (`{profile.novel_set}`)", "ood": f"out-of-distribution robots (`{profile.ood_set}`)"}[split]
     lines = [
         f"## Zero-shot to {words}: the DivMorph student against HyperDistill",
         "",
