@@ -646,6 +646,8 @@ def test_missing_stages_and_bad_arguments_give_clear_errors(tmp_path, capsys):
     assert cli(["export", *base, "--morphology", "nobody"]) == 2
     assert f"no such run folder: {out}" in capsys.readouterr().err
     assert cli(["teachers", *base, "--task", "Walk"]) == 2
+    assert "unknown task(s) 'Walk'" in capsys.readouterr().err
+    assert cli(["teachers", *base, "--task", "Escape"]) == 2
     assert "no teacher" in capsys.readouterr().err
     assert cli(["report", "--profile", "missing", "--profiles", str(profiles)]) == 2
     assert "unknown profile" in capsys.readouterr().err
