@@ -154,6 +154,14 @@ def _parser(overview: bool = False) -> argparse.ArgumentParser:
     )
     p = command("evaluate", "per-morphology returns on train and novel robots")
     p.add_argument(
+        "source",
+        nargs="?",
+        default=None,
+        help="instead of a run: one model folder (a pipeline stage, an rl-zoo run folder or a .zip), evaluated on "
+        "the robots and env settings it was trained with (or --robots), its returns printed and written to --into",
+    )
+    p.add_argument("--robots", default=None, help="with a model folder: a robot set, folder or name (default: its own robots)")
+    p.add_argument(
         "--model",
         action="append",
         dest="models",
@@ -271,6 +279,43 @@ def _part(text: str) -> tuple[int, int]:
     return k, n
 
 
+def _evaluate_model_folder(args: argparse.Namespace) -> int:
+    """``divmorph evaluate FOLDER``: any saved model, on its own robots and settings (``load_pretrained``)."""
+    import csv
+
+    import torch as th
+
+    from sb3_divmorph.pretrained import PretrainedError, load_pretrained
+
+    th.set_num_threads(1)
+    if args.episodes is not None and args.episodes < 1:
+        print(f"divmorph evaluate: --episodes must be at least 1, got {args.episodes}", file=sys.stderr)
+        return 2
+    tasks = args.eval_tasks or [None]
+    try:
+        model = load_pretrained(args.source)
+        rows = []
+        for task in tasks:
+            found = model.evaluate(args.robots, task=task, episodes=args.episodes or 1, seed=args.seed or 0)
+            rows += [{"model": str(args.source), "task": task or (model.env_id or "").split("-")[1], **row} for row in found]
+    except (PretrainedError, ValueError, FileNotFoundError) as error:
+        print(f"divmorph evaluate: {error}", file=sys.stderr)
+        return 2
+    for row in sorted(rows, key=lambda r: (r["task"], r["robot"], r["episode"])):
+        print(f"{row['task']} {row['robot']} episode {row['episode']}: return {row['return']:.1f} over {row['length']} steps")
+    means = {task: [r["return"] for r in rows if r["task"] == task] for task in dict.fromkeys(r["task"] for r in rows)}
+    for task, values in means.items():
+        print(f"{task}: mean return {sum(values) / len(values):.1f} over {len(values)} episodes")
+    if args.into is not None:
+        args.into.mkdir(parents=True, exist_ok=True)
+        with open(args.into / "returns.csv", "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=["model", "task", "robot", "episode", "return", "length"])
+            writer.writeheader()
+            writer.writerows(rows)
+        print(f"-> {args.into / 'returns.csv'}")
+    return 0
+
+
 def _version() -> str:
     """The installed package's version (``unknown`` when run from a tree that is not installed)."""
     from importlib import metadata
@@ -356,6 +401,8 @@ def main(argv: list[str] | None = None) -> int:
         from sb3_divmorph.plot import run as plot
 
         return plot(args)
+    if args.command == "evaluate" and args.source is not None:
+        return _evaluate_model_folder(args)
     if args.command == "profiles":
         return _profiles(args)
     if args.command == "branch":

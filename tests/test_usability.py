@@ -612,3 +612,22 @@ def test_one_seed_is_one_episode_in_record_and_evaluate(tmp_path, capsys, monkey
             row["length"],
             pytest.approx(row["return"], abs=0.05),
         )
+
+
+def test_divmorph_evaluate_takes_any_model_folder(tmp_path, capsys):
+    """``divmorph evaluate FOLDER`` evaluates one saved model (a pipeline stage here; an rl-zoo run
+    folder loads the same way) on the robots asked for, naming each, into ``--into``."""
+    import csv
+
+    from divmorph.cli import main as divmorph_main
+
+    teacher = tmp_path / "stage" / "teachers" / "FT"
+    tiny_model(teacher)
+    into = tmp_path / "eval"
+    assert divmorph_main(["evaluate", str(teacher), "--robots", "train-001", "--episodes", "2", "--into", str(into)]) == 0
+    printed = capsys.readouterr().out
+    assert "FT train-001 episode 1: return" in printed and "FT: mean return" in printed
+    rows = list(csv.DictReader(open(into / "returns.csv")))
+    assert [(r["task"], r["robot"], r["episode"]) for r in rows] == [("FT", "train-001", "0"), ("FT", "train-001", "1")]
+    assert divmorph_main(["evaluate", str(tmp_path / "nothing")]) == 2
+    assert "no such file or directory" in capsys.readouterr().err
