@@ -15,8 +15,8 @@ the ground, ``height_reference="ground"``; fed the default it returns a third of
     action = teacher.predict(obs)                                     # statistics applied
 
 Where things are looked up (:func:`find_model`): ``model.zip`` in a pipeline stage folder (its
-statistics ``vecnormalize.pkl`` beside it; robots and env settings from the run's
-``robot_sets.json`` / ``run.json``), or ``<env id>.zip`` (else ``best_model.zip``) in an rl-zoo run
+statistics ``vecnormalize.pkl`` and its env settings and robots ``env.json`` beside it, written from
+its envs when it was saved; for models saved before, the run's ``robot_sets.json`` / ``run.json``), or ``<env id>.zip`` (else ``best_model.zip``) in an rl-zoo run
 folder ``logs/<algo>/<env id>_<n>`` (statistics in ``<env id>/vecnormalize.pkl``, env settings from
 ``<env id>/args.yml``'s ``env_kwargs``). Giving an env setting other than the one the model
 trained with warns, naming the setting: it is allowed (a study may want it), never silent.
@@ -24,6 +24,7 @@ trained with warns, naming the setting: it is allowed (a study may want it), nev
 
 from __future__ import annotations
 
+import json
 import re
 import warnings
 from dataclasses import dataclass, field
@@ -131,12 +132,24 @@ def find_model(source: str | Path) -> SavedModel:
         return SavedModel(model, stats, env_id, algo, dict(env_kwargs))
 
     # divmorph pipeline: teachers/<task>, transfer/<task>/<arm>, student (multi-task: no single task)
-    from sb3_divmorph.pipeline.runs import trained_env_kwargs, trained_robots
+    from sb3_divmorph.pipeline.runs import ENV_SETTINGS, trained_env_kwargs, trained_robots
 
     task = next((name for name in (folder.name, folder.parent.name) if name in TASK_NAMES), None)
     normalizer = folder / NORMALIZER
     env_kwargs = dict(trained_env_kwargs(folder))
     robots = trained_robots(folder)
+    saved = json.loads((folder / ENV_SETTINGS).read_text()) if (folder / ENV_SETTINGS).is_file() else {}
+    if saved:  # the settings saved beside the model win over its run's records, which must agree
+        if robots is not None and [r.stem for r in robots] != saved["robots"]:
+            warnings.warn(f"{folder}: its run's robot_sets.json names other robots than {ENV_SETTINGS}; using {ENV_SETTINGS}", stacklevel=2)
+            robots = None
+        if saved["height_reference"] != env_kwargs.get("height_reference", "world"):
+            warnings.warn(
+                f"{folder}: its run's run.json and {ENV_SETTINGS} disagree on height_reference; using {ENV_SETTINGS}", stacklevel=2
+            )
+        env_kwargs = {} if saved["height_reference"] == "world" else {"height_reference": saved["height_reference"]}
+        if robots is None:
+            robots = saved["robots"]  # by name: the shipped and official sets on this machine
     if robots is not None:
         env_kwargs["morphologies"] = robots
     return SavedModel(model, normalizer if normalizer.is_file() else None, f"Unimal-{task}-v0" if task else None, None, env_kwargs)

@@ -225,6 +225,26 @@ def test_parts_of_a_finished_evaluation_merge_the_models_finished_after_it(finis
     assert not (out / "evaluate" / "parts").exists()
 
 
+def test_every_model_keeps_its_env_settings_beside_it(finished_run, tmp_path):
+    """A stage writes ``env.json`` (robots and observation setting, read from its envs) beside its
+    model, so a model folder copied out of its run still loads onto its own robots and settings."""
+    import shutil
+
+    from sb3_divmorph.pretrained import load_pretrained
+    from sb3_divmorph.pipeline.runs import profile_robots
+
+    out, profiles = finished_run
+    profile = load_profile("tiny", profiles)
+    trained = [r.stem for r in profile_robots(profile, "train")]
+    for folder in (out / "teachers" / "FT", out / "student", out / "transfer" / "Escape" / "divmorph" / "seed-0"):
+        assert json.loads((folder / "env.json").read_text()) == {"height_reference": "world", "robots": trained}, folder
+    copy = tmp_path / "FT"
+    shutil.copytree(out / "teachers" / "FT", copy)
+    (copy / "env.json").write_text(json.dumps({"height_reference": "ground", "robots": trained[::-1]}))
+    model = load_pretrained(copy)  # no run records above it: env.json alone
+    assert [r.stem for r in model.robots] == trained[::-1] and model.env_kwargs == {"height_reference": "ground"}
+
+
 def test_an_out_of_distribution_set_is_evaluated_as_its_own_split(finished_run, tmp_path):
     """``ood_set`` adds the split ``ood``: every model is rolled out on its robots, except a transfer
     run that ships only its curves (no model) and has none on that split, which is left out rather

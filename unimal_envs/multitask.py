@@ -83,6 +83,16 @@ class MultiTaskEnv(gym.Env):
         return self.current.reset(seed=int(self.np_random.integers(2**31)), options=options)
 
     @property
+    def morphologies(self) -> list:
+        """The robots (shared by every task), in draw order."""
+        return next(iter(self.envs.values())).morphologies
+
+    @property
+    def height_reference(self) -> str:
+        """What body heights are measured from (shared by every task)."""
+        return next(iter(self.envs.values())).height_reference
+
+    @property
     def morphology_names(self) -> list[str]:
         """Names of the morphologies (shared by every task), in draw order."""
         return next(iter(self.envs.values())).morphology_names

@@ -46,6 +46,8 @@ from sb3_divmorph.pipeline.config import ConfigError, Profile, resolve_path
 DONE = "done.json"
 MODEL = "model.zip"
 NORMALIZER = "vecnormalize.pkl"
+#: Beside every model the pipeline saves: the env settings and robots it trained with, read from its envs.
+ENV_SETTINGS = "env.json"
 
 
 # -- atomic files ----------------------------------------------------------------------------
@@ -468,6 +470,9 @@ class TrainingRun:
 
     def save_final(self, model: BaseAlgorithm) -> None:
         atomic_save(self.folder / MODEL, model.save)
+        settings = trained_env_settings(model.get_env())
+        if settings:  # so that a model copied out of its run still says what it learnt on
+            atomic_write_json(self.folder / ENV_SETTINGS, settings)
         normalizer = model.get_vec_normalize_env()
         if normalizer is not None:
             atomic_save(self.folder / NORMALIZER, lambda p: normalizer.save(str(p)))
@@ -489,6 +494,20 @@ class TrainingRun:
         if (folder / NORMALIZER).is_file():
             venv = VecNormalize.load(str(folder / NORMALIZER), venv)
         return self.algo.load(folder / MODEL, env=venv, device=self.device)
+
+
+def trained_env_settings(venv: VecEnv | None) -> dict[str, Any]:
+    """What a model's envs were made with, read from the envs themselves: the observation setting
+    ``height_reference`` and the robots (names of the first env's robots); empty when the envs do
+    not tell (the batched backend, a foreign env)."""
+    if venv is None:
+        return {}
+    try:
+        height = venv.get_attr("height_reference")[0]
+        robots = [m.name for m in venv.get_attr("morphologies")[0]]
+    except (AttributeError, IndexError, TypeError):
+        return {}
+    return {"height_reference": height, "robots": robots}
 
 
 def normalizer_for(venv: VecEnv, normalize: dict[str, Any] | None, gamma: float) -> VecEnv:
