@@ -2,7 +2,10 @@
 # The GPU work order of ../shared/gpu/README.md as one job, for a machine lent for minutes.
 #
 # Runs ON the GPU machine, in the project's root, after the parts .gpu/p0 and .gpu/p1 were copied to
-# /tmp/gpu by the jobs before (the README's table); this job carries .gpu/p2 and .gpu/data:
+# /tmp/gpu by the jobs before (the README's table); this job carries .gpu/p2 and .gpu/data (the
+# official robots: `UNIMAL_DATA=.gpu/data python -m unimal_envs.morphology fetch --source
+# ../shared/unimals_100 --sets train test`; the `gpu` profile's novel split is the held-out set, which
+# a teacher does not need but an evaluation does):
 #
 #     bash benchmarks/gpu_session.sh SECONDS
 #

@@ -228,3 +228,17 @@ def test_the_validation_split_holds_out_ten_training_robots_of_every_family(tmp_
     env = gym.make("Unimal-FT-v0", morphologies="unimals100-val")
     assert {m.name for m in env.unwrapped.morphologies} == val
     env.close()
+
+
+def test_a_run_records_a_held_out_set_that_is_not_fetched_here_instead_of_failing(tmp_path, monkeypatch):
+    """A stage that only trains (a GPU job carrying the training robots) may run where the novel set
+    is not fetched: the run's record says so; the training robots must be there."""
+    from sb3_divmorph.pipeline.config import load_profile
+    from sb3_divmorph.pipeline.runs import robot_set_record
+
+    monkeypatch.setenv("UNIMAL_DATA", str(tmp_path))
+    O.fetch(OFFICIAL_TRAIN, ["train"], cache=tmp_path)
+    record = robot_set_record(load_profile("gpu"))
+    assert len(record["train"]["robots"]) == 100 and "fetch --sets test" in record["novel"]["not_on_this_machine"]
+    with pytest.raises(MorphologyError, match="unimals100-test"):
+        robot_set_record(load_profile("gpu", overrides={"train_set": "unimals100-test"}))

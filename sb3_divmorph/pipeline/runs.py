@@ -38,6 +38,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecMonitor, Ve
 
 import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
 from unimal_envs import env_id
+from unimal_envs.morphology.errors import MorphologyError
 from unimal_envs.morphology.loader import is_set_name, morphology_files
 from sb3_divmorph.distillation import check_spaces
 from sb3_divmorph.finetune import freeze_observation_statistics
@@ -228,7 +229,15 @@ def robot_set_record(profile: Profile) -> dict[str, Any]:
     for split, name in (("train", profile.train_set), ("novel", profile.novel_set), ("ood", profile.ood_set)):
         if name is None:
             continue
-        files = profile_robots(profile, split)
+        try:
+            files = profile_robots(profile, split)
+        except MorphologyError as error:
+            if split == "train":
+                raise
+            # a stage that only trains (a GPU job carrying the training robots) needs no held-out set;
+            # the evaluation that does reads it then and fails with the fetch command
+            record[split] = {"set": name, "not_on_this_machine": str(error)}
+            continue
         folder = files[0].parent.parent if files[0].parent.name == "xml" else files[0].parent
         # Where the set was read on this machine, with the home folder as ~ (no user's paths in results).
         entry: dict[str, Any] = {"set": name, "folder": _portable(folder), "robots": [f.stem for f in files]}
