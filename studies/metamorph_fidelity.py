@@ -87,6 +87,16 @@ def variant_job(name: str, args: argparse.Namespace) -> dict[str, object]:
     return {"variant": name, "train_seconds": seconds}
 
 
+def training_seconds(folder: Path) -> float:
+    """The teacher's training time over all its segments (SB3's ``time/time_elapsed`` at the end of each)."""
+    total = 0.0
+    for log in (folder / "teachers" / "FT" / "logs").glob("run-*/progress.csv"):
+        rows = pd.read_csv(log)
+        if "time/time_elapsed" in rows and len(rows):
+            total += float(rows["time/time_elapsed"].iloc[-1])
+    return total
+
+
 def table(returns: pd.DataFrame, walls: dict[str, float], args: argparse.Namespace) -> list[str]:
     per_robot = returns.groupby(["variant", "split", "morphology"])["return"].mean()
     lines = [
@@ -128,7 +138,8 @@ def main(argv: list[str] | None = None) -> None:
     start = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     with ThreadPoolExecutor(args.jobs) as pool:
         done = list(pool.map(lambda name: variant_job(name, args), args.variants))
-    walls = {str(d["variant"]): float(d["train_seconds"]) for d in done}  # type: ignore[arg-type]
+    del done
+    walls = {name: training_seconds(args.out / name) for name in VARIANTS if (args.out / name).is_dir()}
     frames = []
     for name in VARIANTS:
         path = args.out / name / "fit-val" / "returns.csv"
@@ -151,7 +162,7 @@ def main(argv: list[str] | None = None) -> None:
             "",
             f"Command: `python studies/metamorph_fidelity.py --steps {args.steps} --episodes {args.episodes} --out {args.out}` "
             f"(started {start}, {args.jobs} variants side by side on {platform.node()}: {os.cpu_count()} CPU cores, "
-            "torch 1 thread per process; wall times of runs that resumed count only their last segment).",
+            "torch 1 thread per process; training wall time summed over a run's segments, from its progress logs).",
             "",
         ]
     )
