@@ -33,9 +33,9 @@ tour: $(STAMP)
 	$(PY) -m unimal_envs.demo --out runs/tour
 
 # The whole suite (after lint and types), one pytest worker per core, each test file on one worker (its
-# module fixtures built once): 540 tests in 15.4 min on 2 cores that two trainings and two
-# evaluations shared (2026-11-27); the batched backend's tests compile MuJoCo Warp's kernels on a
-# machine's first run (~2 min, then cached in ~/.cache/warp).
+# module fixtures built once): 543 tests in 4 min 48 s on 2 idle cores from a fresh clone, 6.9 min
+# with the install and lint (2026-11-27); the batched backend's tests compile MuJoCo Warp's kernels
+# on a machine's first run (~2 min more, then cached in ~/.cache/warp).
 test: lint
 	$(PY) -m pytest -q -n 2 --dist loadfile
 
