@@ -1,0 +1,149 @@
+"""Does PPO fine-tuning keep what a model already knows? The teacher and the distilled students on a training task (issue 42).
+
+On a training task the answer is known in advance: every model starts near its best, so a fall of
+the return under fine-tuning is damage, not exploration. This study fine-tunes, with the transfer
+race's own rules (``transfer_run(..., calibration=True)``: fine-tuning rate, critic rate, frozen
+inherited statistics, Adam eps, as the run's profile records them), the task's teacher (the
+``closest`` arm: on a training task its own teacher), the dense distilled student and the DivMorph
+student, on the run's training robots, ``--seeds`` seeds each, and reads per run: the deterministic
+return on the curve's robots at each evaluation, and from the training logs the stochastic training
+return, the critic's explained variance, the approximate KL and the clip fraction of the updates.
+
+The run folder is a branch of ``--source`` (its teachers and students, read-only links) in ``--out``;
+runs resume. ``--arms`` / ``--seeds`` split the runs between processes (one per core); ``--report``
+writes ``<out>/README.md`` from whatever runs are finished.
+
+    python studies/finetune_known_task.py --source results/cpu100 --out results/finetune-known-task --arms closest distilled
+    python studies/finetune_known_task.py --source results/cpu100 --out results/finetune-known-task --arms divmorph
+    python studies/finetune_known_task.py --source results/cpu100 --out results/finetune-known-task --report
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch as th
+
+from sb3_divmorph.pipeline.branch import branch
+from sb3_divmorph.pipeline.folders import transfer_folder
+from sb3_divmorph.pipeline.metrics import robot_interval
+from sb3_divmorph.pipeline.provenance import recorded_profile
+from sb3_divmorph.pipeline.runs import is_done, log_file
+from sb3_divmorph.pipeline.transfer import transfer_run
+
+ARMS = {"closest": "teacher (MetaMorph->)", "distilled": "dense MetaMorph⚗ student", "divmorph": "DivMorph student"}
+LOGGED = {
+    "rollout/ep_rew_mean": "training return (stochastic)",
+    "train/explained_variance": "critic's explained variance",
+    "train/approx_kl": "approx. KL",
+    "train/clip_fraction": "clip fraction",
+}
+
+
+def overrides(args: argparse.Namespace) -> dict[str, object]:
+    return {
+        "transfer.n_timesteps": args.steps,
+        "transfer.eval_every": args.eval_every,
+        "transfer.checkpoint_every": args.eval_every,
+        "transfer.eval_episodes": 3,
+    }
+
+
+def report(args: argparse.Namespace) -> None:
+    rows, logs = [], []
+    for arm in ARMS:
+        for seed in args.seeds:
+            folder = transfer_folder(args.out, args.task, arm, seed)
+            if not is_done(folder):
+                continue
+            frame = pd.read_csv(log_file(folder / "eval.csv"))
+            frame = frame[frame.split == "train"].groupby(["timesteps", "robot"], as_index=False)["return"].mean()
+            rows.append(frame.assign(arm=arm, seed=seed))
+            progress = pd.read_csv(log_file(folder / "logs" / "run-0" / "progress.csv"))
+            logs.append(progress.assign(arm=arm, seed=seed))
+    if not rows:
+        raise SystemExit(f"no finished run in {args.out}")
+    data, progress = pd.concat(rows), pd.concat(logs)
+    steps = sorted(s for s in data.timesteps.unique() if s % args.eval_every == 0)
+    lines = [
+        f"# Fine-tuning on a task the models already know: {args.task}, `{args.source}`",
+        "",
+        (__doc__ or "").split("\n\n")[1].replace("\n", " "),
+        "",
+        f"{args.steps:,} env steps per run, evaluations every {args.eval_every:,} on the run's curve robots (3 deterministic "
+        "episodes each, averaged per robot); mean over robots x seeds with a 95% bootstrap interval; the change is paired "
+        "per robot and seed.",
+        "",
+        "| model | seeds | " + " | ".join(f"{s / 1000:.0f}k" for s in steps) + " | change 0 -> last [95% CI] |",
+        "|---|---:|" + "---|" * len(steps) + "---|",
+    ]
+    for arm, label in ARMS.items():
+        mine = data[data.arm == arm]
+        if mine.empty:
+            continue
+        cells = []
+        for s in steps:
+            values = mine[mine.timesteps == s]["return"].to_numpy()
+            lo, hi = robot_interval(values)
+            cells.append(f"{values.mean():.0f} [{lo:.0f}, {hi:.0f}]")
+        first = mine[mine.timesteps == steps[0]].set_index(["robot", "seed"])["return"]
+        last = mine[mine.timesteps == steps[-1]].set_index(["robot", "seed"])["return"]
+        change = (last - first).dropna().to_numpy()
+        lo, hi = robot_interval(change)
+        lines.append(f"| {label} | {mine.seed.nunique()} | " + " | ".join(cells) + f" | {change.mean():+.0f} [{lo:+.0f}, {hi:+.0f}] |")
+    lines += ["", "From the training logs (mean over seeds; first half / second half of the run's updates):", ""]
+    lines += ["| model | " + " | ".join(LOGGED.values()) + " |", "|---|" + "---|" * len(LOGGED)]
+    for arm, label in ARMS.items():
+        mine = progress[progress.arm == arm]
+        if mine.empty:
+            continue
+        cells = []
+        for key in LOGGED:
+            halves = []
+            for _, run in mine.groupby("seed"):
+                values = run[key].dropna().to_numpy() if key in run else np.array([])
+                if values.size:
+                    halves.append((values[: len(values) // 2 or 1].mean(), values[len(values) // 2 :].mean()))
+            cells.append(" / ".join(f"{np.mean([h[i] for h in halves]):.3g}" for i in (0, 1)) if halves else "–")
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    lines += [
+        "",
+        f"Commands: `python studies/finetune_known_task.py --source {args.source} --out {args.out} --task {args.task} "
+        f"--steps {args.steps} --eval-every {args.eval_every} --arms ... --seeds {' '.join(map(str, args.seeds))}` "
+        f"(one process per core), then `--report`; {time.strftime('%Y-%m-%d')}, {platform.node()}, 1 torch thread per process.",
+        "",
+    ]
+    (args.out / "README.md").write_text("\n".join(lines))
+    print("\n".join(lines))
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--source", type=Path, default=Path("results/cpu100"), help="the run whose teachers and students are fine-tuned")
+    parser.add_argument("--out", type=Path, default=Path("results/finetune-known-task"))
+    parser.add_argument("--task", default="FT", help="a training task")
+    parser.add_argument("--steps", type=int, default=100_000, help="env steps per run")
+    parser.add_argument("--eval-every", type=int, default=50_000)
+    parser.add_argument("--arms", nargs="+", default=list(ARMS), choices=list(ARMS))
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--report", action="store_true", help="only write the README from the finished runs")
+    args = parser.parse_args(argv)
+    th.set_num_threads(1)
+    if not args.report:
+        if not (args.out / "run.json").exists():
+            branch(args.source, args.out, ("teachers", "distill"), command="python studies/finetune_known_task.py")
+        profile = recorded_profile(args.out / "run.json", overrides(args))
+        for arm in args.arms:
+            for seed in args.seeds:
+                print(f"[finetune-known-task] {arm} seed {seed} on {args.task}", flush=True)
+                transfer_run(profile, args.out, args.task, arm, seed, progress_bar=False, calibration=True).run()
+    report(args)
+
+
+if __name__ == "__main__":
+    main()
