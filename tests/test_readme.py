@@ -188,3 +188,22 @@ def test_the_project_is_licensed_citable_and_names_its_sources():
         "Stable-Baselines3",
     ):
         assert source in references, source
+
+
+def test_the_readmes_zero_shot_table_quotes_its_results_file():
+    """Each model's "training -> held-out" mean in the README's zero-shot table is the one
+    ``results/cpu100/zero-shot.md`` (written by ``studies/zero_shot.py``) holds for that task and model."""
+    results = (REPO / "results" / "cpu100" / "zero-shot.md").read_text()
+    block = README.split("<!-- cpu100-zero-shot -->")[1].split("| task | teacher")[1].split("\n\n")[0]
+    columns = ["teacher (MetaMorph)", "DivMorph student", "dense MetaMorph⚗ student", "HyperDistill"]
+    checked = 0
+    for line in block.splitlines()[2:]:
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        task = cells[0]
+        for model, cell in zip(columns, cells[1:5]):
+            train, held_out = re.match(r"(-?\d+) -> (-?\d+)", cell).groups()
+            row = next(r for r in results.splitlines() if r.startswith(f"| {task} | {model} |"))
+            quoted = [c.strip().split(" ")[0] for c in row.strip("|").split("|")[2:4]]
+            assert quoted == [train, held_out], (task, model, cell, row)
+            checked += 1
+    assert checked == 20
