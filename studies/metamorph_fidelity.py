@@ -32,7 +32,6 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 
 from sb3_divmorph.pipeline.metrics import robot_interval
@@ -60,31 +59,29 @@ WHAT = {
 SPLITS = {"train": "fit robots (90, trained on)", "novel": "validation robots (10, held out)"}
 
 
-def run(command: list[str], log: Path) -> float:
-    """Run one divmorph command into ``log``; returns its wall time in seconds."""
-    start = time.perf_counter()
+def run(command: list[str], log: Path) -> None:
+    """Run one divmorph command, its output appended to ``log``."""
     with open(log, "a") as f:
         f.write(f"$ {' '.join(command)}\n")
         f.flush()
         subprocess.run(command, stdout=f, stderr=subprocess.STDOUT, check=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
-    return time.perf_counter() - start
 
 
-def variant_job(name: str, args: argparse.Namespace) -> dict[str, object]:
+def variant_job(name: str, args: argparse.Namespace) -> None:
+    """Train (or resume, or skip) one variant's teacher, then evaluate it on the fit and validation robots."""
     folder = args.out / name
     folder.mkdir(parents=True, exist_ok=True)
     sets = [f"--set=teachers.policy_kwargs.{key}={json.dumps(value)}" for key, value in VARIANTS[name].items()]
     divmorph = [sys.executable, "-m", "divmorph"]
     common = ["--profile", "cpu100", "--out", str(folder), "--train-robots", "unimals100-fit", "--novel-robots", "unimals100-val"]
     train = [*divmorph, "teachers", *common, "--task", "FT", "--no-progress", f"--set=teachers.n_timesteps={args.steps}", *sets]
-    seconds = run(train, folder / "log.txt")
+    run(train, folder / "log.txt")
     evaluation = folder / "fit-val"
     if not (evaluation / "returns.csv").is_file():
         evaluate = [*divmorph, "evaluate", *common, f"--set=teachers.n_timesteps={args.steps}", *sets, "--model", "teacher"]
         evaluate += ["--task", "FT", "--split", "train", "--split", "novel", "--episodes", str(args.episodes), "--into", str(evaluation)]
         evaluate += ["--no-progress"]
         run(evaluate, folder / "log.txt")
-    return {"variant": name, "train_seconds": seconds}
 
 
 def training_seconds(folder: Path) -> float:
@@ -97,7 +94,7 @@ def training_seconds(folder: Path) -> float:
     return total
 
 
-def table(returns: pd.DataFrame, walls: dict[str, float], args: argparse.Namespace) -> list[str]:
+def table(returns: pd.DataFrame, walls: dict[str, float]) -> list[str]:
     per_robot = returns.groupby(["variant", "split", "morphology"])["return"].mean()
     lines = [
         f"| variant | what differs | {SPLITS['train']}: mean [95% CI] | paired difference from `project` | "
@@ -137,8 +134,7 @@ def main(argv: list[str] | None = None) -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     start = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     with ThreadPoolExecutor(args.jobs) as pool:
-        done = list(pool.map(lambda name: variant_job(name, args), args.variants))
-    del done
+        list(pool.map(lambda name: variant_job(name, args), args.variants))  # (list: a job's error is raised here)
     walls = {name: training_seconds(args.out / name) for name in VARIANTS if (args.out / name).is_dir()}
     frames = []
     for name in VARIANTS:
@@ -147,7 +143,7 @@ def main(argv: list[str] | None = None) -> None:
             frames.append(pd.read_csv(path).assign(variant=name))
     returns = pd.concat(frames)
     returns.to_csv(args.out / "returns.csv", index=False)
-    rows = table(returns, walls, args)
+    rows = table(returns, walls)
     text = "\n".join(
         [
             "# MetaMorph's reference network against the project's (issue 43, item 4)",
@@ -171,5 +167,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    np.set_printoptions(precision=3)
     main()
