@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import torch as th
+import yaml
 
 from sb3_divmorph.pipeline.branch import branch
 from sb3_divmorph.pipeline.folders import transfer_folder
@@ -51,7 +52,56 @@ def overrides(args: argparse.Namespace) -> dict[str, object]:
         "transfer.eval_every": args.eval_every,
         "transfer.checkpoint_every": args.eval_every,
         "transfer.eval_episodes": 3,
+        **dict(parse_setting(item) for item in args.set),
     }
+
+
+def parse_setting(item: str) -> tuple[str, object]:
+    """``transfer.learngene_lr_scale=0`` -> ``("transfer.learngene_lr_scale", 0)`` (the value read as YAML)."""
+    key, sep, value = item.partition("=")
+    if not sep or not key:
+        raise SystemExit(f"--set takes KEY=VALUE (e.g. transfer.learngene_lr_scale=1.0), got {item!r}")
+    return key, yaml.safe_load(value)
+
+
+def changes(out: Path, task: str, arm: str, seeds: list[int]) -> pd.Series:
+    """Per (robot, seed): the deterministic return at the last evaluation minus the first, for the finished runs."""
+    parts = []
+    for seed in seeds:
+        folder = transfer_folder(out, task, arm, seed)
+        if not is_done(folder):
+            continue
+        frame = pd.read_csv(log_file(folder / "eval.csv"))
+        frame = frame[frame.split == "train"].groupby(["timesteps", "robot"])["return"].mean().unstack("timesteps")
+        parts.append((frame[frame.columns.max()] - frame[frame.columns.min()]).rename(seed))
+    if not parts:
+        return pd.Series(dtype=float)
+    return pd.concat(parts, axis=1).stack().rename("change")
+
+
+def compare(args: argparse.Namespace) -> None:
+    """A table of variants (``LABEL=FOLDER``, the first the reference) for one arm: the change under
+    fine-tuning and its difference from the reference's, paired per robot and seed."""
+    variants = [tuple(item.split("=", 1)) for item in args.compare]
+    arm = args.arms[0]
+    reference = changes(Path(variants[0][1]), args.task, arm, args.seeds)
+    lines = [
+        f"| variant ({ARMS[arm]}) | runs | change 0 -> last [95% CI] | minus {variants[0][0]}'s (paired) |",
+        "|---|---:|---|---|",
+    ]
+    for label, folder in variants:
+        mine = changes(Path(folder), args.task, arm, args.seeds)
+        if mine.empty:
+            lines.append(f"| {label} | 0 | – | – |")
+            continue
+        lo, hi = robot_interval(mine.to_numpy())
+        paired = (mine - reference).dropna().to_numpy()
+        plo, phi = robot_interval(paired) if paired.size else (np.nan, np.nan)
+        lines.append(
+            f"| {label} | {mine.index.get_level_values(1).nunique()} | {mine.mean():+.0f} [{lo:+.0f}, {hi:+.0f}] | "
+            f"{paired.mean():+.0f} [{plo:+.0f}, {phi:+.0f}] |"
+        )
+    print("\n".join(lines))
 
 
 def report(args: argparse.Namespace) -> None:
@@ -132,8 +182,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--arms", nargs="+", default=list(ARMS), choices=list(ARMS))
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--report", action="store_true", help="only write the README from the finished runs")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a profile setting for the runs (a variant: give it its own --out)")
+    parser.add_argument("--compare", nargs="+", metavar="LABEL=FOLDER", help="only print the change of the first --arms arm in each folder, paired against the first")
     args = parser.parse_args(argv)
     th.set_num_threads(1)
+    if args.compare:
+        compare(args)
+        return
     if not args.report:
         if not (args.out / "run.json").exists():
             branch(args.source, args.out, ("teachers", "distill"), command="python studies/finetune_known_task.py")
