@@ -217,6 +217,10 @@ class Pretrained:
             robots = [robots]  # one robot, by name or file
         return morphology_files(robots)
 
+    def best_robots(self, task: str | None = None, n: int = 5, split: str = "train") -> list[tuple[str, float]]:
+        """The robots this model does best on by its run's evaluation (see :func:`best_robots`)."""
+        return best_robots(self.saved, self._env_id(task), n, split)
+
     def make_env(self, robots: Any = None, task: str | None = None, **env_kwargs: Any) -> gym.Env:
         """A Gymnasium env with the model's settings (warns on an override of one of them).
 
@@ -262,6 +266,41 @@ class Pretrained:
             return rollout_returns(self.model, venv, files, episodes, normalize, deterministic=deterministic)
         finally:
             venv.close()
+
+
+def best_robots(saved: SavedModel, env_id: str, n: int = 5, split: str = "train") -> list[tuple[str, float]]:
+    """The robots a model does best on, by its run's evaluation (``evaluate/returns.csv``):
+    ``[(robot, mean return over its episodes)]``, best first.
+
+    Chosen on the training robots by default: a showcase picked on held-out robots would be a
+    choice made on the test set.
+
+    :param env_id: the task's env id (``Unimal-FT-v0``).
+    :param split: ``train``, ``novel`` or ``ood``.
+    :raises PretrainedError: the model is not a stage of an evaluated run, or the evaluation has no rows for it.
+    """
+    import pandas as pd
+
+    from sb3_divmorph.pipeline.folders import evaluation_label
+    from sb3_divmorph.pipeline.runs import log_file
+
+    task = env_id.split("-")[1]
+    found = evaluation_label(saved.model.parent)
+    if found is None:
+        raise PretrainedError(f"{saved.model.parent} is not a stage of a pipeline run: no evaluation to choose robots from")
+    run, label, seed = found
+    path = run / "evaluate" / "returns.csv"
+    recorded = log_file(path)
+    if recorded is None:
+        raise PretrainedError(f"{run} has no evaluation ({path}); run `divmorph evaluate --run {run}` first")
+    rows = pd.read_csv(recorded)
+    mine = rows[(rows.model == label) & (rows.task == task) & (rows.split == split)]
+    if seed is not None and "seed" in mine:
+        mine = mine[mine.seed == seed]
+    if mine.empty:
+        raise PretrainedError(f"{recorded} has no {split} rows of {label} on {task}")
+    means = mine.groupby("morphology")["return"].mean().sort_values(ascending=False)
+    return [(str(robot), float(value)) for robot, value in means.head(n).items()]
 
 
 def load_pretrained(source: str | Path, device: str = "cpu", algo: str | None = None) -> Pretrained:

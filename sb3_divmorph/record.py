@@ -33,6 +33,7 @@ from sb3_divmorph.pretrained import (  # noqa: E402, F401 -- re-exported (find_m
     NORMALIZER,
     PretrainedError,
     SavedModel,
+    best_robots,
     find_model,
 )
 
@@ -53,11 +54,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="robot set, directory or .xml file (default: the robots the model was trained on, from its run's robot_sets.json; else train)",
     )
-    parser.add_argument("--robot", action="append", help="robot name in that set (repeatable; default: the first ones, one per episode)")
+    parser.add_argument(
+        "--robot",
+        action="append",
+        help="robot name in that set (repeatable; default: the first ones, one per episode); "
+        "'best': the training robot the model does best on by its run's evaluation",
+    )
     parser.add_argument("--episodes", type=int, default=1, help="episodes to record, one after the other (default: 1)")
     parser.add_argument("--steps", type=int, default=1000, help="longest episode, in steps of 0.02 s (default: 1000)")
     parser.add_argument("--stochastic", action="store_true", help="sample actions instead of taking the mean")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="episode e of a robot is reset(seed=SEED + e): the episode `divmorph evaluate` plays under the same seed")
     parser.add_argument("--width", type=int, default=480)
     parser.add_argument("--height", type=int, default=480)
     parser.add_argument(
@@ -101,6 +107,11 @@ def record(args: argparse.Namespace) -> Path:
     if normalizer_file is not None and not normalizer_file.is_file():
         raise RecordError(f"no such statistics file: {normalizer_file}")
 
+    if args.robot == ["best"]:  # chosen on the training robots, by the run's recorded evaluation
+        (best, mean), *_ = best_robots(saved, env_id, n=1)
+        print(f"[record] best training robot of {saved.model.parent} on {env_id} by its run's evaluation: {best} (mean return {mean:.1f})")
+        args.robot = [best]
+
     # the model's own robots and env settings (a pipeline run's records, an rl-zoo run's env_kwargs):
     # a teacher filmed on other robots, or fed other observations, would look untrained
     settings = dict(saved.env_kwargs)
@@ -143,8 +154,11 @@ def record(args: argparse.Namespace) -> Path:
         for episode in tqdm(range(args.episodes), desc="[record]", unit="episode", disable=args.no_progress):
             robot = chosen[episode % len(chosen)]
             outcome: dict = {}
+            # the project's seeding rule (EpisodeSeeds): this robot's e-th episode is reset(seed=seed + e),
+            # the episode `divmorph evaluate` and load_pretrained(...).evaluate play under the same seed
+            robot_episode = episode // len(chosen)
             for frame in episode_frames(
-                env, policy, steps=args.steps, seed=args.seed + episode, options={"morphology": robot}, outcome=outcome
+                env, policy, steps=args.steps, seed=args.seed + robot_episode, options={"morphology": robot}, outcome=outcome
             ):
                 count += 1
                 yield frame

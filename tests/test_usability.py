@@ -277,6 +277,48 @@ def test_record_films_a_pipeline_stage_on_its_own_robots_outside_its_folder(tmp_
     assert "episode 0: train-002" in capsys.readouterr().out
 
 
+def test_record_best_films_the_training_robot_the_run_evaluated_best(tmp_path, capsys, monkeypatch):
+    """``--robot best`` picks the model's best *training* robot from its run's ``evaluate/returns.csv``
+    (a better held-out robot, or another model's best, is not chosen); outside an evaluated run it
+    says what is missing."""
+    import argparse
+    import json
+
+    import pandas as pd
+
+    from sb3_divmorph.record import add_arguments
+
+    run = tmp_path / "run"
+    teacher = run / "teachers" / "FT"
+    tiny_model(teacher)
+    (run / "run.json").write_text(json.dumps({"configuration": {}}))
+    (run / "robot_sets.json").write_text(json.dumps({"train": {"set": "train", "robots": ["train-001", "train-002", "train-003"]}}))
+    rows = [
+        ("teacher", "FT", "train", "train-001", 10.0),
+        ("teacher", "FT", "train", "train-002", 30.0),
+        ("teacher", "FT", "train", "train-003", 20.0),
+        ("teacher", "FT", "novel", "train-001", 99.0),  # held out: never the showcase's choice
+        ("student", "FT", "train", "train-003", 99.0),  # another model's
+        ("teacher", "VT", "train", "train-001", 99.0),  # another task's
+    ]
+    (run / "evaluate").mkdir()
+    pd.DataFrame(rows, columns=["model", "task", "split", "morphology", "return"]).assign(episode=0, length=10, seed=None).to_csv(
+        run / "evaluate" / "returns.csv", index=False
+    )
+    monkeypatch.chdir(tmp_path)
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    record(parser.parse_args([str(teacher), "--robot", "best", "--steps", "3", "--width", "32", "--height", "32", "--no-progress"]))
+    out = capsys.readouterr().out
+    assert "train-002 (mean return 30.0)" in out and "episode 0: train-002" in out
+    from sb3_divmorph.pretrained import load_pretrained
+
+    assert [robot for robot, _ in load_pretrained(teacher).best_robots(n=2)] == ["train-002", "train-003"]
+    (run / "evaluate" / "returns.csv").unlink()
+    with pytest.raises(RecordError, match="has no evaluation"):
+        record(parser.parse_args([str(teacher), "--robot", "best", "--no-progress"]))
+
+
 def test_commands_that_read_a_run_name_a_missing_folder_and_transfer_help_lists_the_arms(tmp_path, capsys):
     from divmorph.cli import main as cli
     from sb3_divmorph.pipeline.arms import ARMS
@@ -511,8 +553,9 @@ def test_bad_inputs_name_the_problem(tmp_path, capsys):
 
 def test_load_pretrained_names_the_robot_that_ran_and_keeps_the_run_settings(tmp_path):
     """``load_pretrained(folder).evaluate`` labels each return with the robot that produced it: a robot's
-    row in a batch equals that robot run alone with the same episode seed (env i of a batch is seeded
-    seed + i). The run's env settings come with the model, and overriding one warns, naming it."""
+    row in a batch equals that robot run alone with the same seed, whatever its place in the batch, and
+    its episode e is the episode of seed + e (EpisodeSeeds). The run's env settings come with the
+    model, and overriding one warns, naming it."""
     import json
     import warnings
 
@@ -527,9 +570,12 @@ def test_load_pretrained_names_the_robot_that_ran_and_keeps_the_run_settings(tmp
     assert model.env_id == "Unimal-FT-v0" and model.env_kwargs == {"height_reference": "ground"}
     together = {row["robot"]: row for row in model.evaluate(max_episode_steps=60, seed=10)}
     assert sorted(together) == ["train-001", "train-003", "train-005"]
-    for i, robot in enumerate(["train-003", "train-001", "train-005"]):
-        alone = model.evaluate([robot], max_episode_steps=60, seed=10 + i)[0]
+    for robot in ["train-003", "train-001", "train-005"]:
+        alone = model.evaluate([robot], max_episode_steps=60, seed=10)[0]
         assert alone == together[robot], robot
+    two = {row["episode"]: row for row in model.evaluate(["train-001"], episodes=2, max_episode_steps=60, seed=10)}
+    next_seed = model.evaluate(["train-001"], max_episode_steps=60, seed=11)[0]
+    assert two[0] == together["train-001"] and {**two[1], "episode": 0} == next_seed
     env = model.make_env("train-001", max_episode_steps=5)
     assert env.unwrapped.height_reference == "ground" and [m.name for m in env.unwrapped.morphologies] == ["train-001"]
     obs, _ = env.reset(seed=0)

@@ -72,15 +72,49 @@ def rollout_returns(
     return rows
 
 
+class EpisodeSeeds(gym.Wrapper):
+    """Seeds each episode of one robot's env: episode ``e`` under seed ``s`` is ``reset(seed=s + e)``.
+
+    The project's one rule for "a seed gives an episode": :func:`robot_venv` (the evaluation, the
+    curves, :meth:`~sb3_divmorph.pretrained.Pretrained.evaluate`), ``divmorph record`` and the
+    examples all play episode ``e`` of robot ``R`` under seed ``s`` as ``reset(seed=s + e)`` of an
+    env on ``R`` -- so an episode seen in a table can be filmed, whatever other robots ran beside it.
+    (A reset of the multi-robot env with ``options={"morphology": R}`` starts the same episode as a
+    reset of an env holding only ``R``.)
+    """
+
+    def __init__(self, env: gym.Env, seed: int):
+        super().__init__(env)
+        self.first_seed = int(seed)
+        self.episode = 0
+
+    def rewind(self) -> None:
+        """The next reset starts episode 0 again (the same episodes at every evaluation)."""
+        self.episode = 0
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        if seed is not None:  # an explicit seed restarts the count from it
+            self.first_seed, self.episode = int(seed), 0
+        episode_seed = self.first_seed + self.episode
+        self.episode += 1
+        return self.env.reset(seed=episode_seed, options=options)
+
+
 def robot_venv(env_name: str, robots: list[Path], max_steps: int, seed: int, **env_kwargs: Any) -> VecEnv:
-    """One monitored env per robot, seeded ``seed``."""
-    venv = VecMonitor(
+    """One monitored env per robot, its episodes seeded by :class:`EpisodeSeeds` (``seed + e``)."""
+    return VecMonitor(
         DummyVecEnv(
-            [(lambda robot=robot: gym.make(env_name, morphologies=[robot], max_episode_steps=max_steps, **env_kwargs)) for robot in robots]
+            [
+                (lambda robot=robot: EpisodeSeeds(gym.make(env_name, morphologies=[robot], max_episode_steps=max_steps, **env_kwargs), seed))
+                for robot in robots
+            ]
         )
     )
-    venv.seed(seed)
-    return venv
+
+
+def rewind(venv: VecEnv) -> None:
+    """Start a :func:`robot_venv`'s episodes again from episode 0 (its next reset)."""
+    venv.env_method("rewind")
 
 
 def read_eval(path: Path) -> list[dict[str, Any]]:
@@ -180,7 +214,7 @@ class EvalCurveCallback(BaseCallback):
             if split not in self._venvs:
                 self._venvs[split] = robot_venv(self.env_name, robots, self.max_steps, self.seed, **self.env_kwargs)
             venv = self._venvs[split]
-            venv.seed(self.seed)  # the same episodes at every evaluation
+            rewind(venv)  # the same episodes at every evaluation
             for row in rollout_returns(self.model, venv, robots, self.episodes, normalizer.normalize_obs if normalizer else None):
                 self._rows.append({"timesteps": self.num_timesteps, "split": split, **row})
         self._last = self.num_timesteps

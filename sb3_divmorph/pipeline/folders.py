@@ -111,6 +111,32 @@ def read_learngene(out: Path) -> dict[str, Any]:
     return json.loads(path.read_text())
 
 
+# -- evaluation ---------------------------------------------------------------------------------------
+def evaluation_label(folder: Path) -> tuple[Path, str, int | None] | None:
+    """``(run folder, model label, transfer seed)`` under which the evaluation stage records the
+    model of a stage ``folder`` (``teachers/FT`` -> ``teacher``, ``student`` -> ``student``,
+    ``students/<name>`` -> ``student-<name>``, ``hyperdistill/student`` -> ``hyperdistill``,
+    ``transfer/<task>/<arm>/seed-<s>`` -> ``transfer-<arm>``); ``None`` for a folder of no run."""
+    folder = Path(folder).resolve()
+    parts = folder.parts
+    for depth in range(1, 5):
+        run, tail = Path(*parts[:-depth]), parts[-depth:]
+        if not (run / "run.json").is_file():
+            continue
+        if tail[0] == "teachers" and len(tail) == 2:
+            return run, "teacher", None
+        if tail == ("student",):
+            return run, "student", None
+        if tail[0] == "students" and len(tail) == 2:
+            return run, f"student-{tail[1]}", None
+        if tail == ("hyperdistill", "student"):
+            return run, "hyperdistill", None
+        if tail[0] == "transfer" and len(tail) in (3, 4):
+            seed = int(tail[3].removeprefix("seed-")) if len(tail) == 4 else 0
+            return run, f"transfer-{tail[2]}", seed
+    return None
+
+
 # -- transfer -----------------------------------------------------------------------------------------
 def transfer_folder(out: Path, task: str, arm: str, seed: int = 0) -> Path:
     """``transfer/<task>/<arm>/seed-<seed>/``; a run begun before seeds existed (in the arm's folder
