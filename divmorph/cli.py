@@ -81,6 +81,15 @@ def _parser(overview: bool = False) -> argparse.ArgumentParser:
             "grl, transfer, export, evaluate); old folders kept in <out>/superseded/",
         )
         p.add_argument(
+            "--continue",
+            dest="extend",
+            action="append",
+            default=[],
+            metavar="STAGE",
+            help="continue this stage's finished runs to a larger budget, from their final models (teachers or transfer; "
+            "e.g. --continue teachers --set teachers.n_timesteps=16000000)",
+        )
+        p.add_argument(
             "--set",
             action="append",
             default=[],
@@ -449,7 +458,7 @@ def main(argv: list[str] | None = None) -> int:
         )
         if not reads_only:
             previous_record = (out / "run.json").read_text() if (out / "run.json").is_file() else None
-            record = check_and_record(out, profile, command_line, args.force, args.redo)
+            record = check_and_record(out, profile, command_line, args.force, args.redo, args.extend)
             record_robot_sets(profile, out)  # out/robot_sets.json: which robots this run uses
         backend = None
         if getattr(args, "backend", None) is not None:

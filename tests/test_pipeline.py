@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import torch as th
 import yaml
+from stable_baselines3 import PPO
 
 from divmorph.cli import main as cli
 from sb3_divmorph.pipeline.arms import ARMS
@@ -607,6 +608,40 @@ def test_a_killed_run_resumes_from_its_last_checkpoint(tmp_path):
     assert resumed[0] > saved
     assert resumed[0] <= saved + 256
     assert not [p for p in out.glob("**/*") if ".tmp" in p.name or ".staging" in p.name]
+
+
+def test_a_finished_stage_continues_past_its_budget_from_its_final_model(tmp_path, capsys):
+    """``--continue teachers`` with a larger budget carries a finished teacher on from its final model
+    (its weights, statistics and step count), as SB3's ``reset_num_timesteps=False``: the new attempt
+    starts where the old one ended; without the flag the change is refused, naming it; a smaller
+    budget, another changed setting or a stage that cannot continue are refused too."""
+    profiles = write_profiles(tmp_path, teachers__n_timesteps=128, teachers__tasks=["FT"])
+    out = tmp_path / "run"
+    base = ["teachers", "--profile", "tiny", "--profiles", str(profiles), "--out", str(out), "--no-progress"]
+    assert cli(base) == 0
+    teacher = out / "teachers" / "FT"
+    first = PPO.load(teacher / "model.zip", device="cpu")
+    assert read_done(teacher)["num_timesteps"] == 128
+    assert cli([*base, "--set", "teachers.n_timesteps=256"]) == 2
+    assert "teachers.n_timesteps: 128 -> 256" in capsys.readouterr().err
+    assert cli([*base, "--set", "teachers.n_timesteps=256", "--set", "seed=4", "--continue", "teachers"]) == 2
+    assert cli([*base, "--set", "teachers.n_timesteps=64", "--continue", "teachers"]) == 2
+    assert "needs a larger teachers.n_timesteps" in capsys.readouterr().err
+    assert cli([*base, "--set", "distill.n_timesteps=256", "--continue", "distill"]) == 2
+    assert "--continue takes" in capsys.readouterr().err
+    assert read_done(teacher)["num_timesteps"] == 128, "a refused command changes nothing"
+
+    assert cli([*base, "--set", "teachers.n_timesteps=256", "--continue", "teachers"]) == 0
+    assert read_done(teacher)["num_timesteps"] == 256 and not (teacher / "checkpoints").exists()
+    logs = sorted((teacher / "logs").glob("run-*/progress.csv"))
+    with open(logs[-1]) as f:
+        continued = [int(float(row["time/total_timesteps"])) for row in csv.DictReader(f)]
+    assert len(logs) == 2 and 128 < continued[0] <= 192 and continued[-1] == 256
+    resumed = PPO.load(teacher / "model.zip", device="cpu")
+    before, after = first.policy.state_dict(), resumed.policy.state_dict()
+    assert resumed.num_timesteps == 256 and any(not th.equal(before[k], after[k]) for k in before), "the continued model trained on"
+    assert json.loads((out / "run.json").read_text())["history"][-1]["continued"] == ["teachers"]
+    assert cli(base + ["--set", "teachers.n_timesteps=256"]) == 0, "the continued run is the run's record now"
 
 
 def _steps(checkpoints: Path) -> int:

@@ -29,7 +29,7 @@ from typing import Any
 
 from sb3_divmorph.pipeline.config import ConfigError, Profile, apply_overrides
 from sb3_divmorph.pipeline.folders import DOWNSTREAM, STAGE_FOLDERS  # noqa: F401 -- re-exported
-from sb3_divmorph.pipeline.runs import atomic_write_json, resolve_device, robot_set_record
+from sb3_divmorph.pipeline.runs import DONE, atomic_write_json, read_done, reopen, resolve_device, robot_set_record
 
 RECORD = "run.json"
 #: where ``--redo`` / ``--force`` move the folders of the stages they retrain
@@ -47,6 +47,9 @@ STAGE_KEYS: dict[str, tuple[str, ...]] = {
     "export": (*_BASE, *_NOVEL, "teachers", "student", "distill", "transfer", "export"),
     "evaluate": (*_BASE, *_NOVEL, "ood_set", "ood_robots", "teachers", "student", "distill", "hyperdistill", "grl", "transfer", "evaluate"),
 }
+#: The stages a larger budget can continue (``--continue STAGE``): PPO runs, whose final model holds
+#: all the run's state (DAgger's dataset and GRL's population are not kept once a stage finishes).
+EXTENDABLE: dict[str, str] = {"teachers": "teachers.n_timesteps", "transfer": "transfer.n_timesteps"}
 #: packages whose versions a result depends on
 PACKAGES = ("divmorph", "torch", "stable-baselines3", "gymnasium", "mujoco", "numpy")
 
@@ -189,7 +192,12 @@ def restore_superseded(out: Path, record: dict[str, Any], previous_record: str |
 
 
 def check_and_record(
-    out: Path, profile: Profile, command: str, force: bool = False, redo: tuple[str, ...] | list[str] = ()
+    out: Path,
+    profile: Profile,
+    command: str,
+    force: bool = False,
+    redo: tuple[str, ...] | list[str] = (),
+    extend: tuple[str, ...] | list[str] = (),
 ) -> dict[str, Any]:
     """Compare ``profile`` with the configuration recorded in ``out/run.json``, retrain what must be
     retrained, and (re)write the record.
@@ -198,18 +206,52 @@ def check_and_record(
     :param command: the command line, appended to the record's history.
     :param force: retrain every begun stage whose settings changed (and the stages built on it).
     :param redo: retrain these stages (and the begun stages built on them), changed or not.
+    :param extend: continue these stages' finished runs to a larger budget (:data:`EXTENDABLE`):
+        the budget may grow and nothing else of theirs change; the stages built on them still see
+        the change (retrain them with ``redo``, or use another run folder).
     :raises ConfigError: a begun stage's settings changed and neither ``force`` nor ``redo`` covers
         it (the message lists the stages and keys); an unknown stage in ``redo``.
     """
     unknown = [stage for stage in redo if stage not in STAGE_KEYS]
     if unknown:
         raise ConfigError(f"unknown stage(s) {unknown} for --redo; stages: {list(STAGE_KEYS)}")
+    not_extendable = [stage for stage in extend if stage not in EXTENDABLE]
+    if not_extendable:
+        raise ConfigError(
+            f"--continue takes {list(EXTENDABLE)}, not {not_extendable}: a finished distillation or GRL evolution keeps "
+            "no dataset or population to continue from (--redo it with the larger budget)"
+        )
     # commands started side by side on one run (a worker per core) each append to its history
     with _locked(Path(out)):
-        return _check_and_record(out, profile, command, force, redo)
+        return _check_and_record(out, profile, command, force, redo, extend)
 
 
-def _check_and_record(out: Path, profile: Profile, command: str, force: bool, redo: tuple[str, ...] | list[str]) -> dict[str, Any]:
+def _extended_stages(out: Path, recorded: dict[str, Any] | None, config: dict[str, Any], changed: dict[str, list[str]], extend) -> list[str]:
+    """Check that each stage of ``extend`` only grows its budget; drop it from ``changed``."""
+    done = []
+    for stage in extend:
+        key = EXTENDABLE[stage]
+        section, name = key.split(".")
+        old = (recorded or {}).get(section, {}).get(name)
+        new = config[section][name]
+        others = [k for k in changed.get(stage, []) if not k.startswith(f"{key}:")]
+        if others:
+            raise ConfigError(f"--continue {stage} continues a larger budget only; other settings of it changed: {'; '.join(others)}")
+        if old is None or new < old:
+            raise ConfigError(f"--continue {stage} needs a larger {key} than the run's {old}, got {new} (e.g. --set {key}={2 * (old or 1)})")
+        linked = [f for f in STAGE_FOLDERS[stage] if any(p.is_symlink() for p in (Path(out) / f).rglob("*"))]
+        if linked:
+            raise ConfigError(
+                f"--continue {stage}: {out} is a branch whose {stage} are links into their source; continue them in the source run"
+            )
+        changed.pop(stage, None)
+        done.append(stage)
+    return done
+
+
+def _check_and_record(
+    out: Path, profile: Profile, command: str, force: bool, redo: tuple[str, ...] | list[str], extend: tuple[str, ...] | list[str] = ()
+) -> dict[str, Any]:
     path = Path(out) / RECORD
     config = configuration(profile)
     device = resolve_device(profile.device)
@@ -220,6 +262,7 @@ def _check_and_record(out: Path, profile: Profile, command: str, force: bool, re
     recorded = _with_defaults(previous["configuration"]) if previous else None
     changed = {stage: stage_changes(recorded, config, stage) for stage in begun} if recorded is not None else {}
     changed = {stage: keys for stage, keys in changed.items() if keys}
+    extended = _extended_stages(out, recorded, config, changed, [stage for stage in extend if stage in begun])
     blocked = {stage: keys for stage, keys in changed.items() if stage not in redo and not force}
     if blocked:
         raise ConfigError(
@@ -232,6 +275,11 @@ def _check_and_record(out: Path, profile: Profile, command: str, force: bool, re
     moved = supersede(out, retrain)
     if moved is not None:
         print(f"[provenance] retraining {', '.join(retrain)}: their previous folders moved to {moved}")
+    for stage in extended:
+        budget = config[EXTENDABLE[stage].split(".")[0]]["n_timesteps"]
+        for marker in sorted(p for f in STAGE_FOLDERS[stage] for p in (Path(out) / f).rglob(DONE)):
+            if read_done(marker.parent).get("num_timesteps", budget) < budget and (step := reopen(marker.parent)) is not None:
+                print(f"[provenance] {marker.parent}: finished at step {step:,}, continues to {budget:,}")
     record = {
         "configuration": config,
         "device_used": device,
@@ -247,6 +295,7 @@ def _check_and_record(out: Path, profile: Profile, command: str, force: bool, re
                 "changed": _differences(recorded, config) if previous else [],
                 "forced": bool(force and changed),
                 "retrained": retrain,
+                "continued": extended,
                 "superseded": str(moved) if moved else None,
             },
         ],

@@ -421,6 +421,34 @@ def stage_normalizer(folder: Path) -> Path | None:
     return path if path.is_file() else None
 
 
+def reopen(folder: Path) -> int | None:
+    """Make a finished training run resumable from its final model, so that a larger budget
+    continues it (as SB3's ``learn(..., reset_num_timesteps=False)``) instead of starting again.
+
+    The final model and statistics (the optimiser's state is in the model file) become the run's
+    latest checkpoint, then its done marker goes: a kill in between leaves it either finished or
+    resumable, never lost. Returns the step it resumes from, or ``None`` when ``folder`` holds no
+    finished model.
+    """
+    folder = Path(folder)
+    if not is_done(folder) or not (folder / MODEL).is_file():
+        return None
+    steps = int(read_done(folder)["num_timesteps"])
+    checkpoints = folder / "checkpoints"
+    target = checkpoints / f"step-{steps:012d}"
+    staging = checkpoints / f".staging-{steps:012d}-{os.getpid()}"
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir(parents=True)
+    shutil.copy2(folder / MODEL, staging / MODEL)
+    if (folder / NORMALIZER).is_file():
+        shutil.copy2(folder / NORMALIZER, staging / NORMALIZER)
+    shutil.rmtree(target, ignore_errors=True)
+    os.replace(staging, target)
+    atomic_write_json(checkpoints / "latest.json", {"folder": target.name, "num_timesteps": steps})
+    (folder / DONE).unlink()
+    return steps
+
+
 def latest_checkpoint(folder: Path) -> Path | None:
     pointer = folder / "latest.json"
     if not pointer.is_file():
