@@ -335,7 +335,9 @@ def _version() -> str:
         return "unknown"
 
 
-def _robot_path(name: str) -> Path:
+def _robot_path(name: str, profile=None) -> Path:
+    """A robot by MJCF path, or by name among the profile's robots (every split), else the shipped sets."""
+    from sb3_divmorph.pipeline.runs import profile_robots, profile_splits
     from unimal_envs.morphology.loader import morphology_files
 
     path = Path(name)
@@ -343,11 +345,14 @@ def _robot_path(name: str) -> Path:
         if not path.is_file():
             raise FileNotFoundError(f"MJCF file {path} does not exist")
         return path
-    for split in ("train", "novel"):
-        for file in morphology_files(split):
+    candidates = [(split, lambda split=split: profile_robots(profile, split)) for split in profile_splits(profile)] if profile else []
+    candidates += [(split, lambda split=split: morphology_files(split)) for split in ("train", "novel")]
+    for _, files in candidates:
+        for file in files():
             if file.stem == name:
                 return file
-    raise ValueError(f"unknown morphology {name!r}: give a robot of the train/novel sets (e.g. train-000) or an MJCF path")
+    where = "the run's robots or " if profile else ""
+    raise ValueError(f"unknown morphology {name!r}: give a robot of {where}the train/novel sets (e.g. train-000) or an MJCF path")
 
 
 def _overrides(args: argparse.Namespace) -> dict:
@@ -501,7 +506,7 @@ def main(argv: list[str] | None = None) -> int:
                 profile, out, args.task, False if args.no_scratch else None, progress, args.arms, args.seeds, backend, args.closest_by
             )
         elif args.command == "export":
-            robots = [_robot_path(m) for m in args.morphology] if args.morphology else None
+            robots = [_robot_path(m, profile) for m in args.morphology] if args.morphology else None
             formats = ("onnx", "torchscript") if args.format == "all" else (args.format,)
             for r in P.export_all(profile, out, args.task, robots, formats, args.student):
                 print(

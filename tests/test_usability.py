@@ -677,3 +677,18 @@ def test_divmorph_evaluate_takes_any_model_folder(tmp_path, capsys):
     assert [(r["task"], r["robot"], r["episode"]) for r in rows] == [("FT", "train-001", "0"), ("FT", "train-001", "1")]
     assert divmorph_main(["evaluate", str(tmp_path / "nothing")]) == 2
     assert "no such file or directory" in capsys.readouterr().err
+
+
+def test_export_finds_a_robot_by_name_among_the_runs_own_robots(official_train):
+    """``divmorph export --morphology NAME`` takes any robot of the run's sets (an official robot of a
+    ``cpu100``-like run), not only the shipped generated ones; an unknown name says where it looked."""
+    from divmorph.cli import _robot_path
+    from sb3_divmorph.pipeline.config import load_profile
+
+    profile = load_profile("demo", overrides={"train_set": str(official_train / "xml"), "train_robots": None})
+    name = sorted((official_train / "xml").glob("*.xml"))[-1].stem
+    assert _robot_path(name, profile).stem == name
+    with pytest.raises(ValueError, match="the run's robots"):
+        _robot_path("no-such-robot", profile)
+    with pytest.raises(ValueError, match="unknown morphology"):
+        _robot_path(name)  # without the run: the shipped sets only
