@@ -11,7 +11,7 @@ In one run on one machine, for FT and VT on the first R robots of a set:
 Then end-to-end PPO steps/s (rollout + update, with the MetaMorph policy at the ``small`` and
 ``paper`` presets) on the single backend (``n_envs`` single envs, SB3's PPO) and on the batched one
 twice: through SB3's ``VecEnv`` interface (SB3's PPO: numpy observations and per-world infos every
-step) and device-native (:class:`sb3_divmorph.device_ppo.DevicePPO`: rollouts through
+step) and device-native (:class:`sb3_divmorph.algos.device_ppo.DevicePPO`: rollouts through
 ``step_tensors``, the buffer, GAE and normalisation on the device), each with its rollout/update
 split. Warm-up (kernel compilation, CUDA graph capture, the first rollout) is excluded from every
 timing and reported separately.
@@ -21,7 +21,7 @@ robot in one control step's physics program (``RobotWorlds._step_physics``: Warp
 copies and conditional nodes, counted as the graph is captured, and the kernels it actually runs
 once with the solver's iterations), graph launches and torch calls per env step, and the host <->
 device copies and waits per step of the VecEnv path against the device path
-(:class:`sb3_divmorph.device_ppo.HostTransferCounter`).
+(:class:`sb3_divmorph.algos.device_ppo.HostTransferCounter`).
 
 Usage::
 
@@ -37,9 +37,9 @@ from __future__ import annotations
 
 import argparse
 import platform
-from contextlib import nullcontext
 import sys
 import time
+from contextlib import nullcontext
 from datetime import date
 from pathlib import Path
 
@@ -124,7 +124,7 @@ def ppo_steps_per_second(
     from stable_baselines3.common.vec_env import VecNormalize
 
     import sb3_divmorph  # noqa: F401  (policy aliases)
-    from sb3_divmorph.device_ppo import DevicePPO
+    from sb3_divmorph.algos.device_ppo import DevicePPO
 
     venv = VecNormalize(make_env(), norm_obs_keys=["proprioceptive", "hfield"], norm_reward=True)
     rollout = venv.num_envs * n_steps
@@ -281,7 +281,7 @@ def transfer_counts(files: list[Path], worlds: int, device: str, n_steps: int = 
     from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
     import sb3_divmorph  # noqa: F401
-    from sb3_divmorph.device_ppo import DevicePPO, HostTransferCounter
+    from sb3_divmorph.algos.device_ppo import DevicePPO, HostTransferCounter
     from unimal_envs.batched import make_batched_env
     from unimal_envs.batched.env import BatchedUnimalEnv
 
@@ -406,7 +406,7 @@ def main(argv: list[str] | None = None) -> None:
                         )
 
         files = ppo_files
-        from sb3_divmorph.pipeline.runs import make_vec_env
+        from sb3_divmorph.pipeline.envs import make_vec_env
 
         for preset in args.ppo_presets:
             single_envs = args.ppo_single_envs

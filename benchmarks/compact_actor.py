@@ -6,7 +6,7 @@
 For each diversion configuration (``DivMorphPolicy(diversion=...)``) at the ``paper`` width (or at the
 sizes of a pipeline profile's student, whose own diversion is then the ``default`` row) and each
 task, a DivMorph student (random init: sizes and FLOPs do not depend on the weights' values) is
-pruned and merged for one robot and task (:class:`sb3_divmorph.compact.CompactActor`), and the
+pruned and merged for one robot and task (:class:`sb3_divmorph.deploy.compact.CompactActor`), and the
 MetaMorph actor of the same task and sizes is exported through the very same folding. Side by side,
 in one run: stored weights of both and their ratio (the like-for-like reduction), what folding
 alone saves MetaMorph, FLOPs per control step (``torch.utils.flop_counter``), batch-1 latency of
@@ -29,15 +29,8 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize  # noqa: 
 
 import sb3_divmorph  # noqa: E402,F401
 import unimal_envs  # noqa: E402,F401
-from sb3_divmorph.compact import (  # noqa: E402
-    CompactActor,
-    actor_inputs,
-    batch1_latency,
-    export_torchscript,
-    metamorph_twin,
-    size_comparison,
-)
-from sb3_divmorph.deployment import matmul_flops  # noqa: E402
+from sb3_divmorph.deploy.compact import CompactActor, actor_inputs, batch1_latency, export_torchscript, metamorph_twin, size_comparison  # noqa: E402
+from sb3_divmorph.deploy.deployment import matmul_flops  # noqa: E402
 from sb3_divmorph.policies import DivMorphPolicy  # noqa: E402
 from unimal_envs.morphology.loader import morphology_files  # noqa: E402
 from unimal_envs.tasks import TASKS  # noqa: E402

@@ -7,12 +7,12 @@ the same rules (everything constant for the robot and task becomes stored consta
 context encoders, hypernetworks, routers, critics and the encoders of observations the task lacks
 are gone; observation normalisation baked in):
 
-* MetaMorph: :class:`~sb3_divmorph.compact.CompactActor` ``.from_policy`` of a ``MetaMorphPolicy``
+* MetaMorph: :class:`~sb3_divmorph.deploy.compact.CompactActor` ``.from_policy`` of a ``MetaMorphPolicy``
   (nothing to prune, only folded);
-* ModuMorph: :class:`~sb3_divmorph.modumorph.ModuMorphActor` (generated weights and the fixed
+* ModuMorph: :class:`~sb3_divmorph.deploy.modumorph_actor.ModuMorphActor` (generated weights and the fixed
   attention matrices stored per limb);
-* HyperDistill: :class:`~sb3_divmorph.hyperdistill.HyperDistillMLP` (the generated MLP);
-* DivMorph: :class:`~sb3_divmorph.compact.CompactActor` ``.from_policy`` of a ``DivMorphPolicy``
+* HyperDistill: :class:`~sb3_divmorph.deploy.hyperdistill_mlp.HyperDistillMLP` (the generated MLP);
+* DivMorph: :class:`~sb3_divmorph.deploy.compact.CompactActor` ``.from_policy`` of a ``DivMorphPolicy``
   with the ``deploy-g1k1`` diversion (1 learngene per layer, top-1 morphology and task tailors,
   exteroception encoders diverted; see ``compact_actor.md`` for every diversion).
 
@@ -39,8 +39,8 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize  # noqa: 
 import sb3_divmorph  # noqa: E402,F401
 import unimal_envs  # noqa: E402,F401
 from sb3_divmorph import DivMorphPolicy, HyperDistillMLP, HyperDistillPolicy, MetaMorphPolicy, ModuMorphActor, ModuMorphPolicy  # noqa: E402
-from sb3_divmorph.compact import CompactActor, actor_inputs, batch1_latency, export_torchscript  # noqa: E402
-from sb3_divmorph.deployment import matmul_flops  # noqa: E402
+from sb3_divmorph.deploy.compact import CompactActor, actor_inputs, batch1_latency, export_torchscript  # noqa: E402
+from sb3_divmorph.deploy.deployment import matmul_flops  # noqa: E402
 from unimal_envs.morphology.loader import morphology_files  # noqa: E402
 from unimal_envs.tasks import TASKS  # noqa: E402
 

@@ -30,9 +30,9 @@ from __future__ import annotations
 
 import argparse
 import platform
-from contextlib import nullcontext
 import sys
 import time
+from contextlib import nullcontext
 from datetime import date
 from pathlib import Path
 

@@ -337,7 +337,7 @@ def _version() -> str:
 
 def _robot_path(name: str, profile=None) -> Path:
     """A robot by MJCF path, or by name among the profile's robots (every split), else the shipped sets."""
-    from sb3_divmorph.pipeline.runs import profile_robots, profile_splits
+    from sb3_divmorph.pipeline.robots import profile_robots, profile_splits
     from unimal_envs.morphology.loader import morphology_files
 
     path = Path(name)
@@ -425,7 +425,8 @@ def main(argv: list[str] | None = None) -> int:
 
     from sb3_divmorph import pipeline as P
     from sb3_divmorph.pipeline.provenance import check_and_record
-    from sb3_divmorph.pipeline.runs import record_robot_sets, seed_everything
+    from sb3_divmorph.pipeline.envs import seed_everything
+    from sb3_divmorph.pipeline.robots import record_robot_sets
 
     try:
         recorded = Path(args.out) / "run.json" if args.out and args.profile is None else None

@@ -28,7 +28,7 @@ from stable_baselines3.common.vec_env import VecNormalize
 
 import sb3_divmorph  # noqa: F401  (policy aliases)
 import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
-from sb3_divmorph.distillation import DAggerCallback, ImitationPPO, Teacher, TeacherMixingVecEnv
+from sb3_divmorph.algos.distillation import DAggerCallback, ImitationPPO, Teacher, TeacherMixingVecEnv
 from sb3_divmorph.policies import DivMorphPolicy
 from sb3_divmorph.zoo import zoo_hyperparams
 from unimal_envs.contract import TASK_NAMES, observation_space

@@ -21,11 +21,11 @@ from stable_baselines3 import PPO
 
 import sb3_divmorph  # noqa: F401  (policy aliases)
 import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
-from sb3_divmorph.compact import CompactActor, actor_parameter_count, export_torchscript
-from sb3_divmorph.deployment import export_onnx
-from sb3_divmorph.distillation import load_normalizer
-from sb3_divmorph.onnx_actor import OnnxActor
-from sb3_divmorph.pipeline.runs import trained_robot_set, trained_robots
+from sb3_divmorph.algos.distillation import load_normalizer
+from sb3_divmorph.deploy.compact import CompactActor, actor_parameter_count, export_torchscript
+from sb3_divmorph.deploy.deployment import export_onnx
+from sb3_divmorph.deploy.onnx_actor import OnnxActor
+from sb3_divmorph.pipeline.robots import trained_robot_set, trained_robots
 from unimal_envs.contract import TASK_NAMES
 from unimal_envs.morphology.loader import morphology_files
 from unimal_envs.tasks import TASKS

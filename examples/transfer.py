@@ -31,7 +31,7 @@ from stable_baselines3.common.vec_env import VecNormalize
 
 import sb3_divmorph  # noqa: F401  (policy aliases)
 import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
-from sb3_divmorph.finetune import UnitSelection, prepare_transfer
+from sb3_divmorph.algos.finetune import UnitSelection, prepare_transfer
 from sb3_divmorph.policies import DivMorphPolicy
 from sb3_divmorph.pretrained import Pretrained, PretrainedError, load_pretrained
 from sb3_divmorph.zoo import zoo_hyperparams

@@ -4,26 +4,33 @@ Importing the package registers ``"MetaMorphPolicy"``, ``"ModuMorphPolicy"``, ``
 and ``"HyperDistillPolicy"`` as PPO and A2C policy aliases, so ``PPO("DivMorphPolicy", env)`` and rl-zoo configs with ``policy: DivMorphPolicy``
 (with ``--gym-packages sb3_divmorph``) work. They are actor-critic policies, for on-policy algorithms only.
 :class:`DevicePPO` is SB3's PPO with rollouts collected on the device when its env is the batched
-MuJoCo Warp env (``sb3_divmorph.device_ppo``).
+MuJoCo Warp env (``sb3_divmorph.algos.device_ppo``).
 """
+
+import importlib
+import importlib.abc
+import importlib.util
+import sys
 
 from stable_baselines3 import A2C, PPO
 
-from sb3_divmorph.device_ppo import DevicePPO
-from sb3_divmorph.distributions import MaskedDiagGaussianDistribution
-from sb3_divmorph.extractors import MorphologyTransformerExtractor
-from sb3_divmorph.gates import DiversionRouter, GateActivations, MorphologyEncoder, TopKSoftGate
-from sb3_divmorph.hyperdistill import HYPERDISTILL_PRESETS, HyperDistillMLP, HyperDistillPolicy
-from sb3_divmorph.layers import DenseLinear, FactorizedLinear, Factorization, LinearBuilder
-from sb3_divmorph.modumorph import MODUMORPH_PRESETS, ModuMorphActor, ModuMorphPolicy
-from sb3_divmorph.policies import (
+from sb3_divmorph.algos.device_ppo import DevicePPO
+from sb3_divmorph.deploy.hyperdistill_mlp import HyperDistillMLP
+from sb3_divmorph.deploy.modumorph_actor import ModuMorphActor
+from sb3_divmorph.nn.distributions import MaskedDiagGaussianDistribution
+from sb3_divmorph.nn.extractors import MorphologyTransformerExtractor
+from sb3_divmorph.nn.gates import DiversionRouter, GateActivations, MorphologyEncoder, TopKSoftGate
+from sb3_divmorph.nn.layers import DenseLinear, Factorization, FactorizedLinear, LinearBuilder
+from sb3_divmorph.nn.transformer import MultiHeadSelfAttention, TransformerEncoder, TransformerEncoderLayer
+from sb3_divmorph.policies.hyperdistill import HYPERDISTILL_PRESETS, HyperDistillPolicy
+from sb3_divmorph.policies.modumorph import MODUMORPH_PRESETS, ModuMorphPolicy
+from sb3_divmorph.policies.morphology_transformer import (
     DIVMORPH_PRESETS,
     PRESETS,
     DivMorphPolicy,
     MetaMorphPolicy,
     MorphologyTransformerPolicy,
 )
-from sb3_divmorph.transformer import MultiHeadSelfAttention, TransformerEncoder, TransformerEncoderLayer
 
 # The policies are SB3 ActorCriticPolicy subclasses: on-policy algorithms (PPO, A2C) take them.
 for _algo in (PPO, A2C):
@@ -59,6 +66,38 @@ def _register_off_policy_guards() -> None:
 
 
 _register_off_policy_guards()
+
+#: Module paths from before the package was organised by concept (issue 45) -> where the code is now.
+#: Saved models name their policy class by module (``sb3_divmorph.hyperdistill.HyperDistillPolicy``),
+#: and scripts import the old paths: both keep working, without a module left behind for each.
+MOVED_MODULES = {
+    **{
+        f"sb3_divmorph.{name}": f"sb3_divmorph.nn.{name}"
+        for name in ("layers", "gates", "transformer", "decoders", "extractors", "distributions")
+    },
+    **{f"sb3_divmorph.{name}": f"sb3_divmorph.policies.{name}" for name in ("modumorph", "hyperdistill", "learngene")},
+    **{f"sb3_divmorph.{name}": f"sb3_divmorph.algos.{name}" for name in ("device_ppo", "distillation", "finetune", "recipe")},
+    **{f"sb3_divmorph.{name}": f"sb3_divmorph.deploy.{name}" for name in ("compact", "deployment", "onnx_actor")},
+}
+
+
+class _MovedModuleFinder(importlib.abc.MetaPathFinder, importlib.abc.Loader):
+    """Resolves an old module path (:data:`MOVED_MODULES`) to the module that lives there now."""
+
+    def find_spec(self, fullname, path=None, target=None):
+        if fullname not in MOVED_MODULES:
+            return None
+        return importlib.util.spec_from_loader(fullname, self)
+
+    def create_module(self, spec):
+        # the module object itself: the import system files it under the old name as well
+        return importlib.import_module(MOVED_MODULES[spec.name])
+
+    def exec_module(self, module):
+        pass  # already executed under its new name
+
+
+sys.meta_path.append(_MovedModuleFinder())
 
 __all__ = [
     "DIVMORPH_PRESETS",

@@ -132,7 +132,8 @@ def find_model(source: str | Path) -> SavedModel:
         return SavedModel(model, stats, env_id, algo, dict(env_kwargs))
 
     # divmorph pipeline: teachers/<task>, transfer/<task>/<arm>, student (multi-task: no single task)
-    from sb3_divmorph.pipeline.runs import ENV_SETTINGS, trained_env_kwargs, trained_robots
+    from sb3_divmorph.pipeline.files import ENV_SETTINGS
+    from sb3_divmorph.pipeline.robots import trained_env_kwargs, trained_robots
 
     task = next((name for name in (folder.name, folder.parent.name) if name in TASK_NAMES), None)
     normalizer = folder / NORMALIZER
@@ -282,7 +283,7 @@ def best_robots(saved: SavedModel, env_id: str, n: int = 5, split: str = "train"
     import pandas as pd
 
     from sb3_divmorph.pipeline.folders import evaluation_label
-    from sb3_divmorph.pipeline.runs import log_file
+    from sb3_divmorph.pipeline.files import log_file
 
     task = env_id.split("-")[1]
     found = evaluation_label(saved.model.parent)
@@ -315,7 +316,7 @@ def load_pretrained(source: str | Path, device: str = "cpu", algo: str | None = 
     from stable_baselines3 import A2C, PPO
 
     import sb3_divmorph  # noqa: F401  (the policy aliases, for models saved with them)
-    from sb3_divmorph.distillation import load_normalizer
+    from sb3_divmorph.algos.distillation import load_normalizer
 
     saved = find_model(source)
     name = algo or saved.algo or "ppo"

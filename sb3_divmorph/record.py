@@ -63,7 +63,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--episodes", type=int, default=1, help="episodes to record, one after the other (default: 1)")
     parser.add_argument("--steps", type=int, default=1000, help="longest episode, in steps of 0.02 s (default: 1000)")
     parser.add_argument("--stochastic", action="store_true", help="sample actions instead of taking the mean")
-    parser.add_argument("--seed", type=int, default=0, help="episode e of a robot is reset(seed=SEED + e): the episode `divmorph evaluate` plays under the same seed")
+    parser.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="episode e of a robot is reset(seed=SEED + e): the episode `divmorph evaluate` plays under the same seed",
+    )
     parser.add_argument("--width", type=int, default=480)
     parser.add_argument("--height", type=int, default=480)
     parser.add_argument(
@@ -86,7 +91,7 @@ def record(args: argparse.Namespace) -> Path:
 
     import sb3_divmorph  # noqa: F401  (the policy aliases, for models saved with them)
     import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
-    from sb3_divmorph.distillation import check_spaces, load_normalizer
+    from sb3_divmorph.algos.distillation import check_spaces, load_normalizer
     from unimal_envs.contract import TASK_NAMES
     from unimal_envs.rendering import episode_frames, write_video
 

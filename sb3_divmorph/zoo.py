@@ -144,8 +144,8 @@ def _schedule(value: Any, where: str) -> Any:
         start = float(value[4:])
         return LinearSchedule(start, 0.0, 1.0)
     if isinstance(value, str) and value.startswith("cosine_"):
-        # MetaMorph's recipe: cosine decay to 0 with a short linear warm-up (sb3_divmorph.recipe).
-        from sb3_divmorph.recipe import CosineWarmupSchedule
+        # MetaMorph's recipe: cosine decay to 0 with a short linear warm-up (sb3_divmorph.algos.recipe).
+        from sb3_divmorph.algos.recipe import CosineWarmupSchedule
 
         try:
             return CosineWarmupSchedule(float(value[7:]))
@@ -157,7 +157,7 @@ def _schedule(value: Any, where: str) -> Any:
 
 
 #: The one rl-zoo ``callback`` the pipeline understands: MetaMorph's balanced robot sampler.
-BALANCED_SAMPLER = "sb3_divmorph.recipe.BalancedRobotSampler"
+BALANCED_SAMPLER = "sb3_divmorph.algos.recipe.BalancedRobotSampler"
 
 
 def _callbacks(value: Any, where: str) -> list[tuple[str, dict[str, Any]]]:

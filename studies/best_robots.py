@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from sb3_divmorph.pipeline.runs import log_file
+from sb3_divmorph.pipeline.files import log_file
 
 TRAINING_TASKS = ("FT", "VT", "Incline", "Obstacle", "Patrol")
 

@@ -34,7 +34,7 @@ from sb3_divmorph.pipeline.branch import branch
 from sb3_divmorph.pipeline.folders import transfer_folder
 from sb3_divmorph.pipeline.metrics import robot_interval
 from sb3_divmorph.pipeline.provenance import recorded_profile
-from sb3_divmorph.pipeline.runs import is_done, log_file
+from sb3_divmorph.pipeline.files import is_done, log_file
 from sb3_divmorph.pipeline.transfer import transfer_run
 
 ARMS = {"closest": "teacher (MetaMorph->)", "distilled": "dense MetaMorph⚗ student", "divmorph": "DivMorph student"}
@@ -182,8 +182,15 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--arms", nargs="+", default=list(ARMS), choices=list(ARMS))
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--report", action="store_true", help="only write the README from the finished runs")
-    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a profile setting for the runs (a variant: give it its own --out)")
-    parser.add_argument("--compare", nargs="+", metavar="LABEL=FOLDER", help="only print the change of the first --arms arm in each folder, paired against the first")
+    parser.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="a profile setting for the runs (a variant: give it its own --out)"
+    )
+    parser.add_argument(
+        "--compare",
+        nargs="+",
+        metavar="LABEL=FOLDER",
+        help="only print the change of the first --arms arm in each folder, paired against the first",
+    )
     args = parser.parse_args(argv)
     th.set_num_threads(1)
     if args.compare:

@@ -17,12 +17,12 @@ import torch
 
 pytest.importorskip("mujoco_warp", reason="the batched backend needs the mujoco-warp extra")
 
+from batched_mirror import mirror_world  # noqa: E402
+
 import unimal_envs  # noqa: E402,F401
 from unimal_envs import contract as C  # noqa: E402
 from unimal_envs.batched import make_batched_env  # noqa: E402
 from unimal_envs.morphology.loader import MorphologyError, load_morphologies, morphology_files  # noqa: E402
-
-from batched_mirror import mirror_world  # noqa: E402
 
 ROBOTS = morphology_files("train")[:2]
 #: Agreement after the first control step, and after ten (observation max |diff|, reward |diff|).
@@ -247,9 +247,10 @@ def test_without_mujoco_warp_the_message_names_the_extra(monkeypatch):
 def test_the_pipeline_trains_its_stages_on_the_batched_backend_when_the_profile_says_so(tmp_path, monkeypatch):
     import json
 
+    from test_pipeline import write_profiles
+
     import unimal_envs.batched as batched
     from divmorph.cli import main as cli
-    from test_pipeline import write_profiles
 
     built = []
     original = batched.make_batched_env
@@ -259,7 +260,7 @@ def test_the_pipeline_trains_its_stages_on_the_batched_backend_when_the_profile_
         return original(task, **kwargs)
 
     monkeypatch.setattr(batched, "make_batched_env", counting)
-    from sb3_divmorph.device_ppo import DevicePPO
+    from sb3_divmorph.algos.device_ppo import DevicePPO
 
     on_device, collect = [], DevicePPO._collect_on_device
     monkeypatch.setattr(DevicePPO, "_collect_on_device", lambda self, *a: on_device.append(1) or collect(self, *a))

@@ -24,7 +24,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor, VecNormali
 
 import sb3_divmorph  # noqa: E402,F401  (policy aliases)
 import unimal_envs  # noqa: E402,F401
-from sb3_divmorph.device_ppo import DeviceDictRolloutBuffer, DevicePPO, HostTransferCounter  # noqa: E402
+from sb3_divmorph.algos.device_ppo import DeviceDictRolloutBuffer, DevicePPO, HostTransferCounter  # noqa: E402
 from unimal_envs.batched import make_batched_env  # noqa: E402
 from unimal_envs.batched.env import BatchedUnimalEnv  # noqa: E402
 from unimal_envs.morphology.loader import morphology_files  # noqa: E402
@@ -201,8 +201,8 @@ def test_with_any_other_env_it_is_sb3s_ppo(tmp_path):
 def test_frozen_observation_statistics_stay_frozen_on_the_device_and_unknown_wrappers_keep_sb3s_path():
     from stable_baselines3.common.vec_env import VecEnvWrapper
 
-    from sb3_divmorph.device_ppo import device_env_chain
-    from sb3_divmorph.finetune import freeze_observation_statistics
+    from sb3_divmorph.algos.device_ppo import device_env_chain
+    from sb3_divmorph.algos.finetune import freeze_observation_statistics
 
     venv = freeze_observation_statistics(batched())  # as transfer inherits a trained model's statistics
     frozen = {k: (venv.obs_rms[k].mean.copy(), venv.obs_rms[k].var.copy()) for k in NORM_KEYS}

@@ -14,8 +14,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
 import sb3_divmorph  # noqa: F401
 import unimal_envs  # noqa: F401
-from sb3_divmorph.compact import CompactActor, actor_inputs, export_torchscript
-from sb3_divmorph.distillation import (
+from sb3_divmorph.algos.distillation import (
     DAggerCallback,
     DistillationDataset,
     ImitationPPO,
@@ -24,9 +23,11 @@ from sb3_divmorph.distillation import (
     TeacherMixingVecEnv,
     gaussian_kl,
 )
-from sb3_divmorph.finetune import UnitLearningRates, UnitSelection, prepare_transfer
-from sb3_divmorph.layers import FactorizedLinear
-from sb3_divmorph.pipeline.runs import AtomicCheckpointCallback, TrainingRun, latest_checkpoint, read_progress
+from sb3_divmorph.algos.finetune import UnitLearningRates, UnitSelection, prepare_transfer
+from sb3_divmorph.deploy.compact import CompactActor, actor_inputs, export_torchscript
+from sb3_divmorph.nn.layers import FactorizedLinear
+from sb3_divmorph.pipeline.files import read_progress
+from sb3_divmorph.pipeline.training import AtomicCheckpointCallback, TrainingRun, latest_checkpoint
 from unimal_envs.contract import TASK_NAMES
 from unimal_envs.morphology.loader import morphology_files
 from unimal_envs.tasks import TASKS
@@ -247,7 +248,7 @@ def test_transfer_keeps_gates_fixed_and_unselected_tailors_frozen():
 
 @pytest.mark.parametrize("policy", ["DivMorphPolicy", "MetaMorphPolicy"])
 def test_critic_warmup_trains_only_the_critic_then_both(policy):
-    from sb3_divmorph.finetune import CriticWarmup, critic_modules
+    from sb3_divmorph.algos.finetune import CriticWarmup, critic_modules
 
     th.manual_seed(0)
     venv = VecNormalize(

@@ -6,10 +6,10 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 import pytest
+from conftest import unimal_xml
 from gymnasium.utils.env_checker import check_env
 
 import unimal_envs
-from conftest import unimal_xml
 from unimal_envs import contract as C
 from unimal_envs.morphology.loader import MorphologyError
 

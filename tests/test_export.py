@@ -17,14 +17,14 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
 import sb3_divmorph  # noqa: F401
 import unimal_envs  # noqa: F401
-from sb3_divmorph.compact import CompactActor, actor_inputs, export_onnx, size_comparison
-from sb3_divmorph.layers import FactorizedLinear
+from sb3_divmorph.deploy.compact import CompactActor, actor_inputs, export_onnx, size_comparison
+from sb3_divmorph.nn.layers import FactorizedLinear
 from unimal_envs.morphology.loader import morphology_files
 from unimal_envs.tasks import TASKS
 
 TINY = dict(d_model=16, n_layers=1, ff_dim=32, exteroception=dict(hfield=[8, 8], goal=[4], object=[4]))
 ROBOTS = morphology_files("train")[:2]
-ONNX_ACTOR = Path(sb3_divmorph.__file__).parent / "onnx_actor.py"
+ONNX_ACTOR = Path(sb3_divmorph.__file__).parent / "deploy" / "onnx_actor.py"
 
 
 def trained_student(task: str, policy: str = "DivMorphPolicy", **policy_kwargs):

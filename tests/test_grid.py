@@ -15,7 +15,8 @@ from test_pipeline import write_profiles
 
 from divmorph.cli import main as cli
 from sb3_divmorph.pipeline.config import ConfigError, load_profile
-from sb3_divmorph.pipeline.runs import latest_checkpoint, read_done
+from sb3_divmorph.pipeline.files import read_done
+from sb3_divmorph.pipeline.training import latest_checkpoint
 from unimal_envs.instructions import INSTRUCTIONS
 
 

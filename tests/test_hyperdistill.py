@@ -17,18 +17,12 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
 import sb3_divmorph  # noqa: F401
-from sb3_divmorph.compact import actor_inputs, export_torchscript
-from sb3_divmorph.deployment import export_onnx
-from sb3_divmorph.distillation import DAggerCallback, ImitationPPO, SpaceMismatchError, Teacher
-from sb3_divmorph.hyperdistill import (
-    HyperDistillMLP,
-    HyperDistillPolicy,
-    TeacherRollouts,
-    collect_teacher_rollouts,
-    distillation_loss,
-    fit_offline,
-    load_student,
-)
+from sb3_divmorph.algos.distillation import DAggerCallback, ImitationPPO, SpaceMismatchError, Teacher
+from sb3_divmorph.algos.hyperdistill_fit import TeacherRollouts, collect_teacher_rollouts, distillation_loss, fit_offline, load_student
+from sb3_divmorph.deploy.compact import actor_inputs, export_torchscript
+from sb3_divmorph.deploy.deployment import export_onnx
+from sb3_divmorph.deploy.hyperdistill_mlp import HyperDistillMLP
+from sb3_divmorph.policies.hyperdistill import HyperDistillPolicy
 from unimal_envs import contract
 from unimal_envs.contract import TASK_NAMES
 from unimal_envs.morphology.loader import morphology_files
@@ -290,7 +284,7 @@ def test_pipeline_trains_modumorph_teachers_distils_and_exports(tmp_path):
     student = load_student(out / "hyperdistill" / "student" / "model.zip")
     assert student.task_input == "index" and student.observation_statistics == "teachers"  # the profile's defaults
     # the student normalises FT's states with the FT teacher's statistics (no normaliser of its own)
-    from sb3_divmorph.distillation import load_normalizer
+    from sb3_divmorph.algos.distillation import load_normalizer
 
     assert not (out / "hyperdistill" / "student" / "vecnormalize.pkl").exists()
     teacher_stats = load_normalizer(out / "hyperdistill" / "teachers" / "FT" / "vecnormalize.pkl")
@@ -333,8 +327,8 @@ def test_task_input_lets_one_student_tell_ft_from_incline(teacher):
     """FT and Incline share their observation keys: on the same states, labelled by two teachers
     that act differently, the student with the task index as input imitates both, the one without
     it can only average them."""
-    from sb3_divmorph.distillation import teacher_labels
-    from sb3_divmorph.hyperdistill import TeacherRollouts
+    from sb3_divmorph.algos.distillation import teacher_labels
+    from sb3_divmorph.algos.hyperdistill_fit import TeacherRollouts
 
     ft = next(iter(teacher.values()))
     incline = TASK_NAMES.index("Incline")

@@ -8,20 +8,20 @@ import torch as th
 from torch.nn import functional as F
 
 import unimal_envs  # noqa: F401
-from sb3_divmorph.gates import DiversionRouter, MorphologyEncoder, TopKSoftGate
-from sb3_divmorph.layers import (
+from sb3_divmorph.nn.gates import DiversionRouter, MorphologyEncoder, TopKSoftGate
+from sb3_divmorph.nn.layers import (
     DenseLinear,
-    FactorizedLinear,
     Factorization,
+    FactorizedLinear,
     LayerDiversionError,
     LinearBuilder,
     batched_square_factors,
     cayley,
     project_many,
 )
+from sb3_divmorph.nn.transformer import TransformerEncoder
 from sb3_divmorph.policies import DivMorphPolicy
 from unimal_envs.morphology.loader import morphology_files
-from sb3_divmorph.transformer import TransformerEncoder
 
 th.set_num_threads(1)
 

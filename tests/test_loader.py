@@ -6,8 +6,8 @@ import json
 
 import numpy as np
 import pytest
-
 from conftest import unimal_xml
+
 from unimal_envs import contract as C
 from unimal_envs.morphology.loader import (
     MorphologyError,

@@ -8,8 +8,8 @@ import torch as th
 from stable_baselines3 import PPO
 
 from sb3_divmorph import MetaMorphPolicy, ModuMorphActor, ModuMorphPolicy
-from sb3_divmorph.compact import actor_inputs, export_torchscript
-from sb3_divmorph.modumorph import DECODER_INIT, EMBEDDING_INIT, HyperLinear
+from sb3_divmorph.deploy.compact import actor_inputs, export_torchscript
+from sb3_divmorph.policies.modumorph import DECODER_INIT, EMBEDDING_INIT, HyperLinear
 from sb3_divmorph.testing import random_observations
 from unimal_envs import contract
 

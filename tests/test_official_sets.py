@@ -12,13 +12,12 @@ from pathlib import Path
 
 import gymnasium as gym
 import pytest
+from conftest import OFFICIAL_TRAIN
 
 import unimal_envs  # noqa: F401
 from unimal_envs.morphology import official as O
 from unimal_envs.morphology.cli import main as cli_main
 from unimal_envs.morphology.loader import MorphologyError, morphology_files
-
-from conftest import OFFICIAL_TRAIN
 
 pytestmark = pytest.mark.skipif(not (OFFICIAL_TRAIN / "xml").is_dir(), reason="official unimals_100 train set not available")
 TOP = f"Universal-Morphology-Control-{O.PINNED_COMMIT}"
@@ -96,7 +95,7 @@ def test_fetch_over_http_then_use_the_set_by_name(archive, server, tmp_path, mon
 
     # The pipeline resolves the name and records which set and source it used.
     from sb3_divmorph.pipeline.config import load_profile
-    from sb3_divmorph.pipeline.runs import robot_files, robot_set_record
+    from sb3_divmorph.pipeline.robots import robot_files, robot_set_record
 
     assert [f.stem for f in robot_files("unimals100-train", 3)] == [f.stem for f in files[:3]]
     profile = load_profile("demo")
@@ -234,7 +233,7 @@ def test_a_run_records_a_held_out_set_that_is_not_fetched_here_instead_of_failin
     """A stage that only trains (a GPU job carrying the training robots) may run where the novel set
     is not fetched: the run's record says so; the training robots must be there."""
     from sb3_divmorph.pipeline.config import load_profile
-    from sb3_divmorph.pipeline.runs import robot_set_record
+    from sb3_divmorph.pipeline.robots import robot_set_record
 
     monkeypatch.setenv("UNIMAL_DATA", str(tmp_path))
     O.fetch(OFFICIAL_TRAIN, ["train"], cache=tmp_path)

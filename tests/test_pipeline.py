@@ -21,8 +21,9 @@ from stable_baselines3 import PPO
 from divmorph.cli import main as cli
 from sb3_divmorph.pipeline.arms import ARMS
 from sb3_divmorph.pipeline.config import ConfigError, load_profile, load_profiles, load_zoo_entry
+from sb3_divmorph.pipeline.files import read_done
+from sb3_divmorph.pipeline.training import latest_checkpoint
 from sb3_divmorph.policies import DivMorphPolicy, MetaMorphPolicy
-from sb3_divmorph.pipeline.runs import latest_checkpoint, read_done
 from unimal_envs.morphology.loader import morphology_files
 
 REPO = Path(__file__).resolve().parents[1]
@@ -148,7 +149,7 @@ def test_an_untrained_teacher_is_the_teacher_runs_initial_policy(finished_run):
 
 def test_the_evaluation_reuses_a_transfer_runs_final_evaluation_only_when_it_is_the_same(finished_run):
     from sb3_divmorph.pipeline.evaluate import evaluate_model, final_evaluation
-    from sb3_divmorph.pipeline.runs import profile_robots
+    from sb3_divmorph.pipeline.robots import profile_robots
 
     out, profiles = finished_run
     profile = load_profile("tiny", profiles)
@@ -167,7 +168,7 @@ def test_an_evaluation_samples_actions_only_when_asked(finished_run):
     """``deterministic=False`` rolls out sampled actions (as in training): other returns from the same
     seed; the default repeats itself."""
     from sb3_divmorph.pipeline.evaluate import evaluate_model
-    from sb3_divmorph.pipeline.runs import profile_robots
+    from sb3_divmorph.pipeline.robots import profile_robots
 
     out, profiles = finished_run
     profile = load_profile("tiny", profiles)
@@ -231,8 +232,8 @@ def test_every_model_keeps_its_env_settings_beside_it(finished_run, tmp_path):
     model, so a model folder copied out of its run still loads onto its own robots and settings."""
     import shutil
 
+    from sb3_divmorph.pipeline.robots import profile_robots
     from sb3_divmorph.pretrained import load_pretrained
-    from sb3_divmorph.pipeline.runs import profile_robots
 
     out, profiles = finished_run
     profile = load_profile("tiny", profiles)
@@ -301,14 +302,14 @@ def test_an_evaluation_keeps_each_transfer_seed_apart(tmp_path):
 
 
 def test_a_run_with_packed_logs_reads_and_reports_as_before(finished_run, tmp_path):
-    """benchmarks/pack_logs.py gzips a recorded run's finished logs; every reader gives the same numbers,
+    """tools/pack_logs.py gzips a recorded run's finished logs; every reader gives the same numbers,
     the report the same tables, and a later plain file wins over its packed twin."""
     import importlib
     import runpy
     import sys
 
     from sb3_divmorph.pipeline.curves import read_eval
-    from sb3_divmorph.pipeline.runs import read_progress
+    from sb3_divmorph.pipeline.files import read_progress
 
     R = importlib.import_module("sb3_divmorph.pipeline.report")
     out, profiles = copied_run(finished_run, tmp_path)
@@ -320,7 +321,7 @@ def test_a_run_with_packed_logs_reads_and_reports_as_before(finished_run, tmp_pa
     argv = sys.argv
     try:
         sys.argv = ["pack_logs.py", "--write", str(out)]
-        runpy.run_path(str(Path(__file__).resolve().parents[1] / "benchmarks" / "pack_logs.py"), run_name="__main__")
+        runpy.run_path(str(Path(__file__).resolve().parents[1] / "tools" / "pack_logs.py"), run_name="__main__")
     finally:
         sys.argv = argv
     assert not list(out.rglob("progress.csv")) and not list(out.rglob("eval.csv")) and (out / "evaluate" / "returns.csv.gz").is_file()
@@ -483,7 +484,7 @@ def test_the_dense_distilled_student_is_metamorph_and_its_imitation_error_falls(
 def test_ablation_students_lack_what_they_claim(finished_run):
     from stable_baselines3 import PPO
 
-    from sb3_divmorph.layers import FactorizedLinear
+    from sb3_divmorph.nn.layers import FactorizedLinear
 
     out, _ = finished_run
 
@@ -548,7 +549,7 @@ def test_finetune_settings_reach_the_arms_that_start_from_trained_weights_only(f
     }
     assert rates["divmorph"] == rates["closest"] == rates["distilled"] == rates["grl"] == pytest.approx(1.25e-5)
     assert rates["scratch"] == rates["modumorph"] != pytest.approx(1.25e-5)
-    from sb3_divmorph.finetune import CriticWarmup
+    from sb3_divmorph.algos.finetune import CriticWarmup
 
     profile = load_profile("tiny", profiles, overrides={"transfer.critic_warmup": 64})
     warmups = {
@@ -813,8 +814,8 @@ def test_a_checkpoint_for_another_observation_space_is_refused(finished_run, tmp
     from gymnasium import spaces
     from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor
 
-    from sb3_divmorph.distillation import SpaceMismatchError
-    from sb3_divmorph.pipeline.runs import TrainingRun
+    from sb3_divmorph.algos.distillation import SpaceMismatchError
+    from sb3_divmorph.pipeline.training import TrainingRun
 
     out, _ = finished_run
 
@@ -846,7 +847,7 @@ def test_a_transfer_instruction_reaches_the_gates_input():
 
 def test_closest_by_return_picks_the_best_zero_shot_teacher(finished_run):
     from sb3_divmorph.pipeline.evaluate import evaluate_model
-    from sb3_divmorph.pipeline.runs import profile_robots
+    from sb3_divmorph.pipeline.robots import profile_robots
     from sb3_divmorph.pipeline.transfer import closest_task
 
     out, profiles = finished_run
@@ -942,7 +943,7 @@ def test_out_of_distribution_robots_are_a_split_of_their_own_in_the_report():
     without = [row for row in rows if row["split"] != "ood"]
     assert R.zero_shot_comparison(profile, without, split="ood") == []
     assert "out-of-distribution" not in R.returns_table(without)[0][0]
-    from sb3_divmorph.pipeline.runs import profile_robots, profile_splits
+    from sb3_divmorph.pipeline.robots import profile_robots, profile_splits
 
     assert profile_splits(profile) == ("train", "novel", "ood") and profile_splits(load_profile("demo")) == ("train", "novel")
     assert profile_robots(profile, "ood")[0].parent.name in ("novel", "xml")
@@ -1134,8 +1135,8 @@ def test_with_learning_rate_zero_a_transfer_run_leaves_every_fine_tuned_arms_act
     """The inherited observation statistics stay frozen: with no weight update at all, a transfer run
     must not change what the policy does on fixed states (with statistics that go on learning, the
     inputs drift under the frozen weights and the actions move: the issue-26 defect)."""
-    from sb3_divmorph.finetune import observation_statistics_frozen
-    from sb3_divmorph.pipeline.runs import profile_robots
+    from sb3_divmorph.algos.finetune import observation_statistics_frozen
+    from sb3_divmorph.pipeline.robots import profile_robots
     from sb3_divmorph.pipeline.transfer import transfer_run
 
     out, profiles = copied_run(finished_run, tmp_path)
@@ -1176,7 +1177,7 @@ def test_transfer_curves_roll_out_the_first_eval_robots_of_each_split(finished_r
     roll out only the first training and the first novel robot, every episode of each; the evaluation
     stage evaluates the run on the same robots and episodes (so it reuses the last curve point)."""
     from sb3_divmorph.pipeline.curves import EVAL_FILE, read_eval
-    from sb3_divmorph.pipeline.runs import profile_robots
+    from sb3_divmorph.pipeline.robots import profile_robots
     from sb3_divmorph.pipeline.transfer import transfer_run
 
     out, profiles = copied_run(finished_run, tmp_path)
@@ -1203,7 +1204,7 @@ def test_transfer_curves_roll_out_the_first_eval_robots_of_each_split(finished_r
 def test_transfer_curves_sample_robots_across_the_whole_set(finished_run, tmp_path):
     """The curves' robots spread from the first robot of a split to its last, not a prefix of it (robot
     files sort by family: a prefix would stand for one family only)."""
-    from sb3_divmorph.pipeline.runs import profile_robots, transfer_eval_robots
+    from sb3_divmorph.pipeline.robots import profile_robots, transfer_eval_robots
 
     _, profiles = copied_run(finished_run, tmp_path)
     profile = load_profile("tiny", profiles, overrides={"train_robots": 3, "transfer.eval_robots": 2})
@@ -1232,9 +1233,10 @@ def test_every_arm_sees_its_novel_tasks_inputs_under_one_optimiser_rule(finished
     """Perturbing an input the novel task observes (Escape: height map; PointNav: goal; the box
     tasks: box and goal) changes every arm's actions at the start of its run -- MetaMorph→ from an
     FT teacher (no encoders) included -- and every arm's Adam runs with ``transfer.adam_eps``."""
-    from unimal_envs.tasks import TASKS
-    from sb3_divmorph.pipeline.runs import atomic_write_json, profile_robots
+    from sb3_divmorph.pipeline.files import atomic_write_json
+    from sb3_divmorph.pipeline.robots import profile_robots
     from sb3_divmorph.pipeline.transfer import closest_file, transfer_run
+    from unimal_envs.tasks import TASKS
 
     out, profiles = copied_run(finished_run, tmp_path)
     profile = load_profile("tiny", profiles)
@@ -1286,7 +1288,7 @@ def test_a_profile_measuring_heights_from_the_ground_makes_every_env_of_the_run_
     student's DAgger envs, transfer and its evaluation curves, export, evaluation, HyperDistill):
     a model must always see the heights it was trained on. The student's statistics then hold one
     height distribution for flat FT and the 10-degree Incline (world heights: -12 m apart)."""
-    from sb3_divmorph.distillation import load_normalizer
+    from sb3_divmorph.algos.distillation import load_normalizer
     from unimal_envs.env import UnimalEnv
 
     made = []

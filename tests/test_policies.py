@@ -19,7 +19,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor, VecNormali
 
 import sb3_divmorph
 from sb3_divmorph import DivMorphPolicy, MetaMorphPolicy
-from sb3_divmorph.layers import FactorizedLinear
+from sb3_divmorph.nn.layers import FactorizedLinear
 from sb3_divmorph.testing import random_observations
 from unimal_envs import contract
 
@@ -257,7 +257,7 @@ def test_gate_activations_for_analysis():
 def test_every_named_diversion_trains_its_gates_and_morphology_encoder(diversion):
     """The policy loss reaches both gates' scorers and the morphology encoder, top-1 gates included
     (``deploy-g2k1``, ``deploy-g1k1``: a softmax over one kept score is the constant 1, so without the
-    straight-through weight of :class:`~sb3_divmorph.gates.TopKSoftGate` they got exactly 0)."""
+    straight-through weight of :class:`~sb3_divmorph.nn.gates.TopKSoftGate` they got exactly 0)."""
     # the named diversion decides tailor counts and top-k (TINY_DIVMORPH's own are for "default")
     named = {} if diversion == "default" else dict(n_morph_tailors=None, n_task_tailors=None, top_k_morph=None, top_k_task=None)
     policy = make_policy("divmorph", diversion=diversion, **named)

@@ -17,10 +17,11 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_divmorph import MetaMorphPolicy
-from sb3_divmorph.hyperdistill import load_student
+from sb3_divmorph.algos.hyperdistill_fit import load_student
 from sb3_divmorph.pipeline.config import load_profile
 from sb3_divmorph.pipeline.evaluate import evaluate_model, evaluation_plan
-from sb3_divmorph.pipeline.runs import stage_model, stage_normalizer, trained_env_kwargs
+from sb3_divmorph.pipeline.robots import trained_env_kwargs
+from sb3_divmorph.pipeline.training import stage_model, stage_normalizer
 from unimal_envs.instructions import shipped_embeddings
 
 RESULTS = Path(__file__).resolve().parents[1] / "results"

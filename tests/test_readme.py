@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch as th
-
 from conftest import OFFICIAL_TRAIN
+
 from divmorph.cli import main as cli
 
 REPO = Path(__file__).resolve().parents[1]

@@ -14,12 +14,12 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 import pytest
+from conftest import unimal_xml
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 import unimal_envs
-from conftest import unimal_xml
 from unimal_envs import contract as C
 from unimal_envs.instructions import shipped_embeddings
 from unimal_envs.morphology.generator import generate_unimal

@@ -19,8 +19,8 @@ import math
 
 import numpy as np
 import pytest
-
 from scenario_probe import BACKENDS, Probe
+
 from unimal_envs.arenas.heightfield import FORWARD_CELLS, LATERAL_CELLS
 
 pytest.importorskip("mujoco_warp", reason="the batched scenarios need the mujoco-warp extra")

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from sb3_divmorph.pipeline.config import ConfigError
-from sb3_divmorph.pipeline.runs import trained_robot_set, trained_robots
+from sb3_divmorph.pipeline.robots import trained_robot_set, trained_robots
 
 RUN = Path(__file__).resolve().parents[1] / "results" / "cpu"
 RUN100 = RUN.parent / "cpu100"

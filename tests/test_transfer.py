@@ -12,8 +12,15 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
 import sb3_divmorph  # noqa: F401
 import unimal_envs  # noqa: F401
-from sb3_divmorph.finetune import UnitLearningRates, UnitSelection, actor_modules, critic_modules, critic_rate_scales, prepare_transfer
-from sb3_divmorph.layers import FactorizedLinear
+from sb3_divmorph.algos.finetune import (
+    UnitLearningRates,
+    UnitSelection,
+    actor_modules,
+    critic_modules,
+    critic_rate_scales,
+    prepare_transfer,
+)
+from sb3_divmorph.nn.layers import FactorizedLinear
 from unimal_envs.morphology.loader import morphology_files
 
 TINY_DIVMORPH = dict(
@@ -184,7 +191,7 @@ def test_critic_lr_scale_moves_the_critic_that_many_times_as_far_and_the_actor_a
 
 
 def test_frozen_observation_statistics_stay_while_reward_statistics_learn(tmp_path):
-    from sb3_divmorph.finetune import freeze_observation_statistics, observation_statistics_frozen
+    from sb3_divmorph.algos.finetune import freeze_observation_statistics, observation_statistics_frozen
 
     venv = VecNormalize(
         DummyVecEnv([lambda: gym.make("Unimal-FT-v0", morphologies=ROBOTS, max_episode_steps=50)]), norm_obs_keys=["proprioceptive"]

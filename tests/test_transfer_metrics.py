@@ -136,7 +136,7 @@ def test_metrics_leave_out_a_seed_whose_run_is_still_going(tmp_path):
     """A run in progress has a shorter curve; counted, it would cut every seed's curve to its last step."""
     from sb3_divmorph.pipeline.config import load_profile
     from sb3_divmorph.pipeline.curves import task_metrics, write_eval
-    from sb3_divmorph.pipeline.runs import mark_done
+    from sb3_divmorph.pipeline.files import mark_done
 
     def write(seed: int, steps: tuple[int, ...], done: bool) -> None:
         folder = tmp_path / "transfer" / "Escape" / "scratch" / f"seed-{seed}"

@@ -3,7 +3,7 @@
 A job on the GPU machine carries the tracked tree plus what it needs (at most 64 MiB in all, see
 ``../shared/gpu/README.md``), so the tracked files must stay under 24 MiB. Large outputs that a
 command can make again stay out of git (``.gitignore`` names each one with its command); shipped SB3
-models are saved slim (``benchmarks/slim_models.py``).
+models are saved slim (``tools/slim_models.py``).
 """
 
 from __future__ import annotations
@@ -60,7 +60,7 @@ def test_shipped_models_carry_no_optimiser_moments_or_last_observation():
         if optimiser > policy / 10 or "_last_obs" in data or "_last_original_obs" in data:
             heavy.append(f"{path.relative_to(ROOT)} (optimiser {optimiser:,} B, policy {policy:,} B)")
     assert not heavy, (
-        "re-save with `python benchmarks/slim_models.py --write "
+        "re-save with `python tools/slim_models.py --write "
         + " ".join(str(Path(h.split(" ")[0]).parent) for h in heavy)
         + "`: "
         + "; ".join(heavy)

@@ -6,12 +6,12 @@ from __future__ import annotations
 import json
 import os
 import sys
-import tomllib
 from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
 import pytest
+import tomllib
 import yaml
 from stable_baselines3 import A2C, PPO
 from stable_baselines3.common.env_util import make_vec_env
@@ -21,7 +21,8 @@ import unimal_envs
 from divmorph.cli import main as cli
 from sb3_divmorph.pipeline import distill, evaluate, export_all, train_teachers, transfer
 from sb3_divmorph.pipeline.config import PPO_HYPERPARAMETERS, ConfigError, Profile, load_profile, load_profiles
-from sb3_divmorph.pipeline.runs import TrainingRun, atomic_write_json, mark_done, save_checkpoint
+from sb3_divmorph.pipeline.files import atomic_write_json, mark_done
+from sb3_divmorph.pipeline.training import TrainingRun, save_checkpoint
 from sb3_divmorph.policies import DivMorphPolicy
 from sb3_divmorph.record import RecordError, find_model, record
 from unimal_envs.morphology.loader import MorphologyError, morphology_files
@@ -411,8 +412,8 @@ def test_a_failed_redo_puts_the_good_results_back(tmp_path, monkeypatch, capsys)
     fails (here: a model file that does not load), the old one is back where it was."""
     import zipfile
 
-    from sb3_divmorph import pipeline as P
     from divmorph.cli import main as cli
+    from sb3_divmorph import pipeline as P
 
     run = tmp_path / "run"
     (run / "evaluate").mkdir(parents=True)
@@ -509,7 +510,7 @@ def test_no_ablation_figure_without_an_ablation_and_legends_stay_off_the_curves(
 
 def test_robot_set_records_name_no_machine_paths():
     from sb3_divmorph.pipeline.config import load_profile
-    from sb3_divmorph.pipeline.runs import robot_set_record
+    from sb3_divmorph.pipeline.robots import robot_set_record
 
     record = robot_set_record(load_profile("demo"))
     assert record["train"]["folder"] == "unimal_envs/data/morphologies/train"

@@ -10,14 +10,13 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
+from conftest import OFFICIAL_TRAIN
 
 from unimal_envs.morphology import variations as V
 from unimal_envs.morphology.cli import main as cli_main
 from unimal_envs.morphology.errors import MorphologyError
 from unimal_envs.morphology.generator import finalize
 from unimal_envs.morphology.loader import load_morphology, morphology_files
-
-from conftest import OFFICIAL_TRAIN
 
 
 def physics(model: mujoco.MjModel) -> dict[str, np.ndarray]:

@@ -47,6 +47,8 @@ def installed(tmp_path_factory) -> tuple[Path, Path]:
             "results",
             "tests",
             "benchmarks",
+            "studies",
+            "tools",
             "*.egg-info",
             "__pycache__",
             ".*cache",

@@ -19,8 +19,8 @@ import gymnasium as gym  # noqa: E402
 
 from unimal_envs import contract  # noqa: E402
 from unimal_envs.env import UnimalEnv  # noqa: E402
+from unimal_envs.morphology.loader import Morphology, MorphologyError, load_morphologies, load_morphology  # noqa: E402
 from unimal_envs.multitask import MultiTaskEnv  # noqa: E402
-from unimal_envs.morphology.loader import Morphology, MorphologyError, load_morphology, load_morphologies  # noqa: E402
 from unimal_envs.tasks import TASKS  # noqa: E402
 
 #: Steps per episode: 1000 control steps = 20 s at 50 Hz.

@@ -393,7 +393,7 @@ class UnimalEnv(gym.Env):
         """Draw morphologies with these probabilities from the next reset on (``None``: uniform).
 
         Used by MetaMorph's balanced robot sampler
-        (:class:`sb3_divmorph.recipe.BalancedRobotSampler`), through ``VecEnv.env_method``.
+        (:class:`sb3_divmorph.algos.recipe.BalancedRobotSampler`), through ``VecEnv.env_method``.
 
         :param probabilities: one non-negative weight per morphology (:attr:`morphology_names`
             order), normalised here.

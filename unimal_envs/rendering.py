@@ -10,7 +10,6 @@ from typing import cast
 import gymnasium as gym
 import numpy as np
 
-
 #: Frames per second of a GIF (a GIF of every 50 fps frame would be large and slow in browsers).
 GIF_FPS = 10
 

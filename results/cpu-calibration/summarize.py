@@ -6,7 +6,8 @@ th.set_num_threads(1)
 from pathlib import Path
 from sb3_divmorph.pipeline import load_profile
 from sb3_divmorph.pipeline.evaluate import evaluate_model
-from sb3_divmorph.pipeline.runs import profile_robots, read_done
+from sb3_divmorph.pipeline.files import read_done
+from sb3_divmorph.pipeline.robots import profile_robots
 root = Path("results/cpu-calibration")
 rows, lines = [], []
 for name in ("calib-lr3e-4", "calib-lr1e-3"):

@@ -28,7 +28,7 @@ from pathlib import Path
 
 from sb3_divmorph.pipeline.config import ConfigError
 from sb3_divmorph.pipeline.provenance import RECORD, STAGE_FOLDERS, with_current_values
-from sb3_divmorph.pipeline.runs import DONE, atomic_write_json
+from sb3_divmorph.pipeline.files import DONE, atomic_write_json
 
 #: The stages a branch can reuse: those trained before transfer, which every later stage reads.
 REUSABLE_STAGES = ("teachers", "distill", "hyperdistill", "grl")

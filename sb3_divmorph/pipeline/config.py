@@ -76,7 +76,7 @@ class TeachersConfig:
     checkpoint_every: int = 50_000
     #: ``""``: the zoo entry ``Unimal-<task>-v0``; ``"metamorph"``: ``Unimal-<task>-v0-metamorph``,
     #: MetaMorph's training recipe (cosine lr with warm-up, Adam eps 1e-5, KL stop at 0.2,
-    #: normalisation clipped at 10, balanced robot sampler; see ``sb3_divmorph.recipe``)
+    #: normalisation clipped at 10, balanced robot sampler; see ``sb3_divmorph.algos.recipe``)
     recipe: str = ""
     #: ``single``: ``n_envs`` C-MuJoCo envs; ``batched``: MuJoCo Warp (:mod:`unimal_envs.batched`),
     #: ``worlds_per_robot`` worlds of every robot on the profile's device (``n_envs`` is then unused)
@@ -142,12 +142,12 @@ class TransferConfig:
     finetune_overrides: dict[str, Any] = field(default_factory=dict)
     #: env steps at the start of those arms' runs during which only the critic trains (the actor
     #: is frozen): they come without a critic for the novel task (see
-    #: :class:`~sb3_divmorph.finetune.CriticWarmup`); 0 = none
+    #: :class:`~sb3_divmorph.algos.finetune.CriticWarmup`); 0 = none
     critic_warmup: int = 0
     #: learning-rate multiple of the critic's parameters in those arms' runs: their actor fine-tunes
     #: at ``finetune_overrides``' rate, while their critic (random, or another task's) has a new
     #: task's values to learn, as scratch's does at the teachers' rate; e.g. 10 with lin_1e-4 gives
-    #: the critic lin_1e-3 (``benchmarks/critic_start.py`` measures it on a training task)
+    #: the critic lin_1e-3 (``studies/critic_start.py`` measures it on a training task)
     critic_lr_scale: float = 1.0
     checkpoint_every: int = 50_000
     #: the arms to race (see :data:`sb3_divmorph.pipeline.arms.ARMS`); default: ``divmorph`` and,
@@ -180,7 +180,7 @@ class TransferConfig:
     observation_statistics: str = "frozen"
     #: Adam's ``eps`` of every arm's optimiser (one rule for the whole race). DivMorph's per-unit
     #: learning rates need it far below a distilled student's gradients
-    #: (:data:`~sb3_divmorph.finetune.TRANSFER_ADAM_EPS`), so every arm gets that value; ``null``:
+    #: (:data:`~sb3_divmorph.algos.finetune.TRANSFER_ADAM_EPS`), so every arm gets that value; ``null``:
     #: the rule before issue 26 (1e-10 for the DivMorph-way arms, SB3's 1e-5 for the others)
     adam_eps: float | None = 1e-10
     #: learning-rate scale of the parts a DivMorph ablation does not divert (``no-kdiv-*``: every unit

@@ -20,25 +20,18 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+from stable_baselines3 import PPO
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
-from stable_baselines3 import PPO
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecMonitor, VecNormalize
 
 from sb3_divmorph.pipeline.arms import ARMS
 from sb3_divmorph.pipeline.config import Profile
 from sb3_divmorph.pipeline.metrics import ArmMetrics, RobotCurves, task_metrics_from_curves
-from sb3_divmorph.pipeline.runs import (
-    SPLITS,
-    atomic_write_text,
-    is_done,
-    read_csv_rows,
-    stage_model,
-    stage_normalizer,
-    task_env_name,
-    trained_env_kwargs,
-    write_csv,
-)
+from sb3_divmorph.pipeline.envs import task_env_name
+from sb3_divmorph.pipeline.files import atomic_write_text, is_done, read_csv_rows, write_csv
+from sb3_divmorph.pipeline.robots import SPLITS, trained_env_kwargs
+from sb3_divmorph.pipeline.training import stage_model, stage_normalizer
 
 EVAL_FILE = "eval.csv"
 EVAL_COLUMNS = ["timesteps", "split", "robot", "episode", "return", "length"]
@@ -105,7 +98,11 @@ def robot_venv(env_name: str, robots: list[Path], max_steps: int, seed: int, **e
     return VecMonitor(
         DummyVecEnv(
             [
-                (lambda robot=robot: EpisodeSeeds(gym.make(env_name, morphologies=[robot], max_episode_steps=max_steps, **env_kwargs), seed))
+                (
+                    lambda robot=robot: EpisodeSeeds(
+                        gym.make(env_name, morphologies=[robot], max_episode_steps=max_steps, **env_kwargs), seed
+                    )
+                )
                 for robot in robots
             ]
         )
@@ -328,7 +325,7 @@ def evaluate_model(
 
     :param instruction: the task's instruction in other words (default: the built-in one).
     :param env_kwargs: further env arguments; default: those the model's run trained with
-        (:func:`~sb3_divmorph.pipeline.runs.trained_env_kwargs`), so that it sees the observations it learnt on.
+        (:func:`~sb3_divmorph.pipeline.robots.trained_env_kwargs`), so that it sees the observations it learnt on.
     :param deterministic: ``False`` samples actions from the policy, as training does.
     """
     if env_kwargs is None:

@@ -3,7 +3,7 @@ of the other transfer arms: the dense MetaMorph⚗ student and the ablated DivMo
 
 The student acts in ``Unimal-MultiTask-v0`` over the training tasks and morphologies (a task is
 drawn per episode), each visited state is labelled by its own task's teacher, and the student
-minimises ``KL(teacher || student)`` (see :mod:`sb3_divmorph.distillation`). With
+minimises ``KL(teacher || student)`` (see :mod:`sb3_divmorph.algos.distillation`). With
 ``ppo_loss: false`` (default) learning is pure distillation (:class:`ImitationPPO`) and the
 teacher's action is executed with probability beta, annealed from ``beta_start`` to ``beta_end``;
 with ``ppo_loss: true`` the distillation steps run alongside PPO's own update.
@@ -36,10 +36,13 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.utils import LinearSchedule
 from stable_baselines3.common.vec_env import VecNormalize
 
-from sb3_divmorph.distillation import DAggerCallback, ImitationPPO, TeacherMixingVecEnv
+from sb3_divmorph.algos.distillation import DAggerCallback, ImitationPPO, TeacherMixingVecEnv
 from sb3_divmorph.pipeline.config import ConfigError, Profile, load_zoo_entry
-from sb3_divmorph.pipeline.runs import TrainingRun, is_done, make_vec_env, profile_env_kwargs, profile_robots, resolve_device
 from sb3_divmorph.pipeline.folders import load_teachers, student_folder
+from sb3_divmorph.pipeline.envs import make_vec_env, profile_env_kwargs, resolve_device
+from sb3_divmorph.pipeline.files import is_done
+from sb3_divmorph.pipeline.robots import profile_robots
+from sb3_divmorph.pipeline.training import TrainingRun
 from sb3_divmorph.pipeline.students import STUDENTS, StudentSpec, dense_student_kwargs  # noqa: F401 -- re-exported
 from unimal_envs.contract import TASK_NAMES
 

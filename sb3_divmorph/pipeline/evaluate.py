@@ -26,30 +26,17 @@ import numpy as np
 from stable_baselines3 import PPO
 from tqdm import tqdm
 
-from sb3_divmorph.distillation import load_normalizer
-from sb3_divmorph.pipeline.config import Profile
-from sb3_divmorph.pipeline.folders import TEACHER_RUN, student_folder, teacher_folder, transfer_folder, transfer_seeds, transfer_tasks
-from sb3_divmorph.pipeline.students import STUDENTS
-from sb3_divmorph.pipeline.runs import (
-    atomic_save,
-    atomic_write_text,
-    has_model,
-    is_done,
-    log_file,
-    mark_done,
-    profile_env_kwargs,
-    profile_robots,
-    profile_splits,
-    read_csv_rows,
-    robot_observations,
-    stage_model,
-    transfer_eval_robots,
-    stage_normalizer,
-    task_env_name,
-)
+from sb3_divmorph.algos.distillation import load_normalizer
 from sb3_divmorph.pipeline.arms import ARMS
+from sb3_divmorph.pipeline.config import Profile
 from sb3_divmorph.pipeline.curves import EVAL_FILE, evaluate_model, read_eval, robot_venv, rollout_returns  # noqa: F401 -- evaluate_model re-exported
+from sb3_divmorph.pipeline.folders import TEACHER_RUN, student_folder, teacher_folder, transfer_folder, transfer_seeds, transfer_tasks
 from sb3_divmorph.pipeline.grid import job_builder
+from sb3_divmorph.pipeline.envs import profile_env_kwargs, robot_observations, task_env_name
+from sb3_divmorph.pipeline.files import atomic_save, atomic_write_text, is_done, log_file, mark_done, read_csv_rows
+from sb3_divmorph.pipeline.robots import profile_robots, profile_splits, transfer_eval_robots
+from sb3_divmorph.pipeline.training import has_model, stage_model, stage_normalizer
+from sb3_divmorph.pipeline.students import STUDENTS
 from unimal_envs.contract import TASK_NAMES
 from unimal_envs.instructions import shipped_embeddings
 

@@ -1,9 +1,9 @@
 """Stage 4 — deployment: prune and merge the student into a compact actor per robot and task.
 
 For each robot and task the student's gates are evaluated once, unselected tailors are pruned and
-the rest merged (:class:`~sb3_divmorph.compact.CompactActor`), the observation normalisation is
+the rest merged (:class:`~sb3_divmorph.deploy.compact.CompactActor`), the observation normalisation is
 baked in, and the actor is written as ONNX (``actor.onnx``: ``onnxruntime`` + ``numpy`` run it, see
-:mod:`sb3_divmorph.onnx_actor`) and/or TorchScript (``actor.pt``: ``torch.jit.load`` is all it
+:mod:`sb3_divmorph.deploy.onnx_actor`) and/or TorchScript (``actor.pt``: ``torch.jit.load`` is all it
 needs). The stage checks every written file against the unpruned student on observations of a
 short rollout (max |diff| <= 1e-5, or it refuses to write) and reports its size like for like: the
 MetaMorph actor of the same task and sizes goes through the same folding, so the reduction counts
@@ -33,7 +33,8 @@ import torch as th
 from stable_baselines3 import PPO
 from stable_baselines3.common.vec_env import VecNormalize
 
-from sb3_divmorph.compact import (
+from sb3_divmorph.algos.distillation import load_normalizer
+from sb3_divmorph.deploy.compact import (
     CompactActor,
     actor_inputs,
     actor_parameter_count,
@@ -42,25 +43,14 @@ from sb3_divmorph.compact import (
     export_torchscript,
     size_comparison,
 )
-from sb3_divmorph.distillation import load_normalizer
 from sb3_divmorph.pipeline.config import ConfigError, Profile
 from sb3_divmorph.pipeline.folders import export_reports, student_folder, transfer_folder  # noqa: F401 -- export_reports re-exported
+from sb3_divmorph.pipeline.envs import profile_env_kwargs, task_env_name
+from sb3_divmorph.pipeline.files import DONE, MODEL, atomic_write_json, atomic_write_text, is_done, mark_done, read_done
+from sb3_divmorph.pipeline.robots import profile_robots
+from sb3_divmorph.pipeline.training import stage_model, stage_normalizer
 from sb3_divmorph.pipeline.students import STUDENTS
-from sb3_divmorph.pipeline.runs import (
-    DONE,
-    MODEL,
-    atomic_write_json,
-    atomic_write_text,
-    is_done,
-    mark_done,
-    profile_env_kwargs,
-    profile_robots,
-    read_done,
-    stage_model,
-    stage_normalizer,
-    task_env_name,
-)
-from sb3_divmorph.policies import DivMorphPolicy
+from sb3_divmorph.policies.morphology_transformer import DivMorphPolicy
 from unimal_envs.contract import NOVEL_TASKS, TASK_NAMES
 from unimal_envs.tasks import TASKS
 
@@ -132,7 +122,7 @@ def _rollout_observations(env: gym.Env, actor: CompactActor, first: dict[str, np
 
 
 def _onnx_runner(path: Path):
-    from sb3_divmorph.onnx_actor import OnnxActor
+    from sb3_divmorph.deploy.onnx_actor import OnnxActor
 
     actor = OnnxActor(path)
     return lambda observations: th.as_tensor(actor(observations))

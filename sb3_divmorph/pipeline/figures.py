@@ -47,17 +47,10 @@ from sb3_divmorph.pipeline.curves import (  # noqa: E402, F401 -- the metrics ar
     task_metrics,
     write_metrics,
 )
-from sb3_divmorph.pipeline.metrics import ArmMetrics, mean_curve, robot_interval  # noqa: E402
-from sb3_divmorph.pipeline.runs import (  # noqa: E402
-    atomic_save,
-    log_file,
-    profile_robots,
-    profile_splits,
-    read_csv_rows,
-    transfer_eval_robots,
-    write_csv,
-)
 from sb3_divmorph.pipeline.folders import export_reports, transfer_tasks  # noqa: E402
+from sb3_divmorph.pipeline.metrics import ArmMetrics, mean_curve, robot_interval  # noqa: E402
+from sb3_divmorph.pipeline.files import atomic_save, log_file, read_csv_rows, write_csv  # noqa: E402
+from sb3_divmorph.pipeline.robots import profile_robots, profile_splits, transfer_eval_robots  # noqa: E402
 from sb3_divmorph.pipeline.students import STUDENTS  # noqa: E402
 
 #: Resolution of every report PNG (figures and report/*.png): legible at the sizes they are drawn, and

@@ -1,8 +1,8 @@
 """The run folder: which stages a run has, where each one's outputs live, and which are done.
 
 Every stage reads and writes a run folder (``runs/<profile>`` or ``--out``) and nothing else; the
-stages never import each other, only this module (and the helpers of :mod:`~sb3_divmorph.pipeline.runs`
-below it). A finished run of any stage holds ``done.json`` (:func:`~sb3_divmorph.pipeline.runs.is_done`);
+stages never import each other, only this module (and the helpers of :mod:`~sb3_divmorph.pipeline.files`, :mod:`~sb3_divmorph.pipeline.training`
+below it). A finished run of any stage holds ``done.json`` (:func:`~sb3_divmorph.pipeline.files.is_done`);
 ``run.json`` at the top records the settings and commands (:mod:`~sb3_divmorph.pipeline.provenance`).
 
 ==============  ===========================================  ================================================
@@ -30,9 +30,10 @@ import json
 from pathlib import Path
 from typing import Any
 
-from sb3_divmorph.distillation import Teacher
+from sb3_divmorph.algos.distillation import Teacher
 from sb3_divmorph.pipeline.config import ConfigError, Profile
-from sb3_divmorph.pipeline.runs import stage_model, is_done, stage_normalizer
+from sb3_divmorph.pipeline.files import is_done
+from sb3_divmorph.pipeline.training import stage_model, stage_normalizer
 from sb3_divmorph.pipeline.students import STUDENTS
 from unimal_envs.contract import NOVEL_TASKS, TASK_NAMES, observation_space
 

@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from sb3_divmorph.pipeline.config import ConfigError, Profile
-from sb3_divmorph.pipeline.runs import atomic_write_json, is_done, read_done
+from sb3_divmorph.pipeline.files import atomic_write_json, is_done, read_done
 
 #: ``running.json`` in a job's folder: which process runs it (for the progress display, and to stop it).
 RUNNING = "running.json"
@@ -48,7 +48,7 @@ class Job:
 
     The runner knows jobs, not stages: ``builder`` is ``"module:function"``, called as
     ``function(profile, out, *args, progress_bar=..., **options)`` and returning a resumable
-    :class:`~sb3_divmorph.pipeline.runs.TrainingRun` (a string, so that a Ray worker imports it itself).
+    :class:`~sb3_divmorph.pipeline.training.TrainingRun` (a string, so that a Ray worker imports it itself).
 
     :param builder: e.g. ``"sb3_divmorph.pipeline.teachers:teacher_run"``.
     :param args: the builder's arguments after ``profile`` and ``out``.

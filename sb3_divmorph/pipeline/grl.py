@@ -40,24 +40,13 @@ from typing import Any
 import numpy as np
 from stable_baselines3 import PPO
 
-from sb3_divmorph.learngene import inherit, layer_units, unit_tensors  # noqa: F401 -- re-exported
 from sb3_divmorph.pipeline.config import Profile, grl_policy_kwargs, load_zoo_entry  # noqa: F401 -- re-exported
 from sb3_divmorph.pipeline.folders import agent_folder, grl_folder, learngene_file, read_learngene  # noqa: F401 -- re-exported
-from sb3_divmorph.pipeline.runs import (
-    stage_model,
-    TrainingRun,
-    atomic_write_json,
-    is_done,
-    inherited_normalizer,
-    make_vec_env,
-    mark_done,
-    normalizer_for,
-    profile_env_kwargs,
-    profile_robots,
-    read_progress,
-    resolve_device,
-    task_env_name,
-)
+from sb3_divmorph.pipeline.envs import inherited_normalizer, make_vec_env, normalizer_for, profile_env_kwargs, resolve_device, task_env_name
+from sb3_divmorph.pipeline.files import atomic_write_json, is_done, mark_done, read_progress
+from sb3_divmorph.pipeline.robots import profile_robots
+from sb3_divmorph.pipeline.training import TrainingRun, stage_model
+from sb3_divmorph.policies.learngene import inherit, layer_units, unit_tensors  # noqa: F401 -- re-exported
 
 POLICY = "MetaMorphPolicy"
 
@@ -80,7 +69,7 @@ def _unit_names(profile: Profile) -> list[str]:
     """Names of the inheritable layers of this profile's agents."""
     import gymnasium as gym
 
-    from sb3_divmorph.policies import MetaMorphPolicy
+    from sb3_divmorph.policies.morphology_transformer import MetaMorphPolicy
 
     env = gym.make(task_env_name(profile.teachers.tasks[0]), morphologies=profile_robots(profile, "train")[:1])
     assert isinstance(env.observation_space, gym.spaces.Dict) and isinstance(env.action_space, gym.spaces.Box)

@@ -12,7 +12,7 @@ Runs when the profile has a ``hyperdistill`` section (``divmorph hyperdistill`` 
    student of runs recorded before the key. ``observation_statistics: teachers`` (default): each
    state is normalised with the statistics of its task's teacher, held in ``model.zip`` (no
    ``vecnormalize.pkl``); ``own`` (runs recorded before the key): one ``VecNormalize`` of the
-   student's own over all the tasks' states (see :mod:`sb3_divmorph.hyperdistill`);
+   student's own over all the tasks' states (see :mod:`sb3_divmorph.policies.hyperdistill`);
 3. per (robot, task) of the ``export`` section: the MLP generated once for that robot, written as
    TorchScript (``mlp.pt``) and ONNX (``mlp.onnx``), checked against the student (max |diff| <= 1e-5)
    and reported with its size against the teacher's actor (``hyperdistill/export/<robot>-<task>/``).
@@ -35,35 +35,19 @@ import torch as th
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.vec_env import VecNormalize
 
-from sb3_divmorph.compact import actor_inputs, actor_parameter_count, batch1_latency, export_torchscript
-from sb3_divmorph.deployment import export_onnx
-from sb3_divmorph.distillation import DAggerCallback, ImitationPPO, Teacher, load_normalizer
-from sb3_divmorph.hyperdistill import (
-    HyperDistillMLP,
-    HyperDistillPolicy,
-    TeacherRollouts,
-    collect_teacher_rollouts,
-    fit_offline,
-    load_student,
-)
+from sb3_divmorph.algos.distillation import DAggerCallback, ImitationPPO, Teacher, load_normalizer
+from sb3_divmorph.algos.hyperdistill_fit import TeacherRollouts, collect_teacher_rollouts, fit_offline, load_student
+from sb3_divmorph.deploy.compact import actor_inputs, actor_parameter_count, batch1_latency, export_torchscript
+from sb3_divmorph.deploy.deployment import export_onnx
+from sb3_divmorph.deploy.hyperdistill_mlp import HyperDistillMLP
 from sb3_divmorph.pipeline.config import ConfigError, Profile, teacher_policy
 from sb3_divmorph.pipeline.folders import TEACHER_RUN, load_teachers, teacher_folder
 from sb3_divmorph.pipeline.grid import Job, run_grid
-from sb3_divmorph.pipeline.runs import (
-    MODEL,
-    stage_model,
-    NORMALIZER,
-    atomic_save,
-    atomic_write_json,
-    is_done,
-    make_vec_env,
-    mark_done,
-    profile_env_kwargs,
-    profile_robots,
-    resolve_device,
-    stage_normalizer,
-    task_env_name,
-)
+from sb3_divmorph.pipeline.envs import make_vec_env, profile_env_kwargs, resolve_device, task_env_name
+from sb3_divmorph.pipeline.files import MODEL, NORMALIZER, atomic_save, atomic_write_json, is_done, mark_done
+from sb3_divmorph.pipeline.robots import profile_robots
+from sb3_divmorph.pipeline.training import stage_model, stage_normalizer
+from sb3_divmorph.policies.hyperdistill import HyperDistillPolicy
 from unimal_envs.contract import TASK_NAMES, observation_space
 from unimal_envs.tasks import TASKS
 

@@ -22,14 +22,17 @@ import shutil
 import subprocess
 import tempfile
 import time
-from importlib import metadata
 from collections.abc import Iterator
+from importlib import metadata
 from pathlib import Path
 from typing import Any
 
 from sb3_divmorph.pipeline.config import ConfigError, Profile, apply_overrides
 from sb3_divmorph.pipeline.folders import DOWNSTREAM, STAGE_FOLDERS  # noqa: F401 -- re-exported
-from sb3_divmorph.pipeline.runs import DONE, atomic_write_json, read_done, reopen, resolve_device, robot_set_record
+from sb3_divmorph.pipeline.envs import resolve_device
+from sb3_divmorph.pipeline.files import DONE, atomic_write_json, read_done
+from sb3_divmorph.pipeline.robots import robot_set_record
+from sb3_divmorph.pipeline.training import reopen
 
 RECORD = "run.json"
 #: where ``--redo`` / ``--force`` move the folders of the stages they retrain
@@ -226,7 +229,9 @@ def check_and_record(
         return _check_and_record(out, profile, command, force, redo, extend)
 
 
-def _extended_stages(out: Path, recorded: dict[str, Any] | None, config: dict[str, Any], changed: dict[str, list[str]], extend) -> list[str]:
+def _extended_stages(
+    out: Path, recorded: dict[str, Any] | None, config: dict[str, Any], changed: dict[str, list[str]], extend
+) -> list[str]:
     """Check that each stage of ``extend`` only grows its budget; drop it from ``changed``."""
     done = []
     for stage in extend:
@@ -238,7 +243,9 @@ def _extended_stages(out: Path, recorded: dict[str, Any] | None, config: dict[st
         if others:
             raise ConfigError(f"--continue {stage} continues a larger budget only; other settings of it changed: {'; '.join(others)}")
         if old is None or new < old:
-            raise ConfigError(f"--continue {stage} needs a larger {key} than the run's {old}, got {new} (e.g. --set {key}={2 * (old or 1)})")
+            raise ConfigError(
+                f"--continue {stage} needs a larger {key} than the run's {old}, got {new} (e.g. --set {key}={2 * (old or 1)})"
+            )
         linked = [f for f in STAGE_FOLDERS[stage] if any(p.is_symlink() for p in (Path(out) / f).rglob("*"))]
         if linked:
             raise ConfigError(

@@ -23,9 +23,6 @@ import numpy as np  # noqa: E402
 
 from sb3_divmorph.pipeline.arms import ARMS  # noqa: E402
 from sb3_divmorph.pipeline.config import Profile  # noqa: E402
-from sb3_divmorph.pipeline.folders import export_reports, transfer_folder, transfer_seeds, transfer_tasks  # noqa: E402
-from sb3_divmorph.pipeline.students import STUDENTS  # noqa: E402
-from sb3_divmorph.pipeline.provenance import RECORD, SUPERSEDED  # noqa: E402
 from sb3_divmorph.pipeline.figures import (  # noqa: E402, F401 -- _correlation, plot_gates re-exported
     CAPTIONS,
     SPLIT_WORDS,
@@ -38,16 +35,12 @@ from sb3_divmorph.pipeline.figures import (  # noqa: E402, F401 -- _correlation,
     save_png,
     write_metrics,
 )
+from sb3_divmorph.pipeline.folders import export_reports, transfer_folder, transfer_seeds, transfer_tasks  # noqa: E402
 from sb3_divmorph.pipeline.metrics import BOOTSTRAP, EFFICIENCY_FRACTION, interval, robot_interval  # noqa: E402
-from sb3_divmorph.pipeline.runs import (  # noqa: E402
-    SPLITS,
-    atomic_write_text,
-    log_file,
-    log_files,
-    read_csv_rows,
-    read_progress,
-    transfer_eval_robots,
-)
+from sb3_divmorph.pipeline.provenance import RECORD, SUPERSEDED  # noqa: E402
+from sb3_divmorph.pipeline.files import atomic_write_text, log_file, log_files, read_csv_rows, read_progress  # noqa: E402
+from sb3_divmorph.pipeline.robots import SPLITS, transfer_eval_robots  # noqa: E402
+from sb3_divmorph.pipeline.students import STUDENTS  # noqa: E402
 
 
 def _curve(ax, progress: dict[str, np.ndarray], key: str, label: str) -> bool:

@@ -17,9 +17,9 @@ from typing import Any
 
 from stable_baselines3.common.policies import BasePolicy
 
-from sb3_divmorph.extractors import TASK_EMBEDDING
+from sb3_divmorph.nn.extractors import TASK_EMBEDDING
 from sb3_divmorph.pipeline.config import Profile
-from sb3_divmorph.policies import DIVERSIONS, PRESETS, DivMorphPolicy, MetaMorphPolicy
+from sb3_divmorph.policies.morphology_transformer import DIVERSIONS, PRESETS, DivMorphPolicy, MetaMorphPolicy
 
 
 @dataclass(frozen=True)

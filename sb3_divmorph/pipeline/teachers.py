@@ -12,19 +12,13 @@ from pathlib import Path
 
 from stable_baselines3 import PPO
 
-from sb3_divmorph.device_ppo import DevicePPO
+from sb3_divmorph.algos.device_ppo import DevicePPO
 from sb3_divmorph.pipeline.config import ConfigError, Profile, load_zoo_entry, teacher_policy, zoo_entry_id  # noqa: F401 -- re-exported
-from sb3_divmorph.pipeline.runs import (
-    TrainingRun,
-    is_done,
-    make_vec_env,
-    normalizer_for,
-    profile_env_kwargs,
-    profile_robots,
-    resolve_device,
-    task_env_name,
-)
 from sb3_divmorph.pipeline.folders import load_teachers, teacher_folder  # noqa: F401 -- load_teachers re-exported
+from sb3_divmorph.pipeline.envs import make_vec_env, normalizer_for, profile_env_kwargs, resolve_device, task_env_name
+from sb3_divmorph.pipeline.files import is_done
+from sb3_divmorph.pipeline.robots import profile_robots
+from sb3_divmorph.pipeline.training import TrainingRun
 from unimal_envs.contract import TASK_NAMES
 
 
@@ -67,7 +61,7 @@ def teacher_run(
         venv = normalizer_for(make_env(), entry.normalize, entry.ppo_kwargs.get("gamma", 0.99))
         return algo(entry.policy, venv, policy_kwargs=policy_kwargs, seed=seed, device=device, verbose=0, **entry.ppo_kwargs)
 
-    from sb3_divmorph.recipe import BalancedRobotSampler  # the only callback a zoo entry may name
+    from sb3_divmorph.algos.recipe import BalancedRobotSampler  # the only callback a zoo entry may name
 
     callbacks = [BalancedRobotSampler(**kwargs) for _, kwargs in entry.callbacks]
     return TrainingRun(

@@ -16,7 +16,7 @@ architecture has, freshly initialised, next to all its trained weights (:func:`f
 In the DivMorph arm (and the ablations, transferred the same way) the gates see the embedding of
 the task's instruction (the built-in one, or ``transfer.instructions[task]`` of the profile,
 embedded by the text encoder) and stay fixed; PPO trains the tailors those gates select and,
-``learngene_lr_scale`` times slower, the shared knowledge (:func:`sb3_divmorph.finetune.prepare_transfer`).
+``learngene_lr_scale`` times slower, the shared knowledge (:func:`sb3_divmorph.algos.finetune.prepare_transfer`).
 A part an ablation does not divert has no tailors; it trains at ``transfer.undiverted_lr_scale``
 (default: the full rate, as any fine-tuned network; ``null``: as learngenes, the former rule).
 """
@@ -35,7 +35,7 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecNormalize
 
-from sb3_divmorph.finetune import (
+from sb3_divmorph.algos.finetune import (
     TRANSFER_ADAM_EPS,
     CriticWarmup,
     UnitLearningRates,
@@ -45,7 +45,6 @@ from sb3_divmorph.finetune import (
     set_adam_eps,
 )
 from sb3_divmorph.pipeline.arms import ARMS
-from sb3_divmorph.learngene import inherit
 from sb3_divmorph.pipeline.config import ConfigError, Profile, check_arms, check_seeds, grl_policy_kwargs, load_zoo_entry
 from sb3_divmorph.pipeline.curves import EVAL_FILE, EvalCurveCallback, evaluate_model, write_metrics
 from sb3_divmorph.pipeline.folders import (  # noqa: F401 -- transfer_folder, transfer_seeds, transfer_tasks re-exported
@@ -57,25 +56,15 @@ from sb3_divmorph.pipeline.folders import (  # noqa: F401 -- transfer_folder, tr
     transfer_tasks,
 )
 from sb3_divmorph.pipeline.grid import GridReport, Job, run_grid
-from sb3_divmorph.pipeline.runs import (
-    stage_model,
-    TrainingRun,
-    atomic_write_json,
-    inherited_normalizer,
-    is_done,
-    make_vec_env,
-    normalizer_for,
-    profile_env_kwargs,
-    profile_robots,
-    transfer_eval_robots,
-    resolve_device,
-    robot_observations,
-    task_env_name,
-)  # robot_observations re-exported
-from sb3_divmorph.policies import PRESETS, DivMorphPolicy
+from sb3_divmorph.pipeline.envs import inherited_normalizer, make_vec_env, normalizer_for, profile_env_kwargs, resolve_device, robot_observations, task_env_name
+from sb3_divmorph.pipeline.files import atomic_write_json, is_done
+from sb3_divmorph.pipeline.robots import profile_robots, transfer_eval_robots
+from sb3_divmorph.pipeline.training import TrainingRun, stage_model  # robot_observations re-exported
+from sb3_divmorph.policies.learngene import inherit
+from sb3_divmorph.policies.morphology_transformer import PRESETS, DivMorphPolicy
 from unimal_envs.contract import NOVEL_TASKS, TASK_NAMES
-from unimal_envs.tasks import TASKS
 from unimal_envs.instructions import INSTRUCTIONS, embed_instruction, shipped_embeddings
+from unimal_envs.tasks import TASKS
 
 
 def gate_selection(policy: DivMorphPolicy, raw_obs: dict[str, np.ndarray], normalizer: VecNormalize | None) -> UnitSelection:
@@ -89,7 +78,7 @@ class UpdateRatioLogger(BaseCallback):
     """Logs ``transfer/update_ratio``: the learngene / selected-tailor mean absolute update of the
     last rollout's optimiser steps, as applied (the configured ``learngene_lr_scale`` is the target).
 
-    :param rates: returns the installed :class:`~sb3_divmorph.finetune.UnitLearningRates`.
+    :param rates: returns the installed :class:`~sb3_divmorph.algos.finetune.UnitLearningRates`.
     """
 
     def __init__(self, rates: Callable[[], UnitLearningRates | None]):
@@ -342,7 +331,7 @@ def transfer_run(
     :param seed: offsets the PPO seed (the robots, budget and evaluation are the same for every seed).
     :param calibration: also accept a *training* task: a setting of the race (a learning rate, the
         critic's treatment) is chosen by running the arms on a training task, never on the novel ones
-        (``benchmarks/critic_start.py``).
+        (``studies/critic_start.py``).
     :raises ConfigError: not a novel task, unknown arm, or the run folder was begun from another source.
     :raises FileNotFoundError: the arm's prerequisite stage has not run.
     """

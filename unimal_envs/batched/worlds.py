@@ -14,17 +14,16 @@ from __future__ import annotations
 
 import contextlib
 
+import mujoco
+import mujoco_warp as mjw
 import numpy as np
 import torch
-
-import mujoco
 import warp as wp
-import mujoco_warp as mjw
 
 from unimal_envs import contract as C
+from unimal_envs.batched.terrain import TerrainPool
 from unimal_envs.env import UnimalEnv, compile_world
 from unimal_envs.morphology.loader import MorphologyError
-from unimal_envs.batched.terrain import TerrainPool
 
 #: Physics substeps per control step, as in the single env.
 SUBSTEPS = 4

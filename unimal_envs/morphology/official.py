@@ -54,8 +54,8 @@ from pathlib import Path, PurePosixPath
 from unimal_envs.morphology.cache import (  # noqa: F401 -- where a set lives and whether it is there; re-exported
     MANIFEST,
     OFFICIAL_SETS,
-    TEST_BYTE_COPIES,
     SHORT_NAMES,
+    TEST_BYTE_COPIES,
     OfficialSet,
     cache_root,
     fetch_command,

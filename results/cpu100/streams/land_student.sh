@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Lands a finished student of the 100-robot run before it is committed: re-saves its model without the
-# optimiser state (bit-identical weights and actions, benchmarks/slim_models.py), then checks it against
+# optimiser state (bit-identical weights and actions, tools/slim_models.py), then checks it against
 # the teachers on the 100 training robots -- both through the same `divmorph evaluate` (same robots,
 # seed, episodes and env settings) -- into checks/<name>/ (README with the paired shares, returns.csv).
 # The evaluation stage repeats this with 3 episodes per robot and the novel robots.
@@ -18,7 +18,7 @@ case $folder in
 esac
 check=$RUN/checks/$label
 [ -f "$RUN/$folder/done.json" ] || { echo "$RUN/$folder has not finished (no done.json)" >&2; exit 1; }
-python benchmarks/slim_models.py --write "$RUN/$folder"
+python tools/slim_models.py --write "$RUN/$folder"
 tmp=$(mktemp -d)
 start=$(date +%s)
 divmorph evaluate --run "$RUN" --model teacher --model teacher-untrained --model "$label" --split train --episodes 1 \

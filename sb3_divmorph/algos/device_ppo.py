@@ -75,8 +75,8 @@ def _batched_env_class() -> type | None:
 
 def _mirrored_statistics(rms: Any) -> bool:
     """Statistics whose update :class:`TorchRunningMeanStd` reproduces: SB3's own, or frozen ones
-    (:class:`~sb3_divmorph.finetune.FrozenRunningMeanStd`, never updated)."""
-    from sb3_divmorph.finetune import FrozenRunningMeanStd
+    (:class:`~sb3_divmorph.algos.finetune.FrozenRunningMeanStd`, never updated)."""
+    from sb3_divmorph.algos.finetune import FrozenRunningMeanStd
 
     return type(rms) in (RunningMeanStd, FrozenRunningMeanStd)
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch as th
 from torch import nn
 
-from sb3_divmorph.layers import LinearBuilder
+from sb3_divmorph.nn.layers import LinearBuilder
 
 
 def small_uniform_init(layer: nn.Linear) -> None:

@@ -31,9 +31,9 @@ import torch as th
 from torch import nn
 from torch.nn import functional as F
 
-from sb3_divmorph.deployment import ACTOR_INPUTS, DeployedActor, actor_inputs, export_onnx
-from sb3_divmorph.extractors import ACT_PADDING_MASK, CONTEXT, OBS_PADDING_MASK, PROPRIOCEPTIVE
-from sb3_divmorph.layers import FactorizedLinear
+from sb3_divmorph.deploy.deployment import ACTOR_INPUTS, DeployedActor, actor_inputs, export_onnx
+from sb3_divmorph.nn.extractors import ACT_PADDING_MASK, CONTEXT, OBS_PADDING_MASK, PROPRIOCEPTIVE
+from sb3_divmorph.nn.layers import FactorizedLinear
 
 __all__ = ["ACTOR_INPUTS", "CompactActor", "actor_inputs", "export_onnx", "export_torchscript", "size_comparison"]
 
@@ -272,7 +272,7 @@ def export_torchscript(actor: CompactActor, example: Mapping[str, np.ndarray], p
 def metamorph_twin(policy: nn.Module) -> nn.Module:
     """A MetaMorph policy of the same width, depth and encoders as a DivMorph student (random init):
     the paper's size reference."""
-    from sb3_divmorph.policies import DivMorphPolicy, MetaMorphPolicy
+    from sb3_divmorph.policies.morphology_transformer import DivMorphPolicy, MetaMorphPolicy
 
     kwargs = {k: v for k, v in policy._get_constructor_parameters().items() if k not in (*DivMorphPolicy._divmorph_keys, "diversion")}
     # the extractor kwargs carry DivMorph's factorization; MetaMorph rebuilds its own from the sizes

@@ -36,8 +36,8 @@ from stable_baselines3.common.policies import ActorCriticPolicy
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper, VecNormalize
 from torch.distributions import Normal, kl_divergence
 
-from sb3_divmorph.extractors import ACT_PADDING_MASK, CONTEXT, OBS_PADDING_MASK, TASK_EMBEDDING
-from sb3_divmorph.gates import load_balancing_loss
+from sb3_divmorph.nn.extractors import ACT_PADDING_MASK, CONTEXT, OBS_PADDING_MASK, TASK_EMBEDDING
+from sb3_divmorph.nn.gates import load_balancing_loss
 
 #: Observation key holding the index of the episode's task in ``unimal_envs.contract.TASK_NAMES``.
 TASK_INDEX = "task_index"
@@ -344,9 +344,9 @@ class DAggerCallback(BaseCallback):
     :param max_grad_norm: gradient clipping.
     :param seed: seed of the minibatch shuffling.
     :param load_balance: weight of a Switch-Transformer load-balancing term on both gates
-        (:func:`~sb3_divmorph.gates.load_balancing_loss`, minus its uniform value 1 per gate) added
+        (:func:`~sb3_divmorph.nn.gates.load_balancing_loss`, minus its uniform value 1 per gate) added
         to the KL. Default 0 (off, DivMorph's recipe). Use it against gate collapse (a top-1 gate
-        learns without it too: its weight is straight-through, see :class:`~sb3_divmorph.gates.TopKSoftGate`).
+        learns without it too: its weight is straight-through, see :class:`~sb3_divmorph.nn.gates.TopKSoftGate`).
     :param verbose: SB3 verbosity.
     """
 

@@ -15,8 +15,8 @@ from gymnasium import spaces
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from torch import nn
 
-from sb3_divmorph.layers import Factorization, LinearBuilder
-from sb3_divmorph.transformer import TokenEmbedding, TransformerEncoder
+from sb3_divmorph.nn.layers import Factorization, LinearBuilder
+from sb3_divmorph.nn.transformer import TokenEmbedding, TransformerEncoder
 
 PROPRIOCEPTIVE = "proprioceptive"
 CONTEXT = "context"
@@ -77,7 +77,7 @@ class MorphologyTransformerExtractor(BaseFeaturesExtractor):
     :param activation: FFN activation (``"relu"`` as in MetaMorph, or ``"gelu"``).
     :param use_context: append the static ``context`` row to each token's input.
     :param exteroception: ``{obs key: MLP widths}``; keys absent from the space are skipped.
-    :param factorization: plain-valued :class:`~sb3_divmorph.layers.Factorization` fields
+    :param factorization: plain-valued :class:`~sb3_divmorph.nn.layers.Factorization` fields
         (``n_morph_tailors``, ``n_task_tailors``, ``orthogonal``, ``divert``, ``n_learngenes``), or
         ``None`` for dense projections.
     :param factorize_exteroception: build the exteroception encoders with the same factorization

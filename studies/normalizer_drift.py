@@ -15,7 +15,7 @@ B. drift: fixed states of each training task (the student acting with its own st
 C. the height above the ground under the torso (``z - arena.ground_height(x, y)``, the quantity the
    fall check already uses) on the same states: its per-task statistics, beside the absolute height's.
 
-    python benchmarks/normalizer_drift.py                  # ~3 min on one core
+    python studies/normalizer_drift.py                  # ~3 min on one core
 """
 
 from __future__ import annotations
@@ -32,9 +32,10 @@ from stable_baselines3 import PPO
 
 import sb3_divmorph  # noqa: F401
 import unimal_envs  # noqa: F401
-from sb3_divmorph.distillation import load_normalizer
+from sb3_divmorph.algos.distillation import load_normalizer
 from sb3_divmorph.pipeline.provenance import recorded_profile
-from sb3_divmorph.pipeline.runs import profile_robots, stage_model
+from sb3_divmorph.pipeline.robots import profile_robots
+from sb3_divmorph.pipeline.training import stage_model
 
 TASKS = ("FT", "VT", "Incline", "Obstacle", "Patrol")
 KEY = "proprioceptive"
@@ -92,7 +93,7 @@ def main() -> None:
     lines = [
         "# Observation statistics of a multi-task student, and what moving them does",
         "",
-        f"`python benchmarks/normalizer_drift.py --run {args.run} --robots {args.robots} --steps {args.steps} "
+        f"`python studies/normalizer_drift.py --run {args.run} --robots {args.robots} --steps {args.steps} "
         f"--drift-steps {args.drift_steps}`; machine: {platform.node()} ({platform.machine()}, 1 torch thread); "
         "training tasks and training robots only.",
         "",

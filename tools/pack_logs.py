@@ -1,14 +1,14 @@
 """Pack the CSV logs of a recorded run's finished stages, so that the run fits the repository.
 
-    python benchmarks/pack_logs.py results/cpu100                 # what packing would save (writes nothing)
-    python benchmarks/pack_logs.py --write results/cpu100/transfer
+    python tools/pack_logs.py results/cpu100                 # what packing would save (writes nothing)
+    python tools/pack_logs.py --write results/cpu100/transfer
 
 A 100-robot run writes tens of MB of CSV (a transfer run's ``eval.csv`` holds every robot's episodes at
 every evaluation; ``progress.csv`` every PPO update), more than the repository's tracked-size limit
 allows (``tests/test_tree_size.py``). Packing gzips ``progress.csv``, ``eval.csv`` and ``returns.csv``
 into ``<name>.gz`` (deterministic: no timestamp, so a re-pack is byte-identical) and removes the plain
 file after checking that the packed one reads back byte for byte. Every reader of the pipeline takes
-either form (``sb3_divmorph.pipeline.runs.log_file``), and a plain file written later wins over its
+either form (``sb3_divmorph.pipeline.files.log_file``), and a plain file written later wins over its
 packed twin. Only finished stages are packed -- a folder with ``done.json`` at or above the file --
 because a running stage appends to its logs.
 """

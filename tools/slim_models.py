@@ -1,8 +1,8 @@
 """Slim the shipped SB3 models without changing what they do, and check that they do the same.
 
-    python benchmarks/slim_models.py                     # check only: what slimming would save, and that it is exact
-    python benchmarks/slim_models.py --write             # the same check, then re-save every shipped model in place
-    python benchmarks/slim_models.py --against <commit>  # compare the models as they are with those of an older commit
+    python tools/slim_models.py                     # check only: what slimming would save, and that it is exact
+    python tools/slim_models.py --write             # the same check, then re-save every shipped model in place
+    python tools/slim_models.py --against <commit>  # compare the models as they are with those of an older commit
 
 A ``model.zip`` as PPO saves it holds, besides the weights, Adam's moment estimates (twice the
 parameters) and the last rollout observation (``_last_obs`` / ``_last_original_obs``); its

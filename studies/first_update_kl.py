@@ -6,7 +6,7 @@ makes one PPO update at the cpu profile's transfer settings (learning rate 1e-3 
 lin_1e-3, 4 epochs of minibatch 512), training only the listed parameters, and reports SB3's
 ``train/approx_kl`` and clip fraction. Writes ``results/first_update_kl.md``.
 
-    python benchmarks/first_update_kl.py            # ~2 min on one core (restore results/cpu/teachers/FT first:
+    python studies/first_update_kl.py            # ~2 min on one core (restore results/cpu/teachers/FT first:
                                                     # its model is in git history, results/cpu/README.md)
 """
 
@@ -21,15 +21,16 @@ import numpy as np
 import torch as th
 from stable_baselines3 import PPO
 from stable_baselines3.common.logger import configure
-
 from stable_baselines3.common.vec_env import VecNormalize
 
 import sb3_divmorph  # noqa: F401
 import unimal_envs  # noqa: F401
-from sb3_divmorph.finetune import prepare_transfer, set_adam_eps
+from sb3_divmorph.algos.finetune import prepare_transfer, set_adam_eps
 from sb3_divmorph.pipeline.grl import inherited_normalizer
 from sb3_divmorph.pipeline.provenance import recorded_profile
-from sb3_divmorph.pipeline.runs import make_vec_env, profile_robots, stage_model
+from sb3_divmorph.pipeline.envs import make_vec_env
+from sb3_divmorph.pipeline.robots import profile_robots
+from sb3_divmorph.pipeline.training import stage_model
 from sb3_divmorph.pipeline.transfer import gate_selection, robot_observations
 
 ACTOR = {
@@ -164,7 +165,7 @@ def main() -> None:
     lines = [
         "# First-update KL of fine-tuned models on a training task",
         "",
-        f"`python benchmarks/first_update_kl.py --run {args.run} --task {args.task}`; machine: {platform.node()} "
+        f"`python studies/first_update_kl.py --run {args.run} --task {args.task}`; machine: {platform.node()} "
         f"({platform.machine()}, 1 torch thread). One rollout of 4 x 512 steps on the run's training robots, observation "
         "statistics frozen, then one PPO update (4 epochs, minibatch 512); SB3's `train/approx_kl` (mean over the update's "
         "minibatches) and clip fraction. A log-probability check before the first step found rollout and update agree "

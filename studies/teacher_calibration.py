@@ -14,7 +14,7 @@ above thresholds, throughput), ``<out>/returns.csv`` (one row per run, model, ro
 actions, so below the deterministic return -- against env steps).
 
     divmorph teachers --profile cpu100 --out results/cpu100-calibration/w32 --task FT --no-progress
-    python benchmarks/teacher_calibration.py --runs results/cpu100-calibration/w32 results/cpu100-calibration/w64 \\
+    python studies/teacher_calibration.py --runs results/cpu100-calibration/w32 results/cpu100-calibration/w64 \\
         --out results/cpu100-calibration
 """
 
@@ -39,7 +39,9 @@ from sb3_divmorph.pipeline.evaluate import evaluate_untrained_teacher  # noqa: E
 from sb3_divmorph.pipeline.folders import teacher_folder  # noqa: E402
 from sb3_divmorph.pipeline.metrics import robot_interval  # noqa: E402
 from sb3_divmorph.pipeline.provenance import RECORD, recorded_profile  # noqa: E402
-from sb3_divmorph.pipeline.runs import is_done, profile_env_kwargs, profile_robots, read_progress  # noqa: E402
+from sb3_divmorph.pipeline.envs import profile_env_kwargs  # noqa: E402
+from sb3_divmorph.pipeline.files import is_done, read_progress  # noqa: E402
+from sb3_divmorph.pipeline.robots import profile_robots  # noqa: E402
 
 #: Returns a reader of the table asks about: "walks at all" and "walks well" on FT.
 THRESHOLDS = (500, 1000)
@@ -136,7 +138,7 @@ def _report(args: argparse.Namespace, summaries: list[dict]) -> str:
         "next to the same policy before training; 95% bootstrap intervals over robots. No novel robot was rolled out.",
         "",
         "```bash",
-        f"python benchmarks/teacher_calibration.py --runs {' '.join(str(r) for r in args.runs)} --task {args.task} "
+        f"python studies/teacher_calibration.py --runs {' '.join(str(r) for r in args.runs)} --task {args.task} "
         f"--episodes {args.episodes} --out {args.out}",
         "```",
         "",

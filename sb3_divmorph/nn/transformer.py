@@ -1,7 +1,7 @@
 """Pre-LayerNorm Transformer encoder whose projections can be dense or factorized.
 
 ``nn.MultiheadAttention`` owns its (fused) projection weights, so it cannot run factorized ones; this
-module builds q, k, v, o and the two FFN matrices through a :class:`~sb3_divmorph.layers.LinearBuilder`
+module builds q, k, v, o and the two FFN matrices through a :class:`~sb3_divmorph.nn.layers.LinearBuilder`
 and threads the per-sample tailor gates through every one of them.
 
 Padding: ``key_padding_mask`` (True = padded token) removes padded tokens as attention keys, so a
@@ -18,7 +18,7 @@ import torch as th
 from torch import nn
 from torch.nn import functional as F
 
-from sb3_divmorph.layers import LinearBuilder, project_many
+from sb3_divmorph.nn.layers import LinearBuilder, project_many
 
 #: FFN activations. Not in place: the FFN output is a view (``F.linear`` on tokens), and autograd
 #: turns an in-place op on a view into extra copies of the whole (tokens x ff_dim) tensor.

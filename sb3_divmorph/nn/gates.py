@@ -13,7 +13,7 @@ from typing import NamedTuple
 import torch as th
 from torch import nn
 
-from sb3_divmorph.transformer import TokenEmbedding, TransformerEncoder
+from sb3_divmorph.nn.transformer import TokenEmbedding, TransformerEncoder
 
 
 class TopKSoftGate(nn.Module):

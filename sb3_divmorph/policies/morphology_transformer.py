@@ -32,10 +32,9 @@ from stable_baselines3.common.preprocessing import preprocess_obs
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
-from sb3_divmorph.decoders import TokenDecoder, small_uniform_init
-from sb3_divmorph.distributions import MaskedDiagGaussianDistribution
-from sb3_divmorph.transformer import TokenEmbedding
-from sb3_divmorph.extractors import (
+from sb3_divmorph.nn.decoders import TokenDecoder, small_uniform_init
+from sb3_divmorph.nn.distributions import MaskedDiagGaussianDistribution
+from sb3_divmorph.nn.extractors import (
     ACT_PADDING_MASK,
     CONTEXT,
     OBS_PADDING_MASK,
@@ -44,8 +43,9 @@ from sb3_divmorph.extractors import (
     MorphologyTransformerExtractor,
     token_padding,
 )
-from sb3_divmorph.gates import DiversionRouter, GateActivations, masked_mean
-from sb3_divmorph.layers import Factorization, LinearBuilder, batched_square_factors
+from sb3_divmorph.nn.gates import DiversionRouter, GateActivations, masked_mean
+from sb3_divmorph.nn.layers import Factorization, LinearBuilder, batched_square_factors
+from sb3_divmorph.nn.transformer import TokenEmbedding
 
 #: What the project's presets add to MetaMorph's network (each an option of the policies): a
 #: 35-feature morphology ``context`` row in every token, a hidden layer in the per-token decoders,
@@ -506,8 +506,8 @@ class DivMorphPolicy(MorphologyTransformerPolicy):
     """DivMorph: the MetaMorph network with knowledge diversion (Feng et al., 2025).
 
     Every Transformer projection (q, k, v, o, FFN in/out) and every decoder layer is a
-    :class:`~sb3_divmorph.layers.FactorizedLinear` built from the SVD of its random dense init.
-    Per sample, a :class:`~sb3_divmorph.gates.DiversionRouter` encodes ``context`` (morphology) and
+    :class:`~sb3_divmorph.nn.layers.FactorizedLinear` built from the SVD of its random dense init.
+    Per sample, a :class:`~sb3_divmorph.nn.gates.DiversionRouter` encodes ``context`` (morphology) and
     reads ``task_embedding`` (task), and its ``softmax(TopK)`` gates scale the morphology and task
     tailors of every layer; learngenes are always on. Layers whose rank cannot hold the tailors
     plus one learngene (the 2-output action head, the value head) keep every unit a learngene.

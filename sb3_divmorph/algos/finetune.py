@@ -2,7 +2,7 @@
 
 DivMorph adapts to a new task by keeping its morphology and task gates fixed and training the
 tailors those gates select, with small adjustments to the learngenes. Units of a
-:class:`~sb3_divmorph.layers.FactorizedLinear` share tensors (a unit is a column of ``U`` and ``V``
+:class:`~sb3_divmorph.nn.layers.FactorizedLinear` share tensors (a unit is a column of ``U`` and ``V``
 and an entry of ``s``), so they cannot sit in separate optimiser parameter groups, and scaling
 their gradients would be undone by Adam's normalisation. :class:`UnitLearningRates` therefore
 scales each element's *update*: it snapshots the parameters before every optimiser step and
@@ -13,7 +13,7 @@ Two details make that exact in practice:
 
 * the Cayley skew ``A`` of a square factor mixes every unit with every other once ``A != 0``, so
   :func:`prepare_transfer` first folds the distilled rotation into the base
-  (:meth:`~sb3_divmorph.layers.FactorizedLinear.rebase_square_factor`); restarted at zero with its
+  (:meth:`~sb3_divmorph.nn.layers.FactorizedLinear.rebase_square_factor`); restarted at zero with its
   rows and columns of unselected units frozen, ``A`` then never touches those units;
 * Adam's ``eps`` (1e-5 in SB3) is larger than the gradients of a distilled student's tailors
   (~1e-6), so Adam would not normalise them and the effective ratio would depend on gradient sizes;
@@ -33,7 +33,7 @@ from stable_baselines3.common.running_mean_std import RunningMeanStd
 from stable_baselines3.common.vec_env import VecNormalize
 from torch import nn
 
-from sb3_divmorph.layers import FactorizedLinear, _upper_indices
+from sb3_divmorph.nn.layers import FactorizedLinear, _upper_indices
 
 
 @dataclass(frozen=True)

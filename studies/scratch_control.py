@@ -1,6 +1,6 @@
 """Where does scratch get with 4x the race's budget? A control for a transfer race's speed-ups.
 
-    python benchmarks/scratch_control.py --race results/cpu100 --control results/cpu100-scratch-long
+    python studies/scratch_control.py --race results/cpu100 --control results/cpu100-scratch-long
 
 In a race where scratch learns little within the budget, the speed-up of an arm over scratch is only a
 lower bound (``>= budget / the arm's steps``). The control trains scratch (MetaMorph from random
@@ -29,7 +29,7 @@ import numpy as np
 from sb3_divmorph.pipeline.curves import seed_robot_curves
 from sb3_divmorph.pipeline.metrics import bootstrap_curves, interval, stack_seeds, steps_to_hold
 from sb3_divmorph.pipeline.metrics import speedup as metrics_speedup
-from sb3_divmorph.pipeline.runs import read_csv_rows
+from sb3_divmorph.pipeline.files import read_csv_rows
 
 SPLITS = ("train", "novel")
 #: the race's arms drawn beside the control (every arm of the race)
@@ -183,7 +183,7 @@ def main() -> None:
         writer.writeheader()
         writer.writerows(flat)
     plot(args.race, args.control, tasks, args.control / "control.png")
-    command = f"python benchmarks/scratch_control.py --race {args.race} --control {args.control}"
+    command = f"python studies/scratch_control.py --race {args.race} --control {args.control}"
     (args.control / "control.md").write_text(markdown(rows, command, time.time() - start))
     print((args.control / "control.md").read_text())
 

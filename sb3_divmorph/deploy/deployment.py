@@ -3,8 +3,8 @@ HyperDistill's folded actors): inputs, baked normalisation, size and FLOP accoun
 
 Every deployed actor has the same interface: ``forward(proprioceptive, hfield, goal, object)`` on
 the env's *raw* arrays -> (B, 24) action means, with the ``VecNormalize`` statistics baked in, so
-:func:`~sb3_divmorph.compact.export_torchscript` and :func:`export_onnx` serve all of them, and
-:class:`sb3_divmorph.onnx_actor.OnnxActor` runs any ONNX file without torch.
+:func:`~sb3_divmorph.deploy.compact.export_torchscript` and :func:`export_onnx` serve all of them, and
+:class:`sb3_divmorph.deploy.onnx_actor.OnnxActor` runs any ONNX file without torch.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import torch as th
 from torch import nn
 from torch.utils.flop_counter import FlopCounterMode
 
-from sb3_divmorph.extractors import EXTEROCEPTION_KEYS, OBS_PADDING_MASK, PROPRIOCEPTIVE
+from sb3_divmorph.nn.extractors import EXTEROCEPTION_KEYS, OBS_PADDING_MASK, PROPRIOCEPTIVE
 
 #: positional inputs of every deployed actor, in ``forward`` order
 ACTOR_INPUTS = (PROPRIOCEPTIVE, *EXTEROCEPTION_KEYS)
@@ -107,7 +107,7 @@ def export_onnx(actor: nn.Module, example: Mapping[str, np.ndarray], path: str |
     a free batch axis (torch's TorchScript-based exporter: the ``torch.export`` one needs
     ``onnxscript``). ``metadata`` (robot, task, ...) is stored in the model's ``metadata_props``,
     with the inputs' names and shapes and the robot's ``obs_padding_mask``, which
-    :class:`sb3_divmorph.onnx_actor.OnnxActor` checks observations against.
+    :class:`sb3_divmorph.deploy.onnx_actor.OnnxActor` checks observations against.
 
     :param actor: a deployed actor (``CompactActor``, ``ModuMorphActor``, ``HyperDistillMLP``).
     :param example: one raw observation (unbatched) of the robot and task.

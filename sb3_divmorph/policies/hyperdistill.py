@@ -32,52 +32,34 @@ outside it, in the pipeline by one ``VecNormalize`` of the student's own (``prop
 statistics over the states of all the training tasks, ``vecnormalize.pkl``). Every generator starts with a zero weight
 matrix; the generated weights start ~N(0, 1/fan_in) (the generator's bias), generated biases at 0.
 
-Training is distillation from a teacher (ModuMorph by default, any teacher of the pipeline), with
-the project's machinery: offline from teacher rollouts (:func:`collect_teacher_rollouts` +
-:func:`fit_offline`, loss = NLL of the teacher's sampled action, the authors' default, or the KL
-of :func:`~sb3_divmorph.distillation.gaussian_kl`) and/or DAgger
-(:class:`~sb3_divmorph.distillation.DAggerCallback` with :class:`~sb3_divmorph.distillation.ImitationPPO`).
-
-Deployment: for one robot the MLP is generated once (:meth:`HyperDistillMLP.from_policy`), a plain
-``nn.Module`` with the compact actor's inputs, the observation normalisation baked in.
+Training is distillation from a teacher (ModuMorph by default, any teacher of the pipeline):
+offline from teacher rollouts (:mod:`sb3_divmorph.algos.hyperdistill_fit`) and/or DAgger
+(:class:`~sb3_divmorph.algos.distillation.DAggerCallback` with
+:class:`~sb3_divmorph.algos.distillation.ImitationPPO`). Deployment: for one robot the MLP is
+generated once (:class:`~sb3_divmorph.deploy.hyperdistill_mlp.HyperDistillMLP`).
 """
 
 from __future__ import annotations
 
 import math
-import os
-import time
 from collections.abc import Mapping, Sequence
-from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
 import torch as th
 from gymnasium import spaces
-from stable_baselines3 import PPO
 from stable_baselines3.common.policies import ActorCriticPolicy
 from stable_baselines3.common.preprocessing import preprocess_obs
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
-from stable_baselines3.common.vec_env import VecEnv, VecNormalize
+from stable_baselines3.common.vec_env import VecNormalize
 from torch import nn
 
-from sb3_divmorph.deployment import DeployedActor
-from sb3_divmorph.distillation import (
-    DistillationDataset,
-    ObsDict,
-    SpaceMismatchError,
-    Teacher,
-    check_spaces,
-    find_vec_wrapper,
-    gaussian_kl,
-    teacher_labels,
-)
-from sb3_divmorph.distributions import MaskedDiagGaussianDistribution
-from sb3_divmorph.extractors import ACT_PADDING_MASK, CONTEXT, OBS_PADDING_MASK, PROPRIOCEPTIVE, ExteroceptionEncoder, token_padding
-from sb3_divmorph.gates import masked_mean
-from sb3_divmorph.layers import LinearBuilder
-from sb3_divmorph.modumorph import RobotBatch
-from sb3_divmorph.transformer import TransformerEncoderLayer, attention_mask
+from sb3_divmorph.nn.distributions import MaskedDiagGaussianDistribution
+from sb3_divmorph.nn.extractors import ACT_PADDING_MASK, CONTEXT, OBS_PADDING_MASK, PROPRIOCEPTIVE, ExteroceptionEncoder, token_padding
+from sb3_divmorph.nn.gates import masked_mean
+from sb3_divmorph.nn.layers import LinearBuilder
+from sb3_divmorph.nn.transformer import TransformerEncoderLayer, attention_mask
+from sb3_divmorph.policies.modumorph import RobotBatch
 
 #: Sizes per preset: ``paper`` is the authors' reported setting (2 layers of width 256,
 #: context encoders of width 128 with a 2-head Transformer layer of FFN 256).
@@ -301,8 +283,8 @@ class HyperDistillNetwork(nn.Module):
 
 
 class HyperDistillPolicy(ActorCriticPolicy):
-    """The HyperDistill student as an SB3 policy (for :class:`~sb3_divmorph.distillation.ImitationPPO`
-    rollouts and :class:`~sb3_divmorph.distillation.DAggerCallback`).
+    """The HyperDistill student as an SB3 policy (for :class:`~sb3_divmorph.algos.distillation.ImitationPPO`
+    rollouts and :class:`~sb3_divmorph.algos.distillation.DAggerCallback`).
 
     Actor: :class:`HyperDistillNetwork`, masked Gaussian with a fixed std (``action_std``). The student
     is trained by imitation only, so its critic is a single learnable constant: SB3's rollout
@@ -547,306 +529,3 @@ class _TaskStatistics:
             x = (obs[k] - self.obs_rms[k].mean) / np.sqrt(self.obs_rms[k].var + self.epsilon)
             out[k] = np.clip(x, -self.clip_obs, self.clip_obs).astype(np.float32)
         return out
-
-
-def load_student(path: str | Path, observation_space: spaces.Space | None = None, device: str = "cpu") -> HyperDistillPolicy:
-    """A saved HyperDistill student (``model.zip``); its observation space must equal ``observation_space``.
-
-    :raises SpaceMismatchError: the checkpoint was trained on another observation space.
-    :raises TypeError: the checkpoint holds another policy.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"HyperDistill checkpoint {path} does not exist")
-    policy = PPO.load(path, device=device).policy
-    if not isinstance(policy, HyperDistillPolicy):
-        raise TypeError(f"{path} holds a {type(policy).__name__}, not a HyperDistill student")
-    if observation_space is not None:
-        check_spaces(f"HyperDistill checkpoint {path}", policy.observation_space, observation_space)
-    return policy.eval()
-
-
-# -- offline distillation from teacher rollouts ------------------------------------------------------
-class TeacherRollouts(DistillationDataset):
-    """Teacher-labelled states of teacher rollouts, with the teacher's *sampled* action (for the NLL loss)."""
-
-    def __init__(self, capacity: int):
-        super().__init__(capacity)
-        self.actions: np.ndarray | None = None
-
-    def add_with_actions(self, obs: ObsDict, mean: np.ndarray, std: np.ndarray, task: np.ndarray, actions: np.ndarray) -> None:
-        if self.actions is None:
-            self.actions = np.zeros((self.capacity, actions.shape[1]), dtype=np.float32)
-        rows = (self._next + np.arange(len(task))) % self.capacity
-        self.actions[rows] = actions
-        self.add(obs, mean, std, task)
-
-    def _label_arrays(self) -> tuple[str, ...]:
-        return (*super()._label_arrays(), "actions")
-
-    def batches_with_actions(self, batch_size: int, rng: np.random.Generator):
-        """Shuffled minibatches ``(obs, mean, std, task, action)``."""
-        order = rng.permutation(self.size)
-        for start in range(0, self.size, batch_size):
-            rows = order[start : start + batch_size]
-            yield {k: v[rows] for k, v in self.obs.items()}, self.mean[rows], self.std[rows], self.task[rows], self.actions[rows]
-
-
-def collect_teacher_rollouts(
-    teachers: Mapping[int, Teacher], venv: VecEnv, n_samples: int, seed: int = 0, capacity: int | None = None, verbose: int = 0
-) -> TeacherRollouts:
-    """Roll out the teachers (each state acted on by its own task's teacher, sampling from its Gaussian).
-
-    :param teachers: ``{task index: teacher}``.
-    :param venv: the student's env stack, observations with ``task_index``; a ``VecNormalize`` in it
-        keeps updating its statistics (the student's normalisation), raw states are stored.
-    :param n_samples: states to collect (rounded up to whole vector steps).
-    :param seed: seed of the action noise.
-    :param capacity: dataset capacity (default ``n_samples`` rounded up).
-    :param verbose: 1: a line at every tenth of the states collected (count, rate).
-    """
-    rng = np.random.default_rng(seed)
-    normalizer = find_vec_wrapper(venv, VecNormalize)
-    steps = math.ceil(n_samples / venv.num_envs)
-    dataset = TeacherRollouts(capacity or steps * venv.num_envs)
-    obs = venv.reset()
-    low, high = venv.action_space.low, venv.action_space.high
-    action_dim = int(np.prod(venv.action_space.shape))
-    start, report_every = time.perf_counter(), max(1, steps // 10)
-    for step in range(steps):
-        raw = normalizer.get_original_obs() if normalizer is not None else {k: np.array(v) for k, v in obs.items()}
-        mean, std, tasks = teacher_labels(teachers, raw, action_dim)
-        actions = (mean + std * rng.standard_normal(mean.shape)).astype(np.float32)
-        dataset.add_with_actions(raw, mean, std, tasks, actions)
-        obs, _, _, _ = venv.step(np.clip(actions, low, high))
-        if verbose and ((step + 1) % report_every == 0 or step + 1 == steps):
-            elapsed = time.perf_counter() - start
-            print(
-                f"[hyperdistill] teacher rollouts: {dataset.size} of {steps * venv.num_envs} states ({dataset.size / elapsed:.0f} states/s)"
-            )
-    return dataset
-
-
-def gaussian_nll(mean: th.Tensor, std: th.Tensor, actions: th.Tensor, real: th.Tensor) -> th.Tensor:
-    """Negative log-likelihood of ``actions`` under ``N(mean, std)``, summed over real slots: (B,)."""
-    per_slot = -th.distributions.Normal(mean, std).log_prob(actions)
-    return th.where(real, per_slot, th.zeros((), dtype=per_slot.dtype, device=per_slot.device)).sum(-1)
-
-
-def distillation_loss(
-    policy: HyperDistillPolicy, obs: Mapping[str, th.Tensor], t_mean: th.Tensor, t_std: th.Tensor, t_action: th.Tensor | None, loss: str
-) -> th.Tensor:
-    """Mean over the batch of the NLL of the teacher's action (``"nll"``) or ``KL(teacher || student)`` (``"kl"``)."""
-    if loss not in LOSSES:
-        raise ValueError(f"unknown distillation loss {loss!r}; choose from {list(LOSSES)}")
-    student = policy.get_distribution(obs).distribution
-    real = obs[ACT_PADDING_MASK] < 0.5
-    s_std = student.stddev.expand_as(student.mean)
-    if loss == "nll":
-        return gaussian_nll(student.mean, s_std, t_action, real).mean()
-    return gaussian_kl(t_mean, t_std, student.mean, s_std, real).mean()
-
-
-def fit_offline(
-    policy: HyperDistillPolicy,
-    dataset: TeacherRollouts,
-    normalizer: VecNormalize | None = None,
-    loss: str = "nll",
-    epochs: int = 10,
-    batch_size: int = 5120,
-    learning_rate: float = 3e-4,
-    max_grad_norm: float | None = None,
-    seed: int = 0,
-    checkpoint: str | Path | None = None,
-    verbose: int = 0,
-) -> list[float]:
-    """Fit the student to teacher rollouts by minibatch Adam; returns the mean loss of every epoch.
-
-    :param policy: the student.
-    :param dataset: from :func:`collect_teacher_rollouts`.
-    :param normalizer: the student's observation normalisation (applied to the stored raw states).
-    :param loss: ``"nll"`` (authors' default) or ``"kl"``.
-    :param epochs: passes over the dataset.
-    :param batch_size: minibatch size (authors: 5120).
-    :param learning_rate: Adam learning rate (authors: 1e-3 / 3e-4 / 1e-4).
-    :param max_grad_norm: gradient clipping (``None``: none).
-    :param seed: shuffling seed.
-    :param checkpoint: a file written (atomically) after every epoch with the student, the optimiser,
-        the shuffling state and the losses so far; when it exists the fit resumes from it and ends
-        as an uninterrupted fit would have. The caller removes it once the student is saved.
-    :param verbose: 1: a line per epoch (mean loss, seconds).
-    """
-    if loss not in LOSSES:
-        raise ValueError(f"unknown distillation loss {loss!r}; choose from {list(LOSSES)}")
-    optimizer = th.optim.Adam(policy.parameters(), lr=learning_rate)
-    rng = np.random.default_rng(seed)
-    device = policy.device
-    history: list[float] = []
-    if checkpoint is not None and Path(checkpoint).is_file():
-        state = th.load(checkpoint, map_location=device, weights_only=False)
-        policy.load_state_dict(state["policy"])
-        optimizer.load_state_dict(state["optimizer"])
-        rng.bit_generator.state = state["rng"]
-        history = list(state["history"])
-        if verbose:
-            print(f"[hyperdistill] offline fit: resuming after epoch {len(history)} of {epochs} ({checkpoint})")
-    policy.set_training_mode(True)
-    for epoch in range(len(history), epochs):
-        start, losses = time.perf_counter(), []
-        for raw, t_mean, t_std, _, t_action in dataset.batches_with_actions(batch_size, rng):
-            obs, _ = policy.obs_to_tensor(raw if normalizer is None else normalizer.normalize_obs(raw))
-            value = distillation_loss(
-                policy,
-                obs,
-                th.as_tensor(t_mean, device=device),
-                th.as_tensor(t_std, device=device),
-                th.as_tensor(t_action, device=device),
-                loss,
-            )
-            optimizer.zero_grad()
-            value.backward()
-            if max_grad_norm is not None:
-                th.nn.utils.clip_grad_norm_(policy.parameters(), max_grad_norm)
-            optimizer.step()
-            losses.append(value.item())
-        history.append(float(np.mean(losses)))
-        if checkpoint is not None:
-            _save_fit_state(Path(checkpoint), policy, optimizer, rng, history)
-        if verbose:
-            print(
-                f"[hyperdistill] offline fit: epoch {epoch + 1} of {epochs}, {loss} {history[-1]:.4g} ({time.perf_counter() - start:.0f} s)"
-            )
-    policy.set_training_mode(False)
-    return history
-
-
-def _save_fit_state(path: Path, policy: nn.Module, optimizer: th.optim.Optimizer, rng: np.random.Generator, history: list[float]) -> None:
-    """Write the offline fit's state next to ``path`` and rename it over ``path`` (a kill leaves the old one)."""
-    staging = path.with_name(f".staging-{path.name}")
-    th.save(
-        {"policy": policy.state_dict(), "optimizer": optimizer.state_dict(), "rng": rng.bit_generator.state, "history": history}, staging
-    )
-    os.replace(staging, path)
-
-
-# -- deployment ------------------------------------------------------------------------------------
-class HyperDistillMLP(DeployedActor):
-    """The MLP a HyperDistill student writes for one robot: a plain ``nn.Module``, generated once.
-
-    ``forward(proprioceptive, hfield, goal, object)`` on raw (B, 12, 52), (B, 1410), (B, 3), (B, 12)
-    arrays -> (B, 24) action means (0 on padded slots), like
-    :class:`~sb3_divmorph.compact.CompactActor`. Layers: ``Linear(n*52 -> H)`` over the robot's real
-    limbs (the per-limb input weights stacked), ReLU, exteroception encoders of the task's
-    observations concatenated (those of absent observations folded into the next bias),
-    ``n_layers - 1`` x (``Linear(H -> H)``, ReLU), ``Linear(H -> n*2)``.
-    """
-
-    @classmethod
-    @th.no_grad()
-    def from_policy(
-        cls,
-        policy: HyperDistillPolicy,
-        observation: Mapping[str, np.ndarray],
-        observation_keys: tuple[str, ...],
-        normalizer: Any | None = None,
-    ) -> HyperDistillMLP:
-        """
-        :param policy: the trained student.
-        :param observation: one raw (unbatched) observation of the robot doing the task (with a task input,
-            its ``task_index`` picks the task the MLP is written for).
-        :param observation_keys: the task's observations; encoders of the others are folded away.
-        :param normalizer: the student's ``VecNormalize`` (statistics baked in), or ``None`` (raw
-            observations; a student with its teachers' statistics bakes in those of the observation's task).
-        :raises ValueError: the robot has more tokens than the student supports.
-        """
-        if not isinstance(policy, HyperDistillPolicy):
-            raise TypeError(f"HyperDistillMLP needs a HyperDistillPolicy, got {type(policy).__name__}")
-        net: HyperDistillNetwork = policy.network
-        for key in (PROPRIOCEPTIVE, CONTEXT):
-            net.check_tokens(np.shape(observation[key])[0], f"the robot's {key}")
-        self = cls()
-        policy = policy.cpu().eval()
-        if policy.observation_statistics == "teachers":  # the statistics of the teacher of this task
-            if normalizer is not None:
-                raise ValueError("this student normalises with its teachers' statistics; pass normalizer=None")
-            normalizer = policy.task_normalizer(int(np.round(np.asarray(observation[TASK_INDEX]).reshape(-1)[0])))
-        raw = {k: np.asarray(v, dtype=np.float32)[None] for k, v in observation.items()}
-        obs = {k: th.as_tensor(v) for k, v in (raw if normalizer is None else normalizer.normalize_obs(raw)).items()}
-        padding = token_padding(obs)
-        real = th.nonzero(~padding[0]).flatten()
-        self.register_buffer("real_tokens", real)
-        self.n_tokens, self.slots = net.n_tokens, net.slots
-        self.used_extero = [k for k in net.exteroception.keys() if k in observation_keys]
-        self.bake_normalization(normalizer, real, self.used_extero)
-
-        context = net.context_input(obs, padding)  # with a task input: the MLP of this robot doing this task
-        weights = net.generate(net._encode(context, padding))
-        S = net.slots
-        rows, cols = net.real_indices(real)
-        self.input = _linear(weights.w_in[0][rows], weights.b_in[0])
-        # the layer after the input layer reads [h, extero]: fold the absent observations' encodings
-        extero_layers = [(k, e) for k, e in net.exteroception.items()]
-        after = list(weights.hidden) + [(weights.w_out, weights.b_out)]
-        w_next, b_next = after[0][0][0], after[0][1][0].clone()
-        keep, offset = [th.arange(net.hidden_dim)], net.hidden_dim
-        for key, encoder in extero_layers:
-            if key in self.used_extero:
-                keep.append(th.arange(offset, offset + encoder.out_dim))
-            else:
-                b_next += encoder(obs[key].flatten(1))[0] @ w_next[offset : offset + encoder.out_dim]
-            offset += encoder.out_dim
-        w_next = w_next[th.cat(keep)]
-        layers = [(w_next, b_next)] + [(w[0], b[0]) for w, b in after[1:]]
-        layers[-1] = (layers[-1][0][:, cols], layers[-1][1][cols])
-        self.layers = nn.ModuleList(_linear(w, b) for w, b in layers)
-        self.exteroception = nn.ModuleDict({k: _frozen_copy(net.exteroception[k]) for k in self.used_extero})
-        slot_real = (obs[ACT_PADDING_MASK][0] < 0.5).float().view(self.n_tokens, S)[real].flatten()
-        self.register_buffer("action_scale", slot_real)
-        return self.eval()
-
-    def forward(self, proprioceptive: th.Tensor, hfield: th.Tensor, goal: th.Tensor, object: th.Tensor) -> th.Tensor:  # noqa: A002
-        inputs = {"hfield": hfield, "goal": goal, "object": object}
-        x = self._normalize(PROPRIOCEPTIVE, proprioceptive.index_select(1, self.real_tokens))
-        h = th.relu(self.input(x.flatten(1)))
-        if self.used_extero:
-            h = th.cat([h] + [self.exteroception[k](self._normalize(k, inputs[k].flatten(1))) for k in self.used_extero], dim=-1)
-        for i, layer in enumerate(self.layers):
-            h = layer(h)
-            if i < len(self.layers) - 1:
-                h = th.relu(h)
-        actions = (h * self.action_scale).view(h.shape[0], -1, self.slots)
-        out = h.new_zeros(h.shape[0], self.n_tokens, self.slots)
-        return out.index_copy(1, self.real_tokens, actions).flatten(1)
-
-
-def _linear(weight_in_out: th.Tensor, bias: th.Tensor) -> nn.Linear:
-    layer = nn.Linear(weight_in_out.shape[0], weight_in_out.shape[1])
-    layer.weight = nn.Parameter(weight_in_out.T.detach().clone().contiguous(), requires_grad=False)
-    layer.bias = nn.Parameter(bias.detach().clone(), requires_grad=False)
-    return layer
-
-
-def _frozen_copy(module: nn.Module) -> nn.Module:
-    import copy
-
-    module = copy.deepcopy(module)
-    for p in module.parameters():
-        p.requires_grad_(False)
-    return module
-
-
-__all__ = [
-    "HYPERDISTILL_PRESETS",
-    "OBSERVATION_STATISTICS",
-    "TASK_INPUTS",
-    "HyperDistillMLP",
-    "HyperDistillNetwork",
-    "HyperDistillPolicy",
-    "SpaceMismatchError",
-    "TeacherRollouts",
-    "collect_teacher_rollouts",
-    "distillation_loss",
-    "fit_offline",
-    "gaussian_nll",
-    "load_student",
-]

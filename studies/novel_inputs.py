@@ -1,6 +1,6 @@
 """Do a run's models see novel robots' inputs inside the range they learnt on? A control for zero-shot.
 
-    python benchmarks/novel_inputs.py --run results/cpu100 --out results/cpu100/checks/novel-inputs.md
+    python studies/novel_inputs.py --run results/cpu100 --out results/cpu100/checks/novel-inputs.md
 
 When a model's return collapses on novel robots, one cause could be inputs the model never saw: the
 teacher's observation statistics, fitted on the training robots, could put novel robots' observations
@@ -25,7 +25,9 @@ from stable_baselines3 import PPO
 
 from sb3_divmorph.pipeline.curves import robot_venv
 from sb3_divmorph.pipeline.provenance import recorded_profile
-from sb3_divmorph.pipeline.runs import stage_model, stage_normalizer, task_env_name, trained_env_kwargs, transfer_eval_robots
+from sb3_divmorph.pipeline.envs import task_env_name
+from sb3_divmorph.pipeline.robots import trained_env_kwargs, transfer_eval_robots
+from sb3_divmorph.pipeline.training import stage_model, stage_normalizer
 
 #: |z| beyond which a normalised input counts as far out (VecNormalize clips at 10).
 FAR = 5.0
@@ -66,7 +68,7 @@ def main(argv: list[str] | None = None) -> None:
     lines = [
         "# Novel robots' inputs against the training robots' (a control for zero-shot)",
         "",
-        f"`python benchmarks/novel_inputs.py --run {args.run} --out {args.out}` -- each teacher, deterministic, with its own "
+        f"`python studies/novel_inputs.py --run {args.run} --out {args.out}` -- each teacher, deterministic, with its own "
         f"observation statistics, {args.steps} steps on each of the transfer curves' robots ({len(transfer_eval_robots(profile, 'train'))} "
         f"training and {len(transfer_eval_robots(profile, 'novel'))} novel robots, spread over each set); per observation key the "
         f"share of normalised entries with |z| > {FAR:g} and the mean |z| (keys the task does not use are 0).",
