@@ -408,9 +408,9 @@ def main(argv: list[str] | None = None) -> int:
     # the overview (no command, or --help before any command) is answered without importing the library
     args = _parser(overview=not words or words[0] in ("-h", "--help")).parse_args(argv)
     if args.command == "record":
-        from sb3_divmorph.record import run as record
+        from sb3_divmorph.record import run as run_record
 
-        return record(args)
+        return run_record(args)
     if args.command == "plot":
         from sb3_divmorph.plot import run as plot
 
@@ -454,7 +454,8 @@ def main(argv: list[str] | None = None) -> int:
     progress = not args.no_progress
     command_line = "divmorph " + shlex.join(argv if argv is not None else sys.argv[1:])
     start = time.perf_counter()
-    record = previous_record = None
+    record: dict | None = None
+    previous_record: str | None = None
     try:
         # out/run.json: the configuration, robots, versions, commit and device of this run; a run
         # is only continued with the settings it was started with (unless --force)

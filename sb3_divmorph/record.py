@@ -133,14 +133,14 @@ def record(args: argparse.Namespace) -> Path:
         max_episode_steps=args.steps,
         **settings,
     )
-    robots = [m.name for m in env.unwrapped.morphologies]
+    robots = [m.name for m in env.unwrapped.morphologies]  # type: ignore[attr-defined]  # a UnimalEnv
     unknown = sorted(set(args.robot or []) - set(robots))
     if unknown:
         env.close()
         raise RecordError(f"robot(s) {unknown} not among the robots recorded from (e.g. {robots[:3]})")
     chosen = args.robot or robots
 
-    algo = {"ppo": PPO, "a2c": A2C}[args.algo or saved.algo or "ppo"]
+    algo = A2C if (args.algo or saved.algo) == "a2c" else PPO
     model = algo.load(saved.model, device="cpu")
     check_spaces(f"model {saved.model}", model.observation_space, env.observation_space)
     normalizer = load_normalizer(normalizer_file) if normalizer_file is not None else None

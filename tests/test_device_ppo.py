@@ -221,3 +221,72 @@ def test_frozen_observation_statistics_stay_frozen_on_the_device_and_unknown_wra
             return self.venv.step_wait()
 
     assert device_env_chain(Custom(batched())) is None
+
+
+def test_a_transfer_on_the_batched_backend_runs_on_the_device_and_makes_the_vecenv_paths_update(tmp_path, monkeypatch):
+    """``transfer.env_backend: batched``: the transfer run is a DevicePPO whose rollouts stay on the
+    device, with the race's optimiser rules (selected tailors at the fine-tuning rate, learngenes
+    slower, critic faster, frozen statistics) -- its update equals the one SB3's VecEnv path makes on
+    the same batched env from the same student and seed; with a learning rate of 0 no weight moves."""
+    import importlib
+
+    transfer_module = importlib.import_module("sb3_divmorph.pipeline.transfer")  # the module, not the package's function
+    from sb3_divmorph.pipeline.config import load_profile
+    from sb3_divmorph.pipeline.files import mark_done
+    from sb3_divmorph.pipeline.students import STUDENTS
+    from sb3_divmorph.pipeline.transfer import transfer_run
+
+    def profile(learning_rate: str = "lin_1e-3"):
+        return load_profile(
+            "demo",
+            overrides={
+                "train_robots": 2,
+                "transfer.env_backend": "batched",
+                "transfer.worlds_per_robot": 2,
+                "transfer.n_timesteps": 32,
+                "transfer.eval_every": 0,
+                "transfer.checkpoint_every": 1000,
+                "transfer.overrides": {"n_envs": 1, "n_steps": 8, "batch_size": 32, "n_epochs": 1},
+                "transfer.finetune_overrides": {"learning_rate": learning_rate},
+            },
+        )
+
+    def student_run(out):
+        """A DivMorph student of the profile's size on FT, saved as the run's distilled student."""
+        env = VecNormalize(DummyVecEnv([lambda: gym.make("Unimal-FT-v0", morphologies=ROBOTS)]), norm_obs_keys=["proprioceptive"])
+        student = PPO("DivMorphPolicy", env, policy_kwargs=STUDENTS["divmorph"].kwargs(profile()), n_steps=8, batch_size=8, seed=1)
+        student.learn(8)
+        (out / "student").mkdir(parents=True)
+        student.save(out / "student" / "model.zip")
+        env.save(str(out / "student" / "vecnormalize.pkl"))
+        mark_done(out / "student", num_timesteps=8)
+        return student
+
+    collected = []
+    collect = DevicePPO._collect_on_device
+    monkeypatch.setattr(DevicePPO, "_collect_on_device", lambda self, *a: collected.append(1) or collect(self, *a))
+    student = student_run(tmp_path / "device")
+    on_device = transfer_run(profile(), tmp_path / "device", "FT", "divmorph", calibration=True, progress_bar=False).run()
+    assert isinstance(on_device, DevicePPO) and collected, "the transfer's rollouts were not collected on the device"
+
+    student_run(tmp_path / "vecenv")
+    monkeypatch.setattr(transfer_module, "DevicePPO", PPO)  # the same run through SB3's VecEnv path
+    through_vecenv = transfer_run(profile(), tmp_path / "vecenv", "FT", "divmorph", calibration=True, progress_bar=False).run()
+    assert type(through_vecenv) is PPO
+    moved = False
+    for (name, p), q in zip(through_vecenv.policy.named_parameters(), on_device.policy.parameters()):
+        np.testing.assert_allclose(q.detach().numpy(), p.detach().numpy(), atol=1e-5, err_msg=name)
+    for (name, p), q in zip(student.policy.named_parameters(), on_device.policy.parameters()):
+        moved |= not torch.allclose(p, q)
+    assert moved, "the transfer trained nothing"
+
+    monkeypatch.setattr(transfer_module, "DevicePPO", DevicePPO)
+    student_run(tmp_path / "frozen")
+    still = transfer_run(profile("lin_0"), tmp_path / "frozen", "FT", "divmorph", calibration=True, progress_bar=False).run()
+    # (the transfer re-expresses the orthogonal factors, so compare what the policy does, not its parameters)
+    env = gym.make("Unimal-FT-v0", morphologies=ROBOTS)
+    obs = [env.reset(seed=k, options={"morphology": k % 2})[0] for k in range(4)]
+    batch = still.get_vec_normalize_env().normalize_obs({key: np.stack([o[key] for o in obs]) for key in obs[0]})
+    before, _ = student.predict(batch, deterministic=True)
+    after, _ = still.predict(batch, deterministic=True)
+    np.testing.assert_allclose(after, before, atol=1e-5, err_msg="an action changed with a learning rate of 0")

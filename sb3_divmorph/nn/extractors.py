@@ -8,6 +8,7 @@ uses ``features_dim`` to size the heads, so token features pass through unchange
 
 from __future__ import annotations
 
+from typing import Any
 from collections.abc import Mapping, Sequence
 
 import torch as th
@@ -96,13 +97,15 @@ class MorphologyTransformerExtractor(BaseFeaturesExtractor):
         activation: str = "relu",
         use_context: bool = True,
         exteroception: Mapping[str, Sequence[int]] | None = None,
-        factorization: Mapping[str, int | bool | None] | None = None,
+        factorization: Mapping[str, Any] | None = None,
         factorize_exteroception: bool = False,
     ):
         proprio_shape = observation_space[PROPRIOCEPTIVE].shape
+        assert proprio_shape is not None  # a Box: the contract's spaces always have a shape
         self.max_tokens = proprio_shape[0]
         self.use_context = use_context and CONTEXT in observation_space.spaces
-        token_dim = proprio_shape[1] + (observation_space[CONTEXT].shape[1] if self.use_context else 0)
+        context_shape = observation_space[CONTEXT].shape if self.use_context else None
+        token_dim = proprio_shape[1] + (context_shape[1] if context_shape else 0)
 
         extero = {
             key: list(dims) for key, dims in sorted((exteroception or {}).items()) if key in observation_space.spaces and len(dims) > 0

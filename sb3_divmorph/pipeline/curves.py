@@ -15,6 +15,7 @@ from __future__ import annotations
 import csv
 import io
 from collections import defaultdict
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -49,7 +50,7 @@ def rollout_returns(
     finished = np.zeros(len(robots), dtype=int)
     obs = venv.reset()
     while (finished < episodes).any():
-        actions, _ = model.predict(normalize(obs) if normalize else obs, deterministic=deterministic)
+        actions, _ = model.predict(normalize(obs) if normalize else obs, deterministic=deterministic)  # type: ignore[arg-type]  # VecEnv obs: a dict here
         obs, _, dones, infos = venv.step(actions)
         for i in np.flatnonzero(dones):
             if finished[i] < episodes:
@@ -95,18 +96,11 @@ class EpisodeSeeds(gym.Wrapper):
 
 def robot_venv(env_name: str, robots: list[Path], max_steps: int, seed: int, **env_kwargs: Any) -> VecEnv:
     """One monitored env per robot, its episodes seeded by :class:`EpisodeSeeds` (``seed + e``)."""
-    return VecMonitor(
-        DummyVecEnv(
-            [
-                (
-                    lambda robot=robot: EpisodeSeeds(
-                        gym.make(env_name, morphologies=[robot], max_episode_steps=max_steps, **env_kwargs), seed
-                    )
-                )
-                for robot in robots
-            ]
-        )
-    )
+
+    def one(robot: Path) -> Callable[[], gym.Env]:
+        return lambda: EpisodeSeeds(gym.make(env_name, morphologies=[robot], max_episode_steps=max_steps, **env_kwargs), seed)
+
+    return VecMonitor(DummyVecEnv([one(robot) for robot in robots]))
 
 
 def rewind(venv: VecEnv) -> None:

@@ -127,7 +127,8 @@ def robot_observations(
     """
     import gymnasium as gym
 
-    env = gym.make(env_name, morphologies=robots, **({"instruction": instruction} if instruction else {}), **env_kwargs)
+    settings: dict[str, Any] = {**({"instruction": instruction} if instruction else {}), **env_kwargs}
+    env = gym.make(env_name, morphologies=robots, **settings)
     try:
         observations = [env.reset(seed=seed, options={"morphology": i})[0] for i in range(len(robots))]
     finally:

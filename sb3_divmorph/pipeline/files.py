@@ -27,7 +27,6 @@ import numpy as np
 import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
 
 
-
 DONE = "done.json"
 
 

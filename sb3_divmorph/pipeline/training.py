@@ -192,8 +192,8 @@ class TrainingRun:
         stateful = [c for c in self.callbacks if isinstance(c, StatefulCallback)]
         if resume is not None:
             model = self._load(resume)
-            for callback in stateful:
-                callback.load_state(resume)
+            for stateful_callback in stateful:
+                stateful_callback.load_state(resume)
             print(f"[resume] {self.folder}: resuming from step {model.num_timesteps} of {self.total_timesteps} (checkpoint {resume.name})")
         else:
             model = self.make_model()
@@ -229,7 +229,10 @@ class TrainingRun:
     def _load(self, folder: Path) -> BaseAlgorithm:
         """Model + statistics saved in ``folder``, on a fresh env; a space mismatch is an error."""
         venv = self.make_env()
-        saved_space = load_from_zip_file(folder / MODEL, device="cpu")[0]["observation_space"]
+        data, _, _ = load_from_zip_file(folder / MODEL, device="cpu")
+        if data is None:
+            raise ValueError(f"{folder / MODEL} holds no model data")
+        saved_space = data["observation_space"]
         check_spaces(f"checkpoint {folder}", saved_space, venv.observation_space)
         if (folder / NORMALIZER).is_file():
             venv = VecNormalize.load(str(folder / NORMALIZER), venv)

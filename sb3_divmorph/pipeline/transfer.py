@@ -35,6 +35,7 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecNormalize
 
+from sb3_divmorph.algos.device_ppo import DevicePPO
 from sb3_divmorph.algos.finetune import (
     TRANSFER_ADAM_EPS,
     CriticWarmup,
@@ -56,7 +57,15 @@ from sb3_divmorph.pipeline.folders import (  # noqa: F401 -- transfer_folder, tr
     transfer_tasks,
 )
 from sb3_divmorph.pipeline.grid import GridReport, Job, run_grid
-from sb3_divmorph.pipeline.envs import inherited_normalizer, make_vec_env, normalizer_for, profile_env_kwargs, resolve_device, robot_observations, task_env_name
+from sb3_divmorph.pipeline.envs import (
+    inherited_normalizer,
+    make_vec_env,
+    normalizer_for,
+    profile_env_kwargs,
+    resolve_device,
+    robot_observations,
+    task_env_name,
+)
 from sb3_divmorph.pipeline.files import atomic_write_json, is_done
 from sb3_divmorph.pipeline.robots import profile_robots, transfer_eval_robots
 from sb3_divmorph.pipeline.training import TrainingRun, stage_model  # robot_observations re-exported
@@ -280,7 +289,14 @@ def load_widened(policy: th.nn.Module, source: th.nn.Module) -> list[str]:
 
 
 def finetuned_model(
-    saved: PPO, venv, task: str, task_policy_kwargs: dict[str, Any], seed: int, device: str, ppo_kwargs: dict[str, Any]
+    saved: PPO,
+    venv,
+    task: str,
+    task_policy_kwargs: dict[str, Any],
+    seed: int,
+    device: str,
+    ppo_kwargs: dict[str, Any],
+    algo: type[PPO] = PPO,
 ) -> PPO:
     """A PPO model on ``venv`` that starts from ``saved``'s policy and sees ``task``'s inputs.
 
@@ -294,6 +310,7 @@ def finetuned_model(
     :param venv: the novel task's envs (normalised).
     :param task: the novel task.
     :param task_policy_kwargs: the novel task's MetaMorph kwargs.
+    :param algo: ``PPO``, or ``DevicePPO`` on the batched backend (rollouts on the device).
     """
     kwargs = dict(saved.policy_kwargs)
     extractor = saved.policy.features_extractor if saved.policy.share_features_extractor else saved.policy.pi_features_extractor
@@ -308,7 +325,7 @@ def finetuned_model(
                 f"(policy_kwargs {task_policy_kwargs}) has an encoder for it"
             )
         kwargs["exteroception"] = {**{key: wanted[key] for key in needed}, **saved.policy.config["exteroception"]}
-    model = PPO(type(saved.policy), venv, policy_kwargs=kwargs, seed=seed, device=device, **ppo_kwargs)
+    model = algo(type(saved.policy), venv, policy_kwargs=kwargs, seed=seed, device=device, **ppo_kwargs)
     if needed:
         load_widened(model.policy, saved.policy)
     else:
@@ -368,6 +385,10 @@ def transfer_run(
             **env_kwargs,
         )
 
+    # On the batched backend, rollouts stay on the device (DevicePPO; SB3's PPO otherwise); the
+    # arms' optimiser rules (per-unit rates, critic scale, Adam eps) live on the optimiser, which
+    # DevicePPO's update (SB3's own) steps as PPO's does, and no callback here reads per-world infos.
+    algo = DevicePPO if cfg.env_backend == "batched" else PPO
     callbacks: list[BaseCallback] = []
     if source is not None and cfg.critic_warmup > 0:
         callbacks.append(CriticWarmup(cfg.critic_warmup))
@@ -393,7 +414,7 @@ def transfer_run(
 
         def make_model():
             venv = normalizer_for(make_env(), entry.normalize, gamma)
-            return PPO(policy, venv, policy_kwargs=policy_kwargs, seed=run_seed, device=device, **entry.ppo_kwargs)
+            return algo(policy, venv, policy_kwargs=policy_kwargs, seed=run_seed, device=device, **entry.ppo_kwargs)
 
     elif arm == "grl":
         learngene = read_learngene(out)
@@ -401,7 +422,9 @@ def transfer_run(
         def make_model():
             # a new MetaMorph; only the learngene's layers (and the observation statistics they were trained with) inherited
             venv = inherited_normalizer(source, make_env(), gamma, freeze_observations=cfg.observation_statistics == "frozen")
-            model = PPO("MetaMorphPolicy", venv, policy_kwargs=grl_policy_kwargs(profile), seed=run_seed, device=device, **entry.ppo_kwargs)
+            model = algo(
+                "MetaMorphPolicy", venv, policy_kwargs=grl_policy_kwargs(profile), seed=run_seed, device=device, **entry.ppo_kwargs
+            )
             inherit(model.policy, PPO.load(stage_model(source), device=device).policy, learngene["units"])
             return model
 
@@ -413,7 +436,7 @@ def transfer_run(
             # new task; an encoder for a task input the source never had (a teacher of another task) is added
             saved = PPO.load(stage_model(source), device=device)
             venv = inherited_normalizer(source, make_env(), gamma, freeze_observations=cfg.observation_statistics == "frozen")
-            return finetuned_model(saved, venv, task, task_policy_kwargs, run_seed, device, entry.ppo_kwargs)
+            return finetuned_model(saved, venv, task, task_policy_kwargs, run_seed, device, entry.ppo_kwargs, algo)
 
     installed: dict[str, UnitLearningRates] = {}
     if spec.divmorph_transfer:
@@ -451,6 +474,7 @@ def transfer_run(
         cfg.checkpoint_every,
         make_model,
         make_env,
+        algo=algo,
         prepare=prepare,
         callbacks=callbacks,
         device=device,
