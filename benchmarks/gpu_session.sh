@@ -68,6 +68,12 @@ echo "step 2 exit $?"
 }
 
 # PPO_SHARE=60 leaves 40% of what is left after step 1 to the teacher (a first session measured it already)
+# A run carried in by the job before this one (results/gpu/LEDGER.md: the chain of windows) resumes from its
+# latest checkpoint; TEACHER_SET must repeat the settings it was begun with (run.json refuses others).
+if [ -d /tmp/resume/teachers ]; then
+  mkdir -p /tmp/gpu-run && cp -r /tmp/resume/. /tmp/gpu-run/
+  echo "resuming: $(cat /tmp/gpu-run/teachers/FT/checkpoints/latest.json 2>/dev/null)"
+fi
 if want 3 && [ "$(share 100)" -gt 60 ]; then
   stamp "3. paper-size FT teacher (gpu profile, 100 official robots)"
   timeout -k 20 -s INT "$(share 100)" python3 -m divmorph teachers --profile gpu --out /tmp/gpu-run \
