@@ -276,7 +276,7 @@ def test_a_transfer_on_the_batched_backend_runs_on_the_device_and_makes_the_vece
     moved = False
     for (name, p), q in zip(through_vecenv.policy.named_parameters(), on_device.policy.parameters()):
         np.testing.assert_allclose(q.detach().numpy(), p.detach().numpy(), atol=1e-5, err_msg=name)
-    for (name, p), q in zip(student.policy.named_parameters(), on_device.policy.parameters()):
+    for p, q in zip(student.policy.parameters(), on_device.policy.parameters()):
         moved |= not torch.allclose(p, q)
     assert moved, "the transfer trained nothing"
 
@@ -290,3 +290,122 @@ def test_a_transfer_on_the_batched_backend_runs_on_the_device_and_makes_the_vece
     before, _ = student.predict(batch, deterministic=True)
     after, _ = still.predict(batch, deterministic=True)
     np.testing.assert_allclose(after, before, atol=1e-5, err_msg="an action changed with a learning rate of 0")
+
+
+def _teachers(tmp_path):
+    """Two tiny (random-init) MetaMorph teachers, FT and Patrol, each with its VecNormalize statistics."""
+    from sb3_divmorph.algos.distillation import Teacher
+    from unimal_envs.contract import TASK_NAMES
+
+    found = {}
+    for seed, task in enumerate(("FT", "Patrol")):
+        venv = VecNormalize(
+            DummyVecEnv([lambda task=task: gym.make(f"Unimal-{task}-v0", morphologies=ROBOTS)]), norm_obs_keys=["proprioceptive"]
+        )
+        model = PPO("MetaMorphPolicy", venv, n_steps=16, batch_size=16, n_epochs=1, seed=seed, policy_kwargs=TINY)
+        model.learn(16)
+        model.save(tmp_path / task / "model.zip")
+        venv.save(str(tmp_path / task / "vecnormalize.pkl"))
+        found[TASK_NAMES.index(task)] = Teacher.load(tmp_path / task / "model.zip", tmp_path / task / "vecnormalize.pkl", task)
+    return found
+
+
+@pytest.mark.parametrize("beta", [0.0, 1.0])
+def test_dagger_on_the_device_labels_stores_and_learns_what_the_vecenv_path_does(beta, tmp_path):
+    """DAgger on the batched env: the states, the teachers' labels, the aggregated dataset and the
+    student's distillation update are those of SB3's VecEnv path (TeacherMixingVecEnv in the chain
+    keeps that path), with the dataset on the device; with beta = 1 every executed action is the
+    teacher's (the same trajectory on both paths) while the buffer keeps the student's own."""
+    from sb3_divmorph.algos.distillation import DAggerCallback, ImitationPPO, TeacherMixingVecEnv
+    from unimal_envs.contract import TASK_NAMES
+
+    teachers = _teachers(tmp_path)
+
+    def env(mixed: bool):
+        benv = make_batched_env(
+            "MultiTask", morphologies=ROBOTS, worlds_per_robot=1, device="cpu", seed=0, max_episode_steps=5, tasks=["FT", "Patrol"]
+        )
+        inner = TeacherMixingVecEnv(benv, teachers, beta=beta, seed=0) if mixed else benv
+        return VecNormalize(inner, norm_obs_keys=["proprioceptive"], norm_reward=False)
+
+    runs = {}
+    for path, mixed in (("vecenv", True), ("device", False)):
+        student = ImitationPPO("DivMorphPolicy", env(mixed), n_steps=8, batch_size=64, seed=0, policy_kwargs=POLICIES["DivMorphPolicy"])
+        dagger = DAggerCallback(teachers, TASK_NAMES, beta=beta, epochs=1, batch_size=16, buffer_size=256, seed=0)
+        student.learn(8 * student.n_envs, callback=dagger)
+        runs[path] = (student, dagger)
+    (ref, ref_dagger), (dev, dev_dagger) = runs["vecenv"], runs["device"]
+    assert ref_dagger._on_device is False and dev_dagger._on_device is True
+    assert isinstance(dev_dagger.dataset.task, torch.Tensor) and isinstance(ref_dagger.dataset.task, np.ndarray)
+    assert dev_dagger.dataset.size == ref_dagger.dataset.size == 8 * ref.n_envs
+    for key, value in ref_dagger.dataset.obs.items():
+        np.testing.assert_allclose(dev_dagger.dataset.obs[key].numpy(), value, atol=1e-5, err_msg=key)
+    for name in ("mean", "std", "task"):
+        np.testing.assert_allclose(getattr(dev_dagger.dataset, name).numpy(), getattr(ref_dagger.dataset, name), atol=1e-5, err_msg=name)
+    for (name, p), q in zip(ref.policy.named_parameters(), dev.policy.parameters()):
+        np.testing.assert_allclose(q.detach().numpy(), p.detach().numpy(), atol=1e-5, err_msg=name)
+    if beta == 1.0:
+        assert int(dev_dagger.teacher_steps) == 8 * dev.n_envs
+        # the buffer holds the student's sampled actions, not the teachers' clipped means
+        assert not np.allclose(
+            dev.rollout_buffer.actions.numpy().reshape(8 * dev.n_envs, -1), ref_dagger.dataset.mean[: 8 * dev.n_envs], atol=1e-3
+        )
+
+
+def test_teachers_distillation_and_transfer_chain_on_the_batched_backend(tmp_path, monkeypatch):
+    """The GPU path's stages, chained on CPU Warp at a tiny budget: teachers (DevicePPO), DAgger
+    distillation into the DivMorph student (ImitationPPO on the device, teacher actions mixed in
+    there) and its transfer to a novel task (DevicePPO with the race's rules), each on the batched
+    backend, each leaving a finished stage the next one reads."""
+    from sb3_divmorph.algos.distillation import ImitationPPO
+    from sb3_divmorph.pipeline.config import load_profile
+    from sb3_divmorph.pipeline.distill import distill
+    from sb3_divmorph.pipeline.files import read_done
+    from sb3_divmorph.pipeline.teachers import train_teachers
+    from sb3_divmorph.pipeline.transfer import transfer
+
+    batched_stage = {"env_backend": "batched", "worlds_per_robot": 1, "terrain_variants": 2}
+    profile = load_profile(
+        "demo",
+        overrides={
+            "train_robots": 2,
+            "max_episode_steps": 20,
+            "teachers.tasks": ["FT", "Patrol"],
+            "teachers.n_timesteps": 32,
+            "teachers.checkpoint_every": 1000,
+            "teachers.overrides": {"n_envs": 1, "n_steps": 16, "batch_size": 32, "n_epochs": 1},
+            **{f"teachers.{k}": v for k, v in batched_stage.items()},
+            "distill.n_timesteps": 64,
+            "distill.n_steps": 8,
+            "distill.batch_size": 32,
+            "distill.buffer_size": 128,
+            "distill.checkpoint_every": 1000,
+            **{f"distill.{k}": v for k, v in batched_stage.items()},
+            "transfer.tasks": ["Escape"],
+            "transfer.arms": ["divmorph"],
+            "transfer.seeds": [0],
+            "transfer.n_timesteps": 32,
+            "transfer.eval_every": 0,
+            "transfer.checkpoint_every": 1000,
+            "transfer.overrides": {"n_envs": 1, "n_steps": 16, "batch_size": 32, "n_epochs": 1},
+            **{f"transfer.{k}": v for k, v in batched_stage.items()},
+        },
+    )
+    out = tmp_path / "run"
+    on_device: dict[str, int] = {}
+    collect = DevicePPO._collect_on_device
+    monkeypatch.setattr(
+        DevicePPO,
+        "_collect_on_device",
+        lambda self, *a: on_device.update({type(self).__name__: on_device.get(type(self).__name__, 0) + 1}) or collect(self, *a),
+    )
+    train_teachers(profile, out, progress_bar=False)
+    assert on_device.pop("DevicePPO", 0) >= 2, "the teachers' rollouts were not on the device"
+    distill(profile, out, progress_bar=False, students=["divmorph"])
+    assert on_device.pop("ImitationPPO", 0) >= 1, "the distillation's rollouts were not on the device"
+    transfer(profile, out, progress_bar=False)
+    assert on_device.pop("DevicePPO", 0) >= 1, "the transfer's rollouts were not on the device"
+    assert [read_done(out / "teachers" / t)["num_timesteps"] for t in ("FT", "Patrol")] == [32, 32]
+    student = ImitationPPO.load(out / "student" / "model.zip", device="cpu")
+    assert read_done(out / "student")["num_timesteps"] >= 64 and type(student.policy).__name__ == "DivMorphPolicy"
+    assert read_done(out / "transfer" / "Escape" / "divmorph" / "seed-0")["num_timesteps"] >= 32

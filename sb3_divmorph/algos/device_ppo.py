@@ -175,7 +175,9 @@ class DeviceNormalizer:
         self.frozen = {k for k in self.keys if type(s.obs_rms[k]) is not RunningMeanStd}
         self.returns_frozen = type(s.ret_rms) is not RunningMeanStd
         self.ret_rms = TorchRunningMeanStd.from_numpy(s.ret_rms, self.device)
-        self.returns = th.as_tensor(np.asarray(s.returns, dtype=np.float64), device=self.device).clone()
+        # statistics unpickled without an env (a teacher's) have no running returns: only observations are normalised then
+        returns = s.__dict__.get("returns")
+        self.returns = th.as_tensor(np.asarray(0.0 if returns is None else returns, dtype=np.float64), device=self.device).clone()
 
     def push(self) -> None:
         """Write the statistics back into ``source`` (so saving it saves them)."""
@@ -488,6 +490,12 @@ class DevicePPO(PPO):
     def __init__(self, *args: Any, **kwargs: Any):
         self.timings = {"rollout": 0.0, "update": 0.0}
         self._device_state: dict[str, Any] = {}
+        #: (device mode) the env's latest raw observation (before normalisation): what a DAgger
+        #: teacher labels; set at every reset and step, before the step's callbacks run
+        self.last_raw_obs: dict[str, th.Tensor] | None = None
+        #: (device mode) ``(raw observation, actions) -> actions executed``: e.g. DAgger's teacher
+        #: mixing; the rollout buffer keeps the policy's own actions
+        self.executed_actions: Any = None
         super().__init__(*args, **kwargs)
 
     # ------------------------------------------------------------------ set-up
@@ -514,6 +522,8 @@ class DevicePPO(PPO):
         super()._setup_model()
         if not hasattr(self, "timings"):  # loaded models skip __init__'s attributes
             self.timings = {"rollout": 0.0, "update": 0.0}
+        if not hasattr(self, "executed_actions"):
+            self.last_raw_obs, self.executed_actions = None, None
         self._device_state = {}
 
     def _check_device(self, benv) -> None:
@@ -559,7 +569,16 @@ class DevicePPO(PPO):
 
     def _excluded_save_params(self) -> list[str]:
         # device tensors and env references: rebuilt on the next learn (a fresh reset)
-        return [*super()._excluded_save_params(), "_device_state", "_last_obs", "_last_episode_starts", "_last_original_obs", "timings"]
+        return [
+            *super()._excluded_save_params(),
+            "_device_state",
+            "_last_obs",
+            "_last_episode_starts",
+            "_last_original_obs",
+            "timings",
+            "last_raw_obs",
+            "executed_actions",
+        ]
 
     def _setup_learn(
         self, total_timesteps: int, callback=None, reset_num_timesteps: bool = True, tb_log_name: str = "run", progress_bar: bool = False
@@ -596,6 +615,7 @@ class DevicePPO(PPO):
     def _reset_on_device(self, state: dict[str, Any]) -> dict[str, th.Tensor]:
         benv, normalizer = state["env"], state["normalizer"]
         obs = benv.reset_tensors()
+        self.last_raw_obs = obs
         state["episodes"] = _DeviceEpisodes(benv.num_envs, benv.torch_device)
         state["last_env"] = benv
         if normalizer is not None:
@@ -646,8 +666,11 @@ class DevicePPO(PPO):
                 clipped_actions = low + 0.5 * (actions + 1.0) * (high - low)
             else:
                 clipped_actions = th.clamp(actions, low, high)
+            if self.executed_actions is not None:
+                clipped_actions = self.executed_actions(self.last_raw_obs, clipped_actions)
 
             new_obs, rewards, terminated, truncated, infos = benv.step_tensors(clipped_actions)
+            self.last_raw_obs = new_obs
             dones = terminated | truncated
             episodes.step(rewards, dones)
             if normalizer is not None:

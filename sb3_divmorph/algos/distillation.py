@@ -16,6 +16,14 @@ training task. The pieces, usable with any SB3 on-policy algorithm:
 summed over the robot's real action slots (padded slots carry no action) and averaged over the
 batch. With MetaMorph's fixed, equal standard deviations this is the squared error of the means
 divided by ``2 sigma^2``; with a learnt student std it also matches the teacher's spread.
+
+**On the device.** With :class:`ImitationPPO` (a :class:`~sb3_divmorph.algos.device_ppo.DevicePPO`)
+on the batched MuJoCo Warp env, nothing of DAgger leaves the device in the rollout loop: the raw
+states are the env's tensors (``DevicePPO.last_raw_obs``), every teacher labels them with its
+statistics applied in torch (:func:`teacher_labels_on_device`), the aggregated dataset is stored as
+tensors, and beta's teacher actions are mixed in by DevicePPO (``executed_actions``) instead of a
+:class:`TeacherMixingVecEnv` (which would send every step through the host). The result is the
+VecEnv path's: the same states, labels, dataset and update (``tests/test_device_ppo.py``).
 """
 
 from __future__ import annotations
@@ -23,7 +31,7 @@ from __future__ import annotations
 import pickle
 import warnings
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +44,7 @@ from stable_baselines3.common.policies import ActorCriticPolicy
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper, VecNormalize
 from torch.distributions import Normal, kl_divergence
 
+from sb3_divmorph.algos.device_ppo import DeviceNormalizer, DevicePPO
 from sb3_divmorph.nn.extractors import ACT_PADDING_MASK, CONTEXT, OBS_PADDING_MASK, TASK_EMBEDDING
 from sb3_divmorph.nn.gates import load_balancing_loss
 
@@ -89,6 +98,18 @@ def load_normalizer(path: str | Path) -> VecNormalize:
     return normalizer
 
 
+def _zeros(like: Any, shape: tuple[int, ...], dtype: Any = None) -> Any:
+    """Zeros of ``shape``: a tensor on ``like``'s device when ``like`` is a tensor, else numpy."""
+    if isinstance(like, th.Tensor):
+        torch_dtype = {np.float32: th.float32, np.int64: th.int64}.get(dtype, like.dtype)
+        return th.zeros(shape, dtype=torch_dtype, device=like.device)
+    return np.zeros(shape, dtype=dtype or like.dtype)
+
+
+def _numpy(value: Any) -> np.ndarray:
+    return value.cpu().numpy() if isinstance(value, th.Tensor) else value
+
+
 def index_obs(obs: ObsDict, index: np.ndarray | slice) -> ObsDict:
     """Rows ``index`` of every key of a batched observation dict."""
     return {key: value[index] for key, value in obs.items()}
@@ -106,6 +127,7 @@ class Teacher:
     policy: ActorCriticPolicy
     normalizer: VecNormalize | None = None
     name: str = "teacher"
+    _device_normalizer: Any = field(default=None, repr=False, compare=False)
 
     @classmethod
     def load(
@@ -140,10 +162,23 @@ class Teacher:
     def normalize(self, raw_obs: ObsDict) -> ObsDict:
         return raw_obs if self.normalizer is None else self.normalizer.normalize_obs(raw_obs)
 
+    def normalize_tensors(self, raw_obs: Mapping[str, th.Tensor]) -> dict[str, th.Tensor]:
+        """:meth:`normalize` on device tensors (``VecNormalize``'s arithmetic in torch, no host copy)."""
+        if self.normalizer is None:
+            return dict(raw_obs)
+        device = next(iter(raw_obs.values())).device
+        if self._device_normalizer is None or self._device_normalizer.device != device:
+            self._device_normalizer = DeviceNormalizer(self.normalizer, device)
+        return self._device_normalizer.normalize_obs(raw_obs)
+
     @th.no_grad()
-    def action_distribution(self, raw_obs: ObsDict) -> tuple[th.Tensor, th.Tensor]:
-        """Mean and standard deviation (B, A) of the teacher's Gaussian on raw observations."""
-        obs, _ = self.policy.obs_to_tensor(self.normalize(raw_obs))
+    def action_distribution(self, raw_obs: ObsDict | Mapping[str, th.Tensor]) -> tuple[th.Tensor, th.Tensor]:
+        """Mean and standard deviation (B, A) of the teacher's Gaussian on raw observations (numpy
+        arrays, or tensors on the teacher's device: then nothing leaves the device)."""
+        if all(isinstance(v, th.Tensor) for v in raw_obs.values()):
+            obs = self.normalize_tensors(raw_obs)  # type: ignore[arg-type]
+        else:
+            obs, _ = self.policy.obs_to_tensor(self.normalize(raw_obs))  # type: ignore[arg-type]
         normal = self.policy.get_distribution(obs).distribution
         return normal.mean, normal.stddev.expand_as(normal.mean)
 
@@ -164,6 +199,21 @@ def _teacher_for(teachers: Mapping[int, Teacher], task_index: int) -> Teacher:
     if task_index not in teachers:
         raise KeyError(f"no teacher for task index {task_index}; teachers cover indices {sorted(teachers)}")
     return teachers[task_index]
+
+
+def teacher_labels_on_device(teachers: Mapping[int, Teacher], raw_obs: Mapping[str, th.Tensor]) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
+    """:func:`teacher_labels` for device tensors: every teacher labels the whole batch and each state
+    keeps its own task's label, so no step waits for the host to learn which rows belong to whom
+    (a teacher's forward pass is cheap beside the student's update)."""
+    tasks = raw_obs[TASK_INDEX].reshape(len(raw_obs[TASK_INDEX]), -1)[:, 0].round().long()
+    mean = std = None
+    for index, teacher in teachers.items():
+        m, sd = teacher.action_distribution(raw_obs)
+        mine = (tasks == index).unsqueeze(-1)
+        mean = th.where(mine, m, th.zeros_like(m) if mean is None else mean)
+        std = th.where(mine, sd, th.ones_like(sd) if std is None else std)
+    assert mean is not None and std is not None
+    return mean, std, tasks
 
 
 def teacher_labels(
@@ -250,13 +300,18 @@ class DistillationDataset:
         self._next = 0
 
     def add(self, obs: ObsDict, mean: np.ndarray, std: np.ndarray, task: np.ndarray) -> None:
+        """Store a batch of states and labels: numpy arrays, or torch tensors (the storage is then
+        made on their device, and stays there)."""
         n = len(task)
         if not self.obs:
-            self.obs = {k: np.zeros((self.capacity, *v.shape[1:]), dtype=v.dtype) for k, v in obs.items()}
-            self.mean = np.zeros((self.capacity, mean.shape[1]), dtype=np.float32)
-            self.std = np.zeros_like(self.mean)
-            self.task = np.zeros(self.capacity, dtype=np.int64)
-        rows = (self._next + np.arange(n)) % self.capacity
+            self.obs = {k: _zeros(v, (self.capacity, *v.shape[1:])) for k, v in obs.items()}
+            self.mean = _zeros(mean, (self.capacity, mean.shape[1]), np.float32)
+            self.std = _zeros(mean, (self.capacity, mean.shape[1]), np.float32)
+            self.task = _zeros(task, (self.capacity,), np.int64)
+        if isinstance(self.task, th.Tensor):
+            rows = (self._next + th.arange(n, device=self.task.device)) % self.capacity
+        else:
+            rows = (self._next + np.arange(n)) % self.capacity
         for key, value in obs.items():
             self.obs[key][rows] = value
         self.mean[rows], self.std[rows], self.task[rows] = mean, std, task
@@ -265,9 +320,9 @@ class DistillationDataset:
 
     def save(self, path: str | Path) -> None:
         """Write the stored states, their labels and the ring position to ``path`` (``.npz``)."""
-        arrays = {f"obs/{key}": value[: self.size] for key, value in self.obs.items()}
+        arrays = {f"obs/{key}": _numpy(value[: self.size]) for key, value in self.obs.items()}
         if self.size:
-            arrays.update({name: getattr(self, name)[: self.size] for name in self._label_arrays()})
+            arrays.update({name: _numpy(getattr(self, name)[: self.size]) for name in self._label_arrays()})
         meta = np.array([self.capacity, self.size, self._next], dtype=np.int64)
         with open(path, "wb") as f:  # a file object: np.savez would append .npz to a bare name
             np.savez(f, meta=meta, **arrays)
@@ -302,9 +357,20 @@ class DistillationDataset:
         """The per-state arrays besides the observations (subclasses add theirs)."""
         return ("mean", "std", "task")
 
+    def to(self, device: th.device) -> DistillationDataset:
+        """The storage as torch tensors on ``device`` (a resumed device distillation's dataset)."""
+        self.obs = {k: th.as_tensor(v, device=device) for k, v in self.obs.items()}
+        for name in self._label_arrays():
+            if getattr(self, name) is not None:
+                setattr(self, name, th.as_tensor(getattr(self, name), device=device))
+        return self
+
     def batches(self, batch_size: int, rng: np.random.Generator):
-        """Shuffled minibatches over the stored states: ``(obs, mean, std, task)``."""
-        order = rng.permutation(self.size)
+        """Shuffled minibatches over the stored states: ``(obs, mean, std, task)`` (tensors on the
+        storage's device when it is torch; the shuffle is the same numpy permutation either way)."""
+        order: Any = rng.permutation(self.size)
+        if isinstance(self.task, th.Tensor):
+            order = th.as_tensor(order, device=self.task.device)  # one copy per epoch, not per step
         for start in range(0, self.size, batch_size):
             rows = order[start : start + batch_size]
             yield index_obs(self.obs, rows), self.mean[rows], self.std[rows], self.task[rows]
@@ -386,6 +452,13 @@ class DAggerCallback(BaseCallback):
         self._normalizer: VecNormalize | None = None
         self._mixer: TeacherMixingVecEnv | None = None
         self._optimizer_state: dict[str, Any] | None = None  # restored by load_state, applied at training start
+        #: on a DevicePPO in device mode: states, labels, dataset and mixing stay on the env's device
+        self._on_device = False
+        self._mix_seed = seed
+        self._mix_generator: th.Generator | None = None
+        self._beta_now = 0.0
+        #: (device mode) states at which a teacher's action was executed, as a device tensor
+        self.teacher_steps: Any = 0
 
     # -- checkpoints ---------------------------------------------------------------------------
     def save_state(self, folder: Path) -> None:
@@ -431,12 +504,26 @@ class DAggerCallback(BaseCallback):
             check_spaces(f"teacher {teacher.name}", teacher.policy.action_space, self.model.action_space, "action")
         self._normalizer = find_vec_wrapper(self.training_env, VecNormalize)
         self._mixer = find_vec_wrapper(self.training_env, TeacherMixingVecEnv)
+        self._on_device = isinstance(self.model, DevicePPO) and self.model._device_chain() is not None
+        if self._on_device:
+            device = self.model.device
+            away = [t.name for t in self.teachers.values() if t.policy.device != device]
+            if away:
+                raise ValueError(
+                    f"device distillation: teachers {away} are not on the env's device {device}; load them with device={device}"
+                )
+            if self.dataset.size and not isinstance(self.dataset.task, th.Tensor):
+                self.dataset.to(device)  # resumed from a checkpoint
+            self._mix_generator = th.Generator(device=device)
+            self._mix_generator.manual_seed(0 if self._mix_seed is None else int(self._mix_seed))
         self.optimizer = th.optim.Adam(self.model.policy.parameters(), lr=self.learning_rate)
         if self._optimizer_state is not None:
             self.optimizer.load_state_dict(self._optimizer_state)
             self._optimizer_state = None
 
     def _current_raw_obs(self, fresh: ObsDict | None = None) -> ObsDict:
+        if self._on_device:  # the env's latest raw observation, kept by DevicePPO (copied: the env reuses its buffers)
+            return {key: value.clone() for key, value in self.model.last_raw_obs.items()}  # type: ignore[return-value]
         if self._normalizer is not None:
             return self._normalizer.get_original_obs()
         source = fresh if fresh is not None else self.model._last_obs
@@ -445,12 +532,15 @@ class DAggerCallback(BaseCallback):
     def _on_rollout_start(self) -> None:
         beta = float(self.beta(self.model._current_progress_remaining))
         if beta > 0:
-            if self._mixer is None:
+            if self._mixer is None and not self._on_device:
                 raise ValueError("beta > 0 needs the training env wrapped in TeacherMixingVecEnv (below VecNormalize)")
             if not isinstance(self.model, ImitationPPO):
                 raise ValueError("beta > 0 (teacher actions executed) is off-policy for PPO: use ImitationPPO")
         if self._mixer is not None:
             self._mixer.beta = beta
+        if self._on_device:  # DevicePPO executes the mixed actions; its buffer keeps the student's
+            self._beta_now = beta
+            self.model.executed_actions = self._mix if beta > 0 else None  # type: ignore[attr-defined]
         self.logger.record("distill/beta", beta)
         self._rollout_obs = [self._current_raw_obs()]
 
@@ -464,6 +554,12 @@ class DAggerCallback(BaseCallback):
         self._rollout_obs = []
         if not states:
             return
+        if self._on_device:
+            obs = {key: th.cat([s[key] for s in states]) for key in states[0]}
+            mean, std, tasks = teacher_labels_on_device(self.teachers, obs)
+            self.dataset.add(obs, mean, std, tasks)
+            self.train()
+            return
         obs = {key: np.concatenate([s[key] for s in states]) for key in states[0]}
         mean, std, tasks = self.label(obs)
         self.dataset.add(obs, mean, std, tasks)
@@ -474,7 +570,19 @@ class DAggerCallback(BaseCallback):
         """Teacher means and stds for a batch of raw states, each by its own task's teacher."""
         return teacher_labels(self.teachers, raw_obs, int(np.prod(self.model.action_space.shape)), chunk)
 
+    def _mix(self, raw_obs: Mapping[str, th.Tensor], actions: th.Tensor) -> th.Tensor:
+        """(device mode) Each world's teacher action instead of ``actions`` with probability beta."""
+        chosen = th.rand(actions.shape[0], device=actions.device, generator=self._mix_generator) < self._beta_now
+        mean, _, _ = teacher_labels_on_device(self.teachers, raw_obs)
+        space = self.model.action_space
+        teacher_actions = mean.clamp(float(space.low.min()), float(space.high.max()))
+        self.teacher_steps = self.teacher_steps + chosen.sum()
+        return th.where(chosen.unsqueeze(-1), teacher_actions, actions)
+
     def _student_obs(self, raw_obs: ObsDict) -> ObsDict:
+        if self._on_device:  # the model's device mirror of its VecNormalize, as of this rollout's end
+            normalizer = self.model._device_state.get("normalizer")  # type: ignore[attr-defined]
+            return raw_obs if normalizer is None else normalizer.normalize_obs(raw_obs)
         return raw_obs if self._normalizer is None else self._normalizer.normalize_obs(raw_obs)
 
     def train(self) -> None:
@@ -490,7 +598,10 @@ class DAggerCallback(BaseCallback):
         balance_sum = 0.0
         for epoch in range(self.epochs):
             for raw, t_mean, t_std, tasks in self.dataset.batches(self.batch_size, self.rng):
-                obs, _ = policy.obs_to_tensor(self._student_obs(raw))
+                if self._on_device:
+                    obs = self._student_obs(raw)
+                else:
+                    obs, _ = policy.obs_to_tensor(self._student_obs(raw))
                 student = policy.get_distribution(obs)
                 real = obs[ACT_PADDING_MASK] < 0.5
                 t_mean_t = th.as_tensor(t_mean, device=device)
@@ -511,9 +622,9 @@ class DAggerCallback(BaseCallback):
                     with th.no_grad():
                         abs_err = th.where(real, (s_mean - t_mean_t).abs(), th.zeros((), device=device)).sum(-1)
                         abs_err = abs_err / real.sum(-1).clamp(min=1)
-                    np.add.at(kl_sum, tasks, kl.detach().cpu().numpy())
-                    np.add.at(err_sum, tasks, abs_err.cpu().numpy())
-                    np.add.at(count, tasks, 1)
+                    np.add.at(kl_sum, _numpy(tasks), kl.detach().cpu().numpy())
+                    np.add.at(err_sum, _numpy(tasks), abs_err.cpu().numpy())
+                    np.add.at(count, _numpy(tasks), 1)
                     if hasattr(policy, "get_gates") and len(gate_stats) < 4:
                         gate_stats.append(policy.get_gates(obs))
         policy.set_training_mode(False)
@@ -550,8 +661,9 @@ class DAggerCallback(BaseCallback):
             self.logger.record(f"gates/{kind}_usage", usage.cpu(), exclude=("stdout", "log", "json", "csv"))
 
 
-class ImitationPPO(PPO):
-    """PPO that collects rollouts but skips its own policy-gradient update.
+class ImitationPPO(DevicePPO):
+    """PPO that collects rollouts but skips its own policy-gradient update (on the batched env's
+    device when it is one: :class:`~sb3_divmorph.algos.device_ppo.DevicePPO`).
 
     For pure distillation: a :class:`DAggerCallback` does all the learning from the rollouts this
     algorithm collects (with the student's actions, or the teachers' under a

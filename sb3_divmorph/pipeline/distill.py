@@ -79,7 +79,11 @@ def distill_run(profile: Profile, out: Path, name: str = "divmorph", progress_ba
             morphologies=robots,
             **profile_env_kwargs(profile),
         )
-        return TeacherMixingVecEnv(venv, teachers, beta=cfg.beta_start, seed=seed) if mixing else venv
+        # on the batched backend the teachers' actions are mixed in on the device (DAggerCallback with
+        # DevicePPO); a VecEnv wrapper would send every step through the host
+        if not mixing or cfg.env_backend == "batched":
+            return venv
+        return TeacherMixingVecEnv(venv, teachers, beta=cfg.beta_start, seed=seed)
 
     def make_model():
         venv = VecNormalize(make_env(), norm_obs_keys=NORM_OBS_KEYS, norm_reward=False)
