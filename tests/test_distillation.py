@@ -331,3 +331,51 @@ def test_compact_actor_equals_the_student_and_runs_from_torch_alone(task, activa
         [sys.executable, "-c", script, str(path), str(tmp_path / "inputs.npz")], capture_output=True, text=True, check=True
     )
     assert float(result.stdout.strip()) <= 1e-5
+
+
+def test_bounded_targets_adamw_and_a_distilled_critic_are_recipe_options(teachers):
+    """DAgger's recipe options (issue 42): ``target_bound`` clips the teachers' means before they
+    become targets (a teacher asking for 50 where the env clips at 1 gets 1); ``optimizer="adamw"``
+    decays the weights; ``value_weight`` trains the student's critic toward each state's own teacher
+    critic (without it, distillation leaves the critic as initialised)."""
+    import copy
+
+    steep = {k: copy.copy(t) for k, t in teachers.items()}
+    for teacher in steep.values():  # the same teachers with their action means scaled up 50x
+        teacher.policy = copy.deepcopy(teacher.policy)
+        with th.no_grad():
+            for p in teacher.policy.action_net.parameters():
+                p.mul_(50.0)
+
+    def run(**options):
+        venv = multitask_venv()
+        student = ImitationPPO("DivMorphPolicy", venv, n_steps=32, batch_size=64, seed=0, policy_kwargs=TINY_DIVMORPH)
+        callback = DAggerCallback(steep, TASK_NAMES, learning_rate=3e-3, epochs=3, batch_size=64, buffer_size=1000, seed=0, **options)
+        student.learn(192, callback=callback)
+        return student, callback
+
+    _, unbounded = run()
+    assert np.abs(unbounded.dataset.mean[: unbounded.dataset.size]).max() > 2.0
+    _, bounded = run(target_bound=1.0)
+    assert np.abs(bounded.dataset.mean[: bounded.dataset.size]).max() <= 1.0
+
+    _, decayed = run(optimizer="adamw", weight_decay=0.03)
+    assert isinstance(decayed.optimizer, th.optim.AdamW) and decayed.optimizer.param_groups[0]["weight_decay"] == 0.03
+
+    def value_error(student, callback):
+        rows = np.arange(callback.dataset.size)
+        raw = {k: v[rows] for k, v in callback.dataset.obs.items()}
+        target = callback.dataset.value[rows] if callback.dataset.value is not None else None
+        if target is None:
+            from sb3_divmorph.algos.distillation import teacher_values
+
+            target = teacher_values(steep, raw, callback.dataset.task[rows])
+        obs, _ = student.policy.obs_to_tensor(student.get_vec_normalize_env().normalize_obs(raw))
+        with th.no_grad():
+            values = student.policy.predict_values(obs).flatten().numpy()
+        return float(np.mean((values - target) ** 2))
+
+    plain_student, plain = run()
+    critic_student, with_critic = run(value_weight=1.0)
+    assert with_critic.dataset.value is not None and plain.dataset.value is None
+    assert value_error(critic_student, with_critic) < 0.5 * value_error(plain_student, plain)

@@ -182,6 +182,15 @@ class Teacher:
         normal = self.policy.get_distribution(obs).distribution
         return normal.mean, normal.stddev.expand_as(normal.mean)
 
+    @th.no_grad()
+    def value(self, raw_obs: ObsDict | Mapping[str, th.Tensor]) -> th.Tensor:
+        """The teacher critic's value (B,) of raw observations (numpy, or tensors on its device)."""
+        if all(isinstance(v, th.Tensor) for v in raw_obs.values()):
+            obs = self.normalize_tensors(raw_obs)  # type: ignore[arg-type]
+        else:
+            obs, _ = self.policy.obs_to_tensor(self.normalize(raw_obs))  # type: ignore[arg-type]
+        return self.policy.predict_values(obs).flatten()
+
     def act(self, raw_obs: ObsDict) -> np.ndarray:
         """Deterministic (mean) actions, clipped to the action space."""
         mean, _ = self.action_distribution(raw_obs)
@@ -214,6 +223,16 @@ def teacher_labels_on_device(teachers: Mapping[int, Teacher], raw_obs: Mapping[s
         std = th.where(mine, sd, th.ones_like(sd) if std is None else std)
     assert mean is not None and std is not None
     return mean, std, tasks
+
+
+def teacher_values(teachers: Mapping[int, Teacher], raw_obs: Any, tasks: Any) -> Any:
+    """Each state's own task's teacher critic value (B,): numpy for numpy states, a device tensor for tensors."""
+    values = None
+    for index, teacher in teachers.items():
+        v = teacher.value(raw_obs)
+        values = th.where(th.as_tensor(tasks, device=v.device) == index, v, th.zeros_like(v) if values is None else values)
+    assert values is not None
+    return values if isinstance(tasks, th.Tensor) else values.cpu().numpy()
 
 
 def teacher_labels(
@@ -296,12 +315,14 @@ class DistillationDataset:
         self.capacity = capacity
         self.obs: ObsDict = {}
         self.mean = self.std = self.task = None
+        #: the teachers' critic values of the states (only when a student's critic is distilled too)
+        self.value: Any = None
         self.size = 0
         self._next = 0
 
-    def add(self, obs: ObsDict, mean: np.ndarray, std: np.ndarray, task: np.ndarray) -> None:
+    def add(self, obs: ObsDict, mean: np.ndarray, std: np.ndarray, task: np.ndarray, critic_value: Any = None) -> None:
         """Store a batch of states and labels: numpy arrays, or torch tensors (the storage is then
-        made on their device, and stays there)."""
+        made on their device, and stays there); ``critic_value``: the teachers' critic values, if kept."""
         n = len(task)
         if not self.obs:
             self.obs = {k: _zeros(v, (self.capacity, *v.shape[1:])) for k, v in obs.items()}
@@ -315,6 +336,10 @@ class DistillationDataset:
         for key, value in obs.items():
             self.obs[key][rows] = value
         self.mean[rows], self.std[rows], self.task[rows] = mean, std, task
+        if critic_value is not None:
+            if self.value is None:
+                self.value = _zeros(critic_value, (self.capacity,), np.float32)
+            self.value[rows] = critic_value
         self._next = int((self._next + n) % self.capacity)
         self.size = min(self.capacity, self.size + n)
 
@@ -355,7 +380,7 @@ class DistillationDataset:
 
     def _label_arrays(self) -> tuple[str, ...]:
         """The per-state arrays besides the observations (subclasses add theirs)."""
-        return ("mean", "std", "task")
+        return ("mean", "std", "task") + (("value",) if self.value is not None else ())
 
     def to(self, device: th.device) -> DistillationDataset:
         """The storage as torch tensors on ``device`` (a resumed device distillation's dataset)."""
@@ -365,15 +390,19 @@ class DistillationDataset:
                 setattr(self, name, th.as_tensor(getattr(self, name), device=device))
         return self
 
-    def batches(self, batch_size: int, rng: np.random.Generator):
-        """Shuffled minibatches over the stored states: ``(obs, mean, std, task)`` (tensors on the
-        storage's device when it is torch; the shuffle is the same numpy permutation either way)."""
+    def batches(self, batch_size: int, rng: np.random.Generator, with_values: bool = False):
+        """Shuffled minibatches over the stored states: ``(obs, mean, std, task)`` (``+ value`` with
+        ``with_values``; tensors on the storage's device when it is torch; the shuffle is the same
+        numpy permutation either way)."""
         order: Any = rng.permutation(self.size)
         if isinstance(self.task, th.Tensor):
             order = th.as_tensor(order, device=self.task.device)  # one copy per epoch, not per step
         for start in range(0, self.size, batch_size):
             rows = order[start : start + batch_size]
-            yield index_obs(self.obs, rows), self.mean[rows], self.std[rows], self.task[rows]
+            if with_values:
+                yield index_obs(self.obs, rows), self.mean[rows], self.std[rows], self.task[rows], self.value[rows]
+            else:
+                yield index_obs(self.obs, rows), self.mean[rows], self.std[rows], self.task[rows]
 
 
 class DAggerCallback(BaseCallback):
@@ -413,6 +442,16 @@ class DAggerCallback(BaseCallback):
         (:func:`~sb3_divmorph.nn.gates.load_balancing_loss`, minus its uniform value 1 per gate) added
         to the KL. Default 0 (off, DivMorph's recipe). Use it against gate collapse (a top-1 gate
         learns without it too: its weight is straight-through, see :class:`~sb3_divmorph.nn.gates.TopKSoftGate`).
+    :param target_bound: clip the teachers' action means to ``[-bound, bound]`` before they become
+        targets (``None``: as the teachers give them). The env clips actions at 1, so a teacher's
+        mean of 5 and one of 1 act the same, but an unbounded target asks the student for the 5:
+        bounded targets keep it no steeper than it must be (issue 42).
+    :param weight_decay: the optimiser's weight decay (with ``optimizer="adamw"``: decoupled, as
+        DivControl trains its diverted model; with ``"adam"``: L2 added to the gradient).
+    :param optimizer: ``"adam"`` (the default) or ``"adamw"``.
+    :param value_weight: also regress the student's critic onto the state's teacher critic value
+        (mean squared error, this weight; 0: the critic is not trained by distillation and starts
+        transfer untrained).
     :param verbose: SB3 verbosity.
     """
 
@@ -428,6 +467,10 @@ class DAggerCallback(BaseCallback):
         max_grad_norm: float = 0.5,
         seed: int | None = None,
         load_balance: float = 0.0,
+        target_bound: float | None = None,
+        weight_decay: float = 0.0,
+        optimizer: str = "adam",
+        value_weight: float = 0.0,
         verbose: int = 0,
     ):
         super().__init__(verbose)
@@ -435,6 +478,16 @@ class DAggerCallback(BaseCallback):
             raise ValueError("DAggerCallback needs at least one teacher")
         if load_balance < 0:
             raise ValueError(f"load_balance must be >= 0, got {load_balance}")
+        if target_bound is not None and target_bound <= 0:
+            raise ValueError(f"target_bound must be positive (or None: unbounded), got {target_bound}")
+        if optimizer not in ("adam", "adamw"):
+            raise ValueError(f"optimizer must be 'adam' or 'adamw', got {optimizer!r}")
+        if weight_decay < 0 or value_weight < 0:
+            raise ValueError(f"weight_decay and value_weight must be >= 0, got {weight_decay} and {value_weight}")
+        self.target_bound = target_bound
+        self.weight_decay = float(weight_decay)
+        self.optimizer_name = optimizer
+        self.value_weight = float(value_weight)
         self.load_balance = float(load_balance)
         #: ``{"morphology": [...], "task": [...]}``: tailors in use after each distillation round
         self.tailor_usage: dict[str, list[int]] = {"morphology": [], "task": []}
@@ -516,7 +569,8 @@ class DAggerCallback(BaseCallback):
                 self.dataset.to(device)  # resumed from a checkpoint
             self._mix_generator = th.Generator(device=device)
             self._mix_generator.manual_seed(0 if self._mix_seed is None else int(self._mix_seed))
-        self.optimizer = th.optim.Adam(self.model.policy.parameters(), lr=self.learning_rate)
+        optimizer_class = th.optim.AdamW if self.optimizer_name == "adamw" else th.optim.Adam
+        self.optimizer = optimizer_class(self.model.policy.parameters(), lr=self.learning_rate, weight_decay=self.weight_decay)
         if self._optimizer_state is not None:
             self.optimizer.load_state_dict(self._optimizer_state)
             self._optimizer_state = None
@@ -557,12 +611,17 @@ class DAggerCallback(BaseCallback):
         if self._on_device:
             obs = {key: th.cat([s[key] for s in states]) for key in states[0]}
             mean, std, tasks = teacher_labels_on_device(self.teachers, obs)
-            self.dataset.add(obs, mean, std, tasks)
-            self.train()
-            return
-        obs = {key: np.concatenate([s[key] for s in states]) for key in states[0]}
-        mean, std, tasks = self.label(obs)
-        self.dataset.add(obs, mean, std, tasks)
+        else:
+            obs = {key: np.concatenate([s[key] for s in states]) for key in states[0]}
+            mean, std, tasks = self.label(obs)
+        if self.target_bound is not None:
+            mean = (
+                mean.clamp(-self.target_bound, self.target_bound)
+                if isinstance(mean, th.Tensor)
+                else np.clip(mean, -self.target_bound, self.target_bound)
+            )
+        value = teacher_values(self.teachers, obs, tasks) if self.value_weight > 0 else None
+        self.dataset.add(obs, mean, std, tasks, value)
         self.train()
 
     # -- distillation --------------------------------------------------------------------------
@@ -595,9 +654,10 @@ class DAggerCallback(BaseCallback):
         err_sum = np.zeros(len(self.task_names))
         count = np.zeros(len(self.task_names))
         gate_stats: list[Any] = []
-        balance_sum = 0.0
+        balance_sum = value_sum = 0.0
         for epoch in range(self.epochs):
-            for raw, t_mean, t_std, tasks in self.dataset.batches(self.batch_size, self.rng):
+            for batch in self.dataset.batches(self.batch_size, self.rng, with_values=self.value_weight > 0):
+                raw, t_mean, t_std, tasks = batch[:4]
                 if self._on_device:
                     obs = self._student_obs(raw)
                 else:
@@ -609,6 +669,10 @@ class DAggerCallback(BaseCallback):
                 s_mean = student.distribution.mean
                 kl = gaussian_kl(t_mean_t, t_std_t, s_mean, student.distribution.stddev.expand_as(s_mean), real)
                 loss = kl.mean()
+                if self.value_weight > 0:
+                    value_error = (policy.predict_values(obs).flatten() - th.as_tensor(batch[4], device=device)).square().mean()
+                    value_sum += value_error.item()
+                    loss = loss + self.value_weight * value_error
                 if self.load_balance > 0 and hasattr(policy, "router"):
                     balance = self._balance_loss(policy, obs)
                     balance_sum = balance_sum + balance.item()
@@ -631,6 +695,8 @@ class DAggerCallback(BaseCallback):
         self.logger.record("distill/loss", float(np.mean(losses)))
         if self.load_balance > 0:
             self.logger.record("distill/load_balance_loss", balance_sum / max(len(losses), 1))
+        if self.value_weight > 0:
+            self.logger.record("distill/value_error", value_sum / max(len(losses), 1))
         self.logger.record("distill/dataset_size", self.dataset.size)
         for index in np.flatnonzero(count):
             name = self.task_names[index]

@@ -115,6 +115,14 @@ class DistillConfig:
     checkpoint_every: int = 50_000
     #: weight of the optional gate load-balancing term (0 = off; see ``DAggerCallback``)
     load_balance: float = 0.0
+    #: DAgger's recipe options (issue 42; :class:`~sb3_divmorph.algos.distillation.DAggerCallback`):
+    #: teachers' action means clipped to +-``target_bound`` as targets (null: unbounded), the
+    #: optimiser (``adam`` / ``adamw``) and its weight decay, and the weight of the student critic's
+    #: regression onto each state's teacher critic (0: critic not distilled)
+    target_bound: float | None = None
+    optimizer: str = "adam"
+    weight_decay: float = 0.0
+    value_weight: float = 0.0
     #: ``single``: ``n_envs`` C-MuJoCo envs; ``batched``: MuJoCo Warp (:mod:`unimal_envs.batched`),
     #: ``worlds_per_robot`` worlds of every robot on the profile's device (``n_envs`` is then unused)
     env_backend: str = "single"
@@ -335,6 +343,14 @@ class Profile:
         ):
             if policy is not None and policy not in TEACHER_POLICIES:
                 raise ConfigError(f"profile {name!r}: unknown teacher policy {policy!r} in {where}; choose from {list(TEACHER_POLICIES)}")
+        d = profile.distill
+        if d.optimizer not in ("adam", "adamw"):
+            raise ConfigError(f"profile {name!r}: distill.optimizer must be 'adam' or 'adamw', got {d.optimizer!r}")
+        if (d.target_bound is not None and d.target_bound <= 0) or d.weight_decay < 0 or d.value_weight < 0:
+            raise ConfigError(
+                f"profile {name!r}: distill.target_bound must be positive or null, distill.weight_decay and "
+                f"distill.value_weight >= 0; got {d.target_bound!r}, {d.weight_decay!r}, {d.value_weight!r}"
+            )
         if profile.hyperdistill is not None and profile.hyperdistill.loss not in ("nll", "kl"):
             raise ConfigError(f"profile {name!r}: hyperdistill.loss must be 'nll' or 'kl', got {profile.hyperdistill.loss!r}")
         if profile.hyperdistill is not None and profile.hyperdistill.task_input not in ("none", "index"):

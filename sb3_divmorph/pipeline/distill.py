@@ -99,6 +99,10 @@ def distill_run(profile: Profile, out: Path, name: str = "divmorph", progress_ba
         buffer_size=cfg.buffer_size,
         seed=seed,
         load_balance=cfg.load_balance,
+        target_bound=cfg.target_bound,
+        weight_decay=cfg.weight_decay,
+        optimizer=cfg.optimizer,
+        value_weight=cfg.value_weight,
     )
     return TrainingRun(
         student_folder(out, name),
