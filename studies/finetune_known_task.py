@@ -9,6 +9,14 @@ student, on the run's training robots, ``--seeds`` seeds each, and reads per run
 return on the curve's robots at each evaluation, and from the training logs the stochastic training
 return, the critic's explained variance, the approximate KL and the clip fraction of the updates.
 
+**The baseline.** A deterministic episode on these robots is chaotic: a change of the policy far
+below what PPO makes (an exported actor's 1e-6 differences) sends a 1,000-step episode elsewhere,
+so the evaluation after fine-tuning is in effect a fresh draw of episodes while the step-0
+evaluation is one fixed draw. ``--baseline-seeds N`` evaluates each arm's starting model on the
+same robots under N evaluation seeds and reports the change against that mean as well (per robot,
+paired with each run): the step-0 column alone compares a fresh draw with one that may have been
+lucky or unlucky.
+
 The run folder is a branch of ``--source`` (its teachers and students, read-only links) in ``--out``;
 runs resume. ``--arms`` / ``--seeds`` split the runs between processes (one per core); ``--report``
 writes ``<out>/README.md`` from whatever runs are finished.
@@ -64,6 +72,56 @@ def parse_setting(item: str) -> tuple[str, object]:
     return key, yaml.safe_load(value)
 
 
+BASELINE = "baseline.json"
+
+
+def evaluate_baselines(args: argparse.Namespace, profile) -> dict[str, dict[str, dict[str, float]]]:
+    """``{arm: {eval seed: {robot: mean return}}}`` of each arm's starting model on the curve robots,
+    under ``--baseline-seeds`` evaluation seeds (kept in ``<out>/baseline.json``; the missing ones added)."""
+    import json
+
+    from sb3_divmorph.pipeline.curves import robot_venv, rollout_returns
+    from sb3_divmorph.pipeline.envs import profile_env_kwargs
+    from sb3_divmorph.pipeline.robots import transfer_eval_robots
+    from sb3_divmorph.pretrained import load_pretrained
+
+    path = args.out / BASELINE
+    found = json.loads(path.read_text()) if path.is_file() else {}
+    robots = transfer_eval_robots(profile, "train")
+    for arm in args.arms:
+        source = json.loads((transfer_folder(args.out, args.task, arm, args.seeds[0]) / "source.json").read_text())["source"]
+        model = load_pretrained(args.out / source)
+        for seed in range(args.baseline_seeds):
+            if str(seed) in found.get(arm, {}):
+                continue
+            venv = robot_venv(f"Unimal-{args.task}-v0", robots, profile.max_episode_steps, seed, **profile_env_kwargs(profile))
+            rows = rollout_returns(model.model, venv, robots, 3, model.normalizer.normalize_obs if model.normalizer else None)
+            venv.close()
+            found.setdefault(arm, {})[str(seed)] = pd.DataFrame(rows).groupby("robot")["return"].mean().to_dict()
+            path.write_text(json.dumps(found, indent=1))
+            print(f"[finetune-known-task] baseline {arm} eval seed {seed}: {np.mean(list(found[arm][str(seed)].values())):.1f}", flush=True)
+    return found
+
+
+def baseline_changes(out: Path, task: str, arm: str, seeds: list[int]) -> pd.Series:
+    """Per (robot, seed): the last evaluation minus the robot's mean over the baseline's evaluation seeds."""
+    import json
+
+    path = out / BASELINE
+    if not path.is_file() or arm not in json.loads(path.read_text()):
+        return pd.Series(dtype=float)
+    baseline = pd.DataFrame(json.loads(path.read_text())[arm]).mean(axis=1)  # robot -> mean over eval seeds
+    parts = []
+    for seed in seeds:
+        folder = transfer_folder(out, task, arm, seed)
+        if not is_done(folder):
+            continue
+        frame = pd.read_csv(log_file(folder / "eval.csv"))
+        frame = frame[frame.split == "train"].groupby(["timesteps", "robot"])["return"].mean().unstack("timesteps")
+        parts.append((frame[frame.columns.max()] - baseline.reindex(frame.index)).rename(seed))
+    return pd.concat(parts, axis=1).stack().rename("change") if parts else pd.Series(dtype=float)
+
+
 def changes(out: Path, task: str, arm: str, seeds: list[int]) -> pd.Series:
     """Per (robot, seed): the deterministic return at the last evaluation minus the first, for the finished runs."""
     parts = []
@@ -86,8 +144,8 @@ def compare(args: argparse.Namespace) -> None:
     arm = args.arms[0]
     reference = changes(Path(variants[0][1]), args.task, arm, args.seeds)
     lines = [
-        f"| variant ({ARMS[arm]}) | runs | change 0 -> last [95% CI] | minus {variants[0][0]}'s (paired) |",
-        "|---|---:|---|---|",
+        f"| variant ({ARMS[arm]}) | runs | change 0 -> last [95% CI] | minus {variants[0][0]}'s (paired) | change against the multi-seed baseline |",
+        "|---|---:|---|---|---|",
     ]
     for label, folder in variants:
         mine = changes(Path(folder), args.task, arm, args.seeds)
@@ -97,9 +155,17 @@ def compare(args: argparse.Namespace) -> None:
         lo, hi = robot_interval(mine.to_numpy())
         paired = (mine - reference).dropna().to_numpy()
         plo, phi = robot_interval(paired) if paired.size else (np.nan, np.nan)
+        against = baseline_changes(Path(folder), args.task, arm, args.seeds)
+        if against.empty and args.baseline_from is not None:  # the starting model is the same in every variant
+            import shutil
+
+            shutil.copy(args.baseline_from / BASELINE, Path(folder) / BASELINE)
+            against = baseline_changes(Path(folder), args.task, arm, args.seeds)
+        blo, bhi = robot_interval(against.to_numpy()) if not against.empty else (np.nan, np.nan)
         lines.append(
             f"| {label} | {mine.index.get_level_values(1).nunique()} | {mine.mean():+.0f} [{lo:+.0f}, {hi:+.0f}] | "
-            f"{paired.mean():+.0f} [{plo:+.0f}, {phi:+.0f}] |"
+            f"{paired.mean():+.0f} [{plo:+.0f}, {phi:+.0f}] | "
+            + (f"{against.mean():+.0f} [{blo:+.0f}, {bhi:+.0f}] |" if not against.empty else "– |")
         )
     print("\n".join(lines))
 
@@ -146,6 +212,30 @@ def report(args: argparse.Namespace) -> None:
         change = (last - first).dropna().to_numpy()
         lo, hi = robot_interval(change)
         lines.append(f"| {label} | {mine.seed.nunique()} | " + " | ".join(cells) + f" | {change.mean():+.0f} [{lo:+.0f}, {hi:+.0f}] |")
+    import json
+
+    if (args.out / BASELINE).is_file():
+        saved = json.loads((args.out / BASELINE).read_text())
+        lines += [
+            "",
+            "Against the starting model's mean over evaluation seeds (the same robots, 3 episodes each per seed; the change "
+            "is the last evaluation minus each robot's baseline mean, per robot and run):",
+            "",
+            "| model | baseline seeds | baseline mean (per seed; seed 0 = the curve's step 0) | last evaluation | change against the baseline [95% CI] |",
+            "|---|---:|---|---:|---|",
+        ]
+        for arm, label in ARMS.items():
+            if arm not in saved or data[data.arm == arm].empty:
+                continue
+            per_seed = {k: np.mean(list(v.values())) for k, v in saved[arm].items()}
+            change = baseline_changes(args.out, args.task, arm, args.seeds).to_numpy()
+            lo, hi = robot_interval(change)
+            last = data[(data.arm == arm) & (data.timesteps == steps[-1])]["return"].mean()
+            seeds_text = ", ".join(f"{per_seed[k]:.0f}" for k in sorted(per_seed, key=int))
+            lines.append(
+                f"| {label} | {len(per_seed)} | {np.mean(list(per_seed.values())):.0f} ({seeds_text}) | {last:.0f} | "
+                f"{change.mean():+.0f} [{lo:+.0f}, {hi:+.0f}] |"
+            )
     lines += ["", "From the training logs (mean over seeds; first half / second half of the run's updates):", ""]
     lines += ["| model | " + " | ".join(LOGGED.values()) + " |", "|---|" + "---|" * len(LOGGED)]
     for arm, label in ARMS.items():
@@ -183,8 +273,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--report", action="store_true", help="only write the README from the finished runs")
     parser.add_argument(
+        "--baseline-seeds", type=int, default=0, help="evaluate each arm's starting model under this many evaluation seeds (see above)"
+    )
+    parser.add_argument(
         "--set", action="append", default=[], metavar="KEY=VALUE", help="a profile setting for the runs (a variant: give it its own --out)"
     )
+    parser.add_argument("--baseline-from", type=Path, default=None, help="with --compare: a folder whose baseline.json the variants share")
     parser.add_argument(
         "--compare",
         nargs="+",
@@ -196,6 +290,8 @@ def main(argv: list[str] | None = None) -> None:
     if args.compare:
         compare(args)
         return
+    if args.baseline_seeds:
+        evaluate_baselines(args, recorded_profile(args.out / "run.json"))
     if not args.report:
         if not (args.out / "run.json").exists():
             branch(args.source, args.out, ("teachers", "distill"), command="python studies/finetune_known_task.py")
