@@ -294,14 +294,19 @@ def best_robots(saved: SavedModel, env_id: str, n: int = 5, split: str = "train"
     recorded = log_file(path)
     if recorded is None:
         raise PretrainedError(f"{run} has no evaluation ({path}); run `divmorph evaluate --run {run}` first")
-    rows = pd.read_csv(recorded)
-    mine = rows[(rows.model == label) & (rows.task == task) & (rows.split == split)]
+    means = robot_means(pd.read_csv(recorded), label, task, split, seed)
+    if means.empty:
+        raise PretrainedError(f"{recorded} has no {split} rows of {label} on {task}")
+    return [(str(robot), float(value)) for robot, value in means.head(n).items()]
+
+
+def robot_means(returns: Any, model: str, task: str, split: str = "train", seed: int | None = None) -> Any:
+    """Each robot's mean return of one model on one task and split in an evaluation's
+    ``returns.csv`` (a DataFrame), best first (``seed``: one transfer run's rows only)."""
+    mine = returns[(returns.model == model) & (returns.task == task) & (returns.split == split)]
     if seed is not None and "seed" in mine:
         mine = mine[mine.seed == seed]
-    if mine.empty:
-        raise PretrainedError(f"{recorded} has no {split} rows of {label} on {task}")
-    means = mine.groupby("morphology")["return"].mean().sort_values(ascending=False)
-    return [(str(robot), float(value)) for robot, value in means.head(n).items()]
+    return mine.groupby("morphology")["return"].mean().sort_values(ascending=False)
 
 
 def load_pretrained(source: str | Path, device: str = "cpu", algo: str | None = None) -> Pretrained:

@@ -18,6 +18,7 @@ from pathlib import Path
 import pandas as pd
 
 from sb3_divmorph.pipeline.files import log_file
+from sb3_divmorph.pretrained import robot_means
 
 TRAINING_TASKS = ("FT", "VT", "Incline", "Obstacle", "Patrol")
 
@@ -32,8 +33,7 @@ SHIPPED = {
 
 def best_robots(returns: pd.DataFrame, model: str, task: str, n: int) -> tuple[pd.Series, float]:
     """The ``n`` training robots with the highest mean return of ``model`` on ``task``, and its mean over all."""
-    mine = returns[(returns.model == model) & (returns.task == task) & (returns.split == "train")]
-    means = mine.groupby("morphology")["return"].mean().sort_values(ascending=False)
+    means = robot_means(returns, model, task, "train")
     return means.head(n), float(means.mean())
 
 

@@ -80,8 +80,6 @@ def evaluate_baselines(args: argparse.Namespace, profile) -> dict[str, dict[str,
     under ``--baseline-seeds`` evaluation seeds (kept in ``<out>/baseline.json``; the missing ones added)."""
     import json
 
-    from sb3_divmorph.pipeline.curves import robot_venv, rollout_returns
-    from sb3_divmorph.pipeline.envs import profile_env_kwargs
     from sb3_divmorph.pipeline.robots import transfer_eval_robots
     from sb3_divmorph.pretrained import load_pretrained
 
@@ -94,9 +92,7 @@ def evaluate_baselines(args: argparse.Namespace, profile) -> dict[str, dict[str,
         for seed in range(args.baseline_seeds):
             if str(seed) in found.get(arm, {}):
                 continue
-            venv = robot_venv(f"Unimal-{args.task}-v0", robots, profile.max_episode_steps, seed, **profile_env_kwargs(profile))
-            rows = rollout_returns(model.model, venv, robots, 3, model.normalizer.normalize_obs if model.normalizer else None)
-            venv.close()
+            rows = model.evaluate(robots, task=args.task, episodes=3, seed=seed, max_episode_steps=profile.max_episode_steps)
             found.setdefault(arm, {})[str(seed)] = pd.DataFrame(rows).groupby("robot")["return"].mean().to_dict()
             path.write_text(json.dumps(found, indent=1))
             print(f"[finetune-known-task] baseline {arm} eval seed {seed}: {np.mean(list(found[arm][str(seed)].values())):.1f}", flush=True)

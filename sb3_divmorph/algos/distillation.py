@@ -686,9 +686,10 @@ class DAggerCallback(BaseCallback):
                     with th.no_grad():
                         abs_err = th.where(real, (s_mean - t_mean_t).abs(), th.zeros((), device=device)).sum(-1)
                         abs_err = abs_err / real.sum(-1).clamp(min=1)
-                    np.add.at(kl_sum, _numpy(tasks), kl.detach().cpu().numpy())
-                    np.add.at(err_sum, _numpy(tasks), abs_err.cpu().numpy())
-                    np.add.at(count, _numpy(tasks), 1)
+                    task_rows = _numpy(tasks)
+                    np.add.at(kl_sum, task_rows, kl.detach().cpu().numpy())
+                    np.add.at(err_sum, task_rows, abs_err.cpu().numpy())
+                    np.add.at(count, task_rows, 1)
                     if hasattr(policy, "get_gates") and len(gate_stats) < 4:
                         gate_stats.append(policy.get_gates(obs))
         policy.set_training_mode(False)
