@@ -67,7 +67,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--seed",
         type=int,
         default=0,
-        help="episode e of a robot is reset(seed=SEED + e): the episode `divmorph evaluate` plays under the same seed",
+        help="episode e of a robot is reset with episode_seed(SEED, robot, e): the episode `divmorph evaluate` plays under the same seed",
     )
     parser.add_argument("--width", type=int, default=480)
     parser.add_argument("--height", type=int, default=480)
@@ -92,6 +92,7 @@ def record(args: argparse.Namespace) -> Path:
     import sb3_divmorph  # noqa: F401  (the policy aliases, for models saved with them)
     import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
     from sb3_divmorph.algos.distillation import check_spaces, load_normalizer
+    from sb3_divmorph.pipeline.curves import episode_seed
     from unimal_envs.contract import TASK_NAMES
     from unimal_envs.rendering import episode_frames, write_video
 
@@ -159,12 +160,10 @@ def record(args: argparse.Namespace) -> Path:
         for episode in tqdm(range(args.episodes), desc="[record]", unit="episode", disable=args.no_progress):
             robot = chosen[episode % len(chosen)]
             outcome: dict = {}
-            # the project's seeding rule (EpisodeSeeds): this robot's e-th episode is reset(seed=seed + e),
-            # the episode `divmorph evaluate` and load_pretrained(...).evaluate play under the same seed
-            robot_episode = episode // len(chosen)
-            for frame in episode_frames(
-                env, policy, steps=args.steps, seed=args.seed + robot_episode, options={"morphology": robot}, outcome=outcome
-            ):
+            # the project's seeding rule (episode_seed): this robot's e-th episode is the one
+            # `divmorph evaluate` and load_pretrained(...).evaluate play under the same seed
+            reset_seed = episode_seed(args.seed, robot, episode // len(chosen))
+            for frame in episode_frames(env, policy, steps=args.steps, seed=reset_seed, options={"morphology": robot}, outcome=outcome):
                 count += 1
                 yield frame
             print(f"[record] episode {episode}: {robot}, {outcome['steps']} steps, return {outcome['return']:.1f}")

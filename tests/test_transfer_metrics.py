@@ -154,3 +154,26 @@ def test_metrics_leave_out_a_seed_whose_run_is_still_going(tmp_path):
     (metrics,) = [m for m in task_metrics(load_profile("demo"), tmp_path, "Escape") if m.split == "train"]
     assert metrics.seeds == 1, "the unfinished seed is not counted"
     assert metrics.final > 100, f"the finished seed's final return, not its step-0 return: {metrics.final}"
+
+
+def test_each_robot_and_evaluation_seed_draws_its_own_episodes():
+    """On a task with random goals, the robots of one evaluation walk to different goals, two
+    evaluation seeds share no goal, and the same seed gives the same goals again (with ``seed + e``
+    every robot of an evaluation got the same few goals, and seed 0's episode 1 was seed 1's episode 0)."""
+    from sb3_divmorph.pipeline.curves import robot_venv
+    from unimal_envs.morphology import morphology_files
+
+    robots = morphology_files("train")[:3]
+
+    def goals(seed: int, episodes: int = 2) -> list[tuple[float, float]]:
+        venv = robot_venv("Unimal-PointNav-v0", robots, 5, seed)
+        found = []
+        for _ in range(episodes):
+            venv.reset()  # every robot's next episode
+            found += [tuple(np.round(env.unwrapped.task.goal[:2], 6)) for env in venv.envs]
+        venv.close()
+        return found
+
+    first, second = goals(0), goals(1)
+    assert len(set(first + second)) == len(first) + len(second)
+    assert goals(0) == first

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import csv
 import io
+import zlib
 from collections import defaultdict
 from collections.abc import Callable
 from pathlib import Path
@@ -66,20 +67,39 @@ def rollout_returns(
     return rows
 
 
-class EpisodeSeeds(gym.Wrapper):
-    """Seeds each episode of one robot's env: episode ``e`` under seed ``s`` is ``reset(seed=s + e)``.
+def episode_seed(seed: int, robot: str | Path, episode: int) -> int:
+    """The reset seed of episode ``episode`` of ``robot`` under evaluation seed ``seed``: the project's
+    one rule for "a seed gives an episode".
 
-    The project's one rule for "a seed gives an episode": :func:`robot_venv` (the evaluation, the
-    curves, :meth:`~sb3_divmorph.pretrained.Pretrained.evaluate`), ``divmorph record`` and the
-    examples all play episode ``e`` of robot ``R`` under seed ``s`` as ``reset(seed=s + e)`` of an
-    env on ``R`` -- so an episode seen in a table can be filmed, whatever other robots ran beside it.
-    (A reset of the multi-robot env with ``options={"morphology": R}`` starts the same episode as a
-    reset of an env holding only ``R``.)
+    A hash of all three (:class:`numpy.random.SeedSequence`), so that (1) a robot's episode does not
+    depend on the robots evaluated beside it, (2) the robots of one evaluation draw *different*
+    episodes -- on PointNav, Escape or Exploration different goals and terrains, not the same few
+    for every robot -- and (3) two evaluation seeds share no episode (``seed + e`` made episode 1 of
+    seed 0 the episode 0 of seed 1).
+
+    :param robot: the robot's name or file (its stem is used).
+    """
+    name = Path(robot).stem
+    return int(np.random.SeedSequence([int(seed), zlib.crc32(name.encode()), int(episode)]).generate_state(1)[0])
+
+
+class EpisodeSeeds(gym.Wrapper):
+    """Seeds each episode of one robot's env: episode ``e`` under seed ``s`` is
+    ``reset(seed=episode_seed(s, robot, e))``.
+
+    :func:`robot_venv` (the evaluation, the curves, :meth:`~sb3_divmorph.pretrained.Pretrained.evaluate`),
+    ``divmorph record`` and the examples all play episode ``e`` of robot ``R`` under seed ``s`` so --
+    an episode seen in a table can be filmed, whatever other robots ran beside it. (A reset of the
+    multi-robot env with ``options={"morphology": R}`` starts the same episode as a reset of an env
+    holding only ``R``.)
+
+    :param robot: the robot this env runs (its name or file).
     """
 
-    def __init__(self, env: gym.Env, seed: int):
+    def __init__(self, env: gym.Env, seed: int, robot: str | Path):
         super().__init__(env)
         self.first_seed = int(seed)
+        self.robot = Path(robot).stem
         self.episode = 0
 
     def rewind(self) -> None:
@@ -89,16 +109,16 @@ class EpisodeSeeds(gym.Wrapper):
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         if seed is not None:  # an explicit seed restarts the count from it
             self.first_seed, self.episode = int(seed), 0
-        episode_seed = self.first_seed + self.episode
+        reset_seed = episode_seed(self.first_seed, self.robot, self.episode)
         self.episode += 1
-        return self.env.reset(seed=episode_seed, options=options)
+        return self.env.reset(seed=reset_seed, options=options)
 
 
 def robot_venv(env_name: str, robots: list[Path], max_steps: int, seed: int, **env_kwargs: Any) -> VecEnv:
-    """One monitored env per robot, its episodes seeded by :class:`EpisodeSeeds` (``seed + e``)."""
+    """One monitored env per robot, its episodes seeded by :class:`EpisodeSeeds` (:func:`episode_seed`)."""
 
     def one(robot: Path) -> Callable[[], gym.Env]:
-        return lambda: EpisodeSeeds(gym.make(env_name, morphologies=[robot], max_episode_steps=max_steps, **env_kwargs), seed)
+        return lambda: EpisodeSeeds(gym.make(env_name, morphologies=[robot], max_episode_steps=max_steps, **env_kwargs), seed, robot)
 
     return VecMonitor(DummyVecEnv([one(robot) for robot in robots]))
 
