@@ -1313,3 +1313,34 @@ def test_a_profile_measuring_heights_from_the_ground_makes_every_env_of_the_run_
     assert 0 < heights.mean[0, 2] < 1.5 and heights.var[0, 2] ** 0.5 < 0.5  # torso above the ground, FT and Incline alike
     with pytest.raises(ConfigError, match="height_reference 'ground' is not implemented by the batched backend"):
         load_profile("tiny", profiles, overrides={"teachers.env_backend": "batched"})
+
+
+def test_task_gates_closest_tells_the_divmorph_arm_the_closest_training_task(finished_run, tmp_path):
+    """With ``transfer.task_gates: closest`` the DivMorph arm's envs (training and curves) give the
+    closest training task's instruction, so its router (the only reader of the task embedding)
+    selects that task's tailors; the other arms keep the novel task's own, and a run folder begun
+    under the other setting is refused (break: ignore the setting -> the DivMorph arm reads Escape's)."""
+    import dataclasses
+
+    from sb3_divmorph.pipeline.branch import branch
+    from sb3_divmorph.pipeline.transfer import closest_task, transfer_run
+    from unimal_envs.instructions import shipped_embeddings
+
+    source, profiles = finished_run
+    out = tmp_path / "run"
+    branch(source, out)
+    base = load_profile("tiny", profiles)
+    profile = dataclasses.replace(base, transfer=dataclasses.replace(base.transfer, task_gates="closest"))
+    closest = closest_task(profile, out, "Escape")["closest"]
+    embeddings = shipped_embeddings()
+
+    def told(arm: str) -> np.ndarray:
+        venv = transfer_run(profile, out, "Escape", arm, progress_bar=False).make_env()
+        obs = venv.reset()
+        venv.close()
+        return obs["task_embedding"][0]
+
+    assert closest != "Escape" and np.allclose(told("divmorph"), embeddings[closest], atol=1e-5)
+    assert np.allclose(told("closest"), embeddings["Escape"], atol=1e-5)
+    with pytest.raises(ConfigError, match="built-in instruction"):
+        transfer_run(base, out, "Escape", "divmorph", progress_bar=False)

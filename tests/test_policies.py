@@ -210,6 +210,38 @@ def test_non_finite_padded_rows_are_harmless(variant):
 
 
 @pytest.mark.parametrize("variant", list(VARIANTS))
+def test_the_update_runs_on_real_tokens_only_and_equals_the_padded_pass(variant):
+    """While autograd records (the PPO update), the Transformer's projections see only the real
+    tokens, and the loss and every gradient equal those of the pass over all padded slots."""
+    from sb3_divmorph.nn.transformer import TransformerEncoder
+
+    policy = make_policy(variant)
+    obs = batch(policy)
+    actions = th.rand(20, 24) * 2 - 1
+    encoders = [m for m in policy.modules() if isinstance(m, TransformerEncoder)]  # the router's too
+    rows_seen: list[int] = []
+    for encoder in (m.encoder for m in policy.modules() if hasattr(m, "exteroception")):  # the actor's and critic's
+        encoder.layers[0].ff_in.register_forward_hook(lambda _m, inputs, _o: rows_seen.append(inputs[0].numel() // inputs[0].shape[-1]))
+
+    def update(pack: bool):
+        for encoder in encoders:
+            encoder.pack_tokens = pack
+        rows_seen.clear()
+        values, log_prob, entropy = evaluate(policy, obs, actions, train=True)
+        loss = -log_prob.mean() + 0.5 * values.pow(2).mean() - 0.01 * entropy.mean()
+        policy.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        return loss.detach(), [p.grad.clone() for p in policy.parameters() if p.grad is not None], set(rows_seen)
+
+    packed_loss, packed, packed_rows = update(True)
+    padded_loss, padded, padded_rows = update(False)
+    assert packed_rows == {int((obs["obs_padding_mask"] < 0.5).sum())} and padded_rows == {20 * contract.MAX_TOKENS}
+    assert th.allclose(packed_loss, padded_loss, atol=1e-6) and len(packed) == len(padded)
+    for a, b in zip(packed, padded):
+        assert th.allclose(a, b, rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.parametrize("variant", list(VARIANTS))
 def test_mixed_batch_equals_per_sample_evaluation(variant):
     policy = make_policy(variant)
     obs = batch(policy, size=20)  # 4 robots x 3 tasks, above the router's deduplication threshold

@@ -6,13 +6,21 @@ and threads the per-sample tailor gates through every one of them.
 
 Padding: ``key_padding_mask`` (True = padded token) removes padded tokens as attention keys, so a
 padded token can never change a real token's output. Padded tokens still produce (meaningless)
-outputs of their own, identical in train and eval mode; every consumer must mask them.
+outputs of their own; every consumer must mask them.
+
+Packing: while autograd records (the PPO update, distillation), the encoder runs its projections
+and FFNs on the real tokens only (:class:`TokenPacking`) and pads them back just around attention.
+The official robots fill 8.6 of the 12 token slots on average, so about a third of the update's
+matmuls were spent on padding. Real tokens' outputs equal the padded path's up to float rounding;
+padded tokens' outputs are then zero. Rollouts (no autograd, a handful of samples) keep the padded
+path, where gathering would cost more than it saves.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import NamedTuple
 
 import torch as th
 from torch import nn
@@ -45,6 +53,39 @@ def attention_mask(key_padding_mask: th.Tensor) -> th.Tensor:
     allowed = ~key_padding_mask
     allowed = allowed | ~allowed.any(dim=-1, keepdim=True)
     return allowed[:, None, None, :]
+
+
+class TokenPacking(NamedTuple):
+    """Where the real tokens of a padded (B, L) batch are: packed row ``i`` is flat token ``index[i]`` (``b * L + t``).
+
+    :param index: (N,) flat indices of the real tokens, in order.
+    :param batch: B.
+    :param length: L.
+    """
+
+    index: th.Tensor
+    batch: int
+    length: int
+
+    @classmethod
+    def of(cls, key_padding_mask: th.Tensor) -> TokenPacking:
+        """The packing of a (B, L) mask, True = padded."""
+        batch, length = key_padding_mask.shape
+        return cls((~key_padding_mask).flatten().nonzero().squeeze(1), batch, length)
+
+    @property
+    def sample(self) -> th.Tensor:
+        """(N,) the sample each packed row belongs to."""
+        return th.div(self.index, self.length, rounding_mode="floor")
+
+    def pack(self, x: th.Tensor) -> th.Tensor:
+        """(B, L, D) -> (N, D): the real tokens' rows."""
+        return x.reshape(-1, x.shape[-1]).index_select(0, self.index)
+
+    def unpack(self, rows: th.Tensor) -> th.Tensor:
+        """(N, D) -> (B, L, D), padded tokens zero."""
+        padded = rows.new_zeros(self.batch * self.length, rows.shape[-1])
+        return padded.index_copy(0, self.index, rows).view(self.batch, self.length, rows.shape[-1])
 
 
 class MultiHeadSelfAttention(nn.Module):
@@ -85,6 +126,20 @@ class MultiHeadSelfAttention(nn.Module):
         out = out.transpose(1, 2).reshape(x.shape)
         return self.o(out, tailor_gates)
 
+    def forward_packed(self, rows: th.Tensor, packing: TokenPacking, attn_mask: th.Tensor, row_gates: th.Tensor | None) -> th.Tensor:
+        """:meth:`forward` on packed real tokens (N, D); padded back only around the attention itself.
+
+        :param row_gates: (N, N_m + N_t) each row's sample's gates, or ``None``.
+        """
+        q, k, v = project_many([self.q, self.k, self.v], rows, row_gates)
+        width = rows.shape[-1]
+        qkv = packing.unpack(th.cat([q, k, v], dim=-1)).view(packing.batch, packing.length, 3, self.n_heads, self.head_dim)
+        q, k, v = qkv.permute(2, 0, 3, 1, 4).unbind(0)
+        dropout = self.dropout if self.training else 0.0
+        out = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask, dropout_p=dropout)
+        out = out.transpose(1, 2).reshape(-1, width).index_select(0, packing.index)
+        return self.o(out, row_gates)
+
 
 class TransformerEncoderLayer(nn.Module):
     """Pre-LN block: ``x + MSA(LN(x))`` then ``x + FFN(LN(x))`` (MetaMorph's layout).
@@ -122,6 +177,12 @@ class TransformerEncoderLayer(nn.Module):
         hidden = self.activation(self.ff_in(self.norm2(x), tailor_gates))
         return x + self.dropout(self.ff_out(hidden, tailor_gates))
 
+    def forward_packed(self, rows: th.Tensor, packing: TokenPacking, attn_mask: th.Tensor, row_gates: th.Tensor | None) -> th.Tensor:
+        """:meth:`forward` on packed real tokens (N, D) (see :class:`TokenPacking`)."""
+        rows = rows + self.dropout(self.attention.forward_packed(self.norm1(rows), packing, attn_mask, row_gates))
+        hidden = self.activation(self.ff_in(self.norm2(rows), row_gates))
+        return rows + self.dropout(self.ff_out(hidden, row_gates))
+
 
 class TransformerEncoder(nn.Module):
     """A stack of pre-LN layers, with no final norm (as in MetaMorph).
@@ -133,6 +194,7 @@ class TransformerEncoder(nn.Module):
     :param builder: builds every projection (dense or factorized).
     :param dropout: see :class:`TransformerEncoderLayer`.
     :param activation: see :class:`TransformerEncoderLayer`.
+    :param pack_tokens: run on the real tokens only while autograd records (see the module docstring).
     """
 
     def __init__(
@@ -144,9 +206,11 @@ class TransformerEncoder(nn.Module):
         builder: LinearBuilder | None = None,
         dropout: float = 0.0,
         activation: str = "relu",
+        pack_tokens: bool = True,
     ):
         super().__init__()
         builder = builder or LinearBuilder()
+        self.pack_tokens = pack_tokens
         self.layers = nn.ModuleList(
             TransformerEncoderLayer(d_model, n_heads, ff_dim, builder, dropout, activation, name=f"transformer.{i}")
             for i in range(n_layers)
@@ -160,6 +224,13 @@ class TransformerEncoder(nn.Module):
         :return: (B, L, D).
         """
         mask = attention_mask(key_padding_mask)
+        if self.pack_tokens and th.is_grad_enabled():
+            packing = TokenPacking.of(key_padding_mask)
+            rows = packing.pack(x)
+            row_gates = None if tailor_gates is None else tailor_gates.index_select(0, packing.sample)
+            for layer in self.layers:
+                rows = layer.forward_packed(rows, packing, mask, row_gates)
+            return packing.unpack(rows)
         for layer in self.layers:
             x = layer(x, mask, tailor_gates)
         return x

@@ -196,6 +196,12 @@ class TransferConfig:
     #: slower); 1.0: the full rate, like any fine-tuned network; ``null``: ``learngene_lr_scale``
     #: (the rule before issue 26)
     undiverted_lr_scale: float | None = 1.0
+    #: where the DivMorph-way arms' fixed task gates come from: ``instruction`` (the novel task's own
+    #: instruction through the gate network, the paper's rule) or ``closest`` (the instruction of the
+    #: training task the ``closest`` arm starts from, chosen by ``closest_by`` as for MetaMorph->).
+    #: A gate network trained on five instructions does not place a sixth: on PointNav the cpu100
+    #: student's own gates return 56 zero-shot, Patrol's 113 (``results/novel-task-gates``)
+    task_gates: str = "instruction"
 
     def arm_list(self) -> list[str]:
         """The arms to run: ``arms``, or the pre-arms default (``divmorph`` [+ ``scratch``])."""

@@ -160,6 +160,23 @@ def closest_task(profile: Profile, out: Path, task: str, by: str | None = None) 
     return choice
 
 
+def task_instruction(profile: Profile, out: Path, task: str, arm: str) -> str | None:
+    """The instruction an arm's envs give on ``task`` (``None``: the built-in one).
+
+    ``transfer.instructions`` rewords a task for every arm; with ``transfer.task_gates: closest`` the
+    DivMorph-way arms are told the ``closest`` training task's instruction instead, so that their
+    router (the only reader of the task embedding) selects that task's tailors.
+
+    :raises ConfigError: an unknown ``task_gates``.
+    """
+    cfg = profile.transfer
+    if cfg.task_gates not in ("instruction", "closest"):
+        raise ConfigError(f"transfer.task_gates must be 'instruction' or 'closest', got {cfg.task_gates!r}")
+    if cfg.task_gates == "closest" and ARMS[arm].divmorph_transfer:
+        return INSTRUCTIONS[closest_task(profile, out, task)["closest"]]
+    return cfg.instructions.get(task)
+
+
 def describe_closest(choice: dict[str, Any]) -> str:
     """Which teacher the ``closest`` arm starts from, and why, in one line."""
     scores = choice["scores"]
@@ -204,11 +221,15 @@ def check_arm_prerequisites(profile: Profile, out: Path, tasks: list[str], arms:
             if arm == "closest":
                 print(f"[transfer] {describe_closest(closest_task(profile, out, task))}")
             for seed in seeds:
-                _check_source(transfer_folder(out, task, arm, seed), _source_record(out, arm, seed, source), write=False)
+                record = _source_record(out, arm, seed, source, task_instruction(profile, out, task, arm))
+                _check_source(transfer_folder(out, task, arm, seed), record, write=False)
 
 
-def _source_record(out: Path, arm: str, seed: int, source: Path | None) -> dict[str, Any]:
-    return {"arm": arm, "seed": seed, "source": None if source is None else str(Path(source).relative_to(out))}
+def _source_record(out: Path, arm: str, seed: int, source: Path | None, instruction: str | None = None) -> dict[str, Any]:
+    record = {"arm": arm, "seed": seed, "source": None if source is None else str(Path(source).relative_to(out))}
+    if instruction is not None:  # only then: the runs recorded before the key keep their records
+        record["instruction"] = instruction
+    return record
 
 
 def _check_source(folder: Path, source: dict[str, Any], write: bool = True) -> None:
@@ -218,7 +239,8 @@ def _check_source(folder: Path, source: dict[str, Any], write: bool = True) -> N
         recorded = json.loads(path.read_text())
         if recorded != source:
             raise ConfigError(
-                f"{folder} was started from {recorded['source']}, not {source['source']}; "
+                f"{folder} was started from {recorded['source']} ({recorded.get('instruction', 'the built-in instruction')}), "
+                f"not {source['source']} ({source.get('instruction', 'the built-in instruction')}); "
                 "use another --out (or delete that folder) to start it again"
             )
     elif write:
@@ -369,8 +391,9 @@ def transfer_run(
     run_seed = transfer_seed(profile, task, seed)
     gamma = entry.ppo_kwargs.get("gamma", 0.99)
     env_kwargs = {"morphologies": robots, **profile_env_kwargs(profile)}
-    if task in cfg.instructions:
-        env_kwargs["instruction"] = cfg.instructions[task]
+    instruction = task_instruction(profile, out, task, arm)
+    if instruction is not None:
+        env_kwargs["instruction"] = instruction
 
     def make_env():
         return make_vec_env(
@@ -404,7 +427,7 @@ def transfer_run(
                 profile.max_episode_steps,
                 profile.seed,
                 **profile_env_kwargs(profile),
-                **({"instruction": cfg.instructions[task]} if task in cfg.instructions else {}),
+                **({"instruction": instruction} if instruction is not None else {}),
             )
         )
     if source is None:
@@ -467,7 +490,7 @@ def transfer_run(
                 # the fine-tuned actor's rate for the actor, a multiple of it for the critic (the hooks live on the optimiser)
                 installed["critic"] = UnitLearningRates(model.policy.optimizer, critic_rate_scales(model.policy, cfg.critic_lr_scale))
 
-    _check_source(folder, _source_record(out, arm, seed, source))
+    _check_source(folder, _source_record(out, arm, seed, source, instruction))
     return TrainingRun(
         folder,
         cfg.n_timesteps,
