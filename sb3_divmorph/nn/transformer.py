@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import torch as th
 from torch import nn
@@ -56,14 +56,14 @@ def attention_mask(key_padding_mask: th.Tensor) -> th.Tensor:
 
 
 class TokenPacking(NamedTuple):
-    """Where the real tokens of a padded (B, L) batch are: packed row ``i`` is flat token ``index[i]`` (``b * L + t``).
+    """Where the real tokens of a padded (B, L) batch are: packed row ``i`` is flat token ``flat_index[i]`` (``b * L + t``).
 
-    :param index: (N,) flat indices of the real tokens, in order.
+    :param flat_index: (N,) flat indices of the real tokens, in order.
     :param batch: B.
     :param length: L.
     """
 
-    index: th.Tensor
+    flat_index: th.Tensor
     batch: int
     length: int
 
@@ -76,16 +76,16 @@ class TokenPacking(NamedTuple):
     @property
     def sample(self) -> th.Tensor:
         """(N,) the sample each packed row belongs to."""
-        return th.div(self.index, self.length, rounding_mode="floor")
+        return th.div(self.flat_index, self.length, rounding_mode="floor")
 
     def pack(self, x: th.Tensor) -> th.Tensor:
         """(B, L, D) -> (N, D): the real tokens' rows."""
-        return x.reshape(-1, x.shape[-1]).index_select(0, self.index)
+        return x.reshape(-1, x.shape[-1]).index_select(0, self.flat_index)
 
     def unpack(self, rows: th.Tensor) -> th.Tensor:
         """(N, D) -> (B, L, D), padded tokens zero."""
         padded = rows.new_zeros(self.batch * self.length, rows.shape[-1])
-        return padded.index_copy(0, self.index, rows).view(self.batch, self.length, rows.shape[-1])
+        return padded.index_copy(0, self.flat_index, rows).view(self.batch, self.length, rows.shape[-1])
 
 
 class MultiHeadSelfAttention(nn.Module):
@@ -137,7 +137,7 @@ class MultiHeadSelfAttention(nn.Module):
         q, k, v = qkv.permute(2, 0, 3, 1, 4).unbind(0)
         dropout = self.dropout if self.training else 0.0
         out = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask, dropout_p=dropout)
-        out = out.transpose(1, 2).reshape(-1, width).index_select(0, packing.index)
+        out = out.transpose(1, 2).reshape(-1, width).index_select(0, packing.flat_index)
         return self.o(out, row_gates)
 
 
@@ -228,7 +228,7 @@ class TransformerEncoder(nn.Module):
             packing = TokenPacking.of(key_padding_mask)
             rows = packing.pack(x)
             row_gates = None if tailor_gates is None else tailor_gates.index_select(0, packing.sample)
-            for layer in self.layers:
+            for layer in cast(list[TransformerEncoderLayer], list(self.layers)):
                 rows = layer.forward_packed(rows, packing, mask, row_gates)
             return packing.unpack(rows)
         for layer in self.layers:
