@@ -228,8 +228,8 @@ class TransformerEncoder(nn.Module):
             packing = TokenPacking.of(key_padding_mask)
             rows = packing.pack(x)
             row_gates = None if tailor_gates is None else tailor_gates.index_select(0, packing.sample)
-            for layer in cast(list[TransformerEncoderLayer], list(self.layers)):
-                rows = layer.forward_packed(rows, packing, mask, row_gates)
+            for block in cast(list[TransformerEncoderLayer], list(self.layers)):
+                rows = block.forward_packed(rows, packing, mask, row_gates)
             return packing.unpack(rows)
         for layer in self.layers:
             x = layer(x, mask, tailor_gates)
