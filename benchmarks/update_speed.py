@@ -87,6 +87,10 @@ class Update:
         with th.no_grad():
             _, self.old_log_prob, _ = self.policy.evaluate_actions(self.obs_slice(slice(0, samples)), self.actions)
         self.evaluate = th.compile(self.policy.evaluate_actions) if compile_ else self.policy.evaluate_actions
+        # The timing repeats epochs over one buffer: a policy that moved would drift off the buffer's
+        # log-probabilities until the ratios overflow. Adam's step costs the same at rate 0.
+        for group in self.policy.optimizer.param_groups:
+            group["lr"] = 0.0
         self.device = device
 
     def obs_slice(self, index) -> dict[str, th.Tensor]:
