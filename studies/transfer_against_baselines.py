@@ -74,7 +74,7 @@ def main() -> None:
             f"| {label} | {runs} | {per_robot.mean():.0f} ({base.eval_seed.nunique()} seeds x {base.episode.nunique()} episodes) | {means} "
             f"| {from_zero.mean():+.0f} [{z_low:+.0f}, {z_high:+.0f}] | **{against.mean():+.0f} [{a_low:+.0f}, {a_high:+.0f}]** |"
         )
-    steps_header = " | ".join(f"{int(s) // 1000}k" for s in (header or []))
+    steps_header = " | ".join(f"{round(int(s) / 1000)}k" for s in (header or []))
     print(f"| variant | runs | zero-shot baseline (many draws) | {steps_header} | change from step 0 [95% CI] | last against the baseline [95% CI] |")
     print("|---|---:|---:|" + "---:|" * len(header or []) + "---|---|")
     print("\n".join(lines))
