@@ -26,7 +26,6 @@ import numpy as np
 import pandas as pd
 
 from sb3_divmorph.pipeline.files import is_done, log_file
-from sb3_divmorph.pipeline.folders import transfer_folder
 from sb3_divmorph.pipeline.metrics import robot_interval
 
 
@@ -75,7 +74,9 @@ def main() -> None:
             f"| {from_zero.mean():+.0f} [{z_low:+.0f}, {z_high:+.0f}] | **{against.mean():+.0f} [{a_low:+.0f}, {a_high:+.0f}]** |"
         )
     steps_header = " | ".join(f"{round(int(s) / 1000)}k" for s in (header or []))
-    print(f"| variant | runs | zero-shot baseline (many draws) | {steps_header} | change from step 0 [95% CI] | last against the baseline [95% CI] |")
+    print(
+        f"| variant | runs | zero-shot baseline (many draws) | {steps_header} | change from step 0 [95% CI] | last against the baseline [95% CI] |"
+    )
     print("|---|---:|---:|" + "---:|" * len(header or []) + "---|---|")
     print("\n".join(lines))
 
