@@ -49,8 +49,13 @@ def measure(args: argparse.Namespace) -> pd.DataFrame:
                 rows += [
                     {**row, "eval_seed": seed}
                     for row in model.evaluate(
-                        robots, task=args.task, episodes=3, seed=seed, max_episode_steps=profile.max_episode_steps,
-                        deterministic=False, instruction=INSTRUCTIONS[told],
+                        robots,
+                        task=args.task,
+                        episodes=3,
+                        seed=seed,
+                        max_episode_steps=profile.max_episode_steps,
+                        deterministic=False,
+                        instruction=INSTRUCTIONS[told],
                     )
                 ]
             frame = pd.DataFrame(rows).assign(variant=label, model=name)
