@@ -1323,8 +1323,10 @@ def test_task_gates_closest_tells_the_divmorph_arm_the_closest_training_task(fin
     import dataclasses
 
     from sb3_divmorph.pipeline.branch import branch
+    from sb3_divmorph.pipeline.evaluate import run_instruction
+    from sb3_divmorph.pipeline.folders import transfer_folder
     from sb3_divmorph.pipeline.transfer import closest_task, transfer_run
-    from unimal_envs.instructions import shipped_embeddings
+    from unimal_envs.instructions import INSTRUCTIONS, shipped_embeddings
 
     source, profiles = finished_run
     out = tmp_path / "run"
@@ -1342,5 +1344,8 @@ def test_task_gates_closest_tells_the_divmorph_arm_the_closest_training_task(fin
 
     assert closest != "Escape" and np.allclose(told("divmorph"), embeddings[closest], atol=1e-5)
     assert np.allclose(told("closest"), embeddings["Escape"], atol=1e-5)
+    # the evaluation stage plays the run with the instruction it trained with
+    assert run_instruction(base, transfer_folder(out, "Escape", "divmorph", 0), "Escape") == INSTRUCTIONS[closest]
+    assert run_instruction(base, transfer_folder(out, "Escape", "closest", 0), "Escape") is None
     with pytest.raises(ConfigError, match="built-in instruction"):
         transfer_run(base, out, "Escape", "divmorph", progress_bar=False)

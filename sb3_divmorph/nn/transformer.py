@@ -224,8 +224,8 @@ class TransformerEncoder(nn.Module):
         :return: (B, L, D).
         """
         mask = attention_mask(key_padding_mask)
-        if self.pack_tokens and th.is_grad_enabled():
-            packing = TokenPacking.of(key_padding_mask)
+        packing = TokenPacking.of(key_padding_mask) if self.pack_tokens and th.is_grad_enabled() else None
+        if packing is not None and packing.flat_index.numel() > 0:  # (a batch of padding alone: nothing to pack)
             rows = packing.pack(x)
             row_gates = None if tailor_gates is None else tailor_gates.index_select(0, packing.sample)
             for block in cast(list[TransformerEncoderLayer], list(self.layers)):

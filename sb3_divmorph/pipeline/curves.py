@@ -77,9 +77,9 @@ def episode_seed(seed: int, robot: str | Path, episode: int) -> int:
     for every robot -- and (3) two evaluation seeds share no episode (``seed + e`` made episode 1 of
     seed 0 the episode 0 of seed 1).
 
-    :param robot: the robot's name or file (its stem is used).
+    :param robot: the robot's name or its MJCF file.
     """
-    name = Path(robot).stem
+    name = Path(robot).name.removesuffix(".xml")
     return int(np.random.SeedSequence([int(seed), zlib.crc32(name.encode()), int(episode)]).generate_state(1)[0])
 
 
@@ -99,7 +99,7 @@ class EpisodeSeeds(gym.Wrapper):
     def __init__(self, env: gym.Env, seed: int, robot: str | Path):
         super().__init__(env)
         self.first_seed = int(seed)
-        self.robot = Path(robot).stem
+        self.robot = Path(robot).name.removesuffix(".xml")
         self.episode = 0
 
     def rewind(self) -> None:

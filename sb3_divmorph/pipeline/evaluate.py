@@ -16,6 +16,7 @@ every evaluated robot go to ``evaluate/gates.npz`` (for the correlation heatmaps
 from __future__ import annotations
 
 import csv
+import json
 import io
 import shutil
 import time
@@ -90,6 +91,14 @@ def transfer_robots_and_episodes(
     if cfg.eval_every <= 0 or episodes_given:
         return robots, episodes
     return transfer_eval_robots(profile, split), cfg.eval_episodes
+
+
+def run_instruction(profile: Profile, folder: Path, task: str) -> str | None:
+    """The instruction a transfer run trained with: the one its ``source.json`` records
+    (``transfer.task_gates: closest``), else the profile's ``transfer.instructions`` (``None``: built-in)."""
+    source = Path(folder) / "source.json"
+    recorded = json.loads(source.read_text()).get("instruction") if source.is_file() else None
+    return recorded or profile.transfer.instructions.get(task)
 
 
 def evaluation_plan(profile: Profile, out: Path) -> list[tuple[str, Path, str]]:
@@ -243,7 +252,14 @@ def evaluate(
             found = final_evaluation(model, split, robots, count) if label.startswith("transfer-") else None
             if found is None:
                 found = evaluate_model(
-                    model, task, robots, count, profile.max_episode_steps, profile.seed, env_kwargs=profile_env_kwargs(profile)
+                    model,
+                    task,
+                    robots,
+                    count,
+                    profile.max_episode_steps,
+                    profile.seed,
+                    instruction=run_instruction(profile, model, task) if label.startswith("transfer-") else None,
+                    env_kwargs=profile_env_kwargs(profile),
                 )
         seed = job_key(label, model, task, split)[3]
         rows += [{"model": label, "task": task, "split": split, "seed": seed, **row} for row in found]

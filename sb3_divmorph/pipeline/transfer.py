@@ -177,6 +177,13 @@ def task_instruction(profile: Profile, out: Path, task: str, arm: str) -> str | 
     return cfg.instructions.get(task)
 
 
+def gate_instruction(profile: Profile, out: Path, task: str, arm: str) -> str | None:
+    """The closest training task's instruction when ``transfer.task_gates: closest`` gives it to this arm, else ``None``."""
+    if profile.transfer.task_gates == "closest" and ARMS[arm].divmorph_transfer:
+        return task_instruction(profile, out, task, arm)
+    return None
+
+
 def describe_closest(choice: dict[str, Any]) -> str:
     """Which teacher the ``closest`` arm starts from, and why, in one line."""
     scores = choice["scores"]
@@ -221,13 +228,16 @@ def check_arm_prerequisites(profile: Profile, out: Path, tasks: list[str], arms:
             if arm == "closest":
                 print(f"[transfer] {describe_closest(closest_task(profile, out, task))}")
             for seed in seeds:
-                record = _source_record(out, arm, seed, source, task_instruction(profile, out, task, arm))
+                record = _source_record(out, arm, seed, source, gate_instruction(profile, out, task, arm))
                 _check_source(transfer_folder(out, task, arm, seed), record, write=False)
 
 
 def _source_record(out: Path, arm: str, seed: int, source: Path | None, instruction: str | None = None) -> dict[str, Any]:
+    """What a run started from; ``instruction``: the one ``task_gates: closest`` gave it (recorded only
+    then, so that runs begun before the setting existed keep their records; the evaluation stage reads
+    it back)."""
     record = {"arm": arm, "seed": seed, "source": None if source is None else str(Path(source).relative_to(out))}
-    if instruction is not None:  # only then: the runs recorded before the key keep their records
+    if instruction is not None:
         record["instruction"] = instruction
     return record
 
@@ -490,7 +500,7 @@ def transfer_run(
                 # the fine-tuned actor's rate for the actor, a multiple of it for the critic (the hooks live on the optimiser)
                 installed["critic"] = UnitLearningRates(model.policy.optimizer, critic_rate_scales(model.policy, cfg.critic_lr_scale))
 
-    _check_source(folder, _source_record(out, arm, seed, source, instruction))
+    _check_source(folder, _source_record(out, arm, seed, source, gate_instruction(profile, out, task, arm)))
     return TrainingRun(
         folder,
         cfg.n_timesteps,
