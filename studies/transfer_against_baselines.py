@@ -63,15 +63,17 @@ def main() -> None:
         steps = list(frame.columns)
         if header is None:
             header = steps
-        means = " | ".join(f"{frame[s].mean():.0f}" for s in steps)
+        digits = 1 if abs(per_robot.mean()) < 50 else 0  # Escape's returns are a few units
+        means = " | ".join(f"{frame[s].mean():.{digits}f}" for s in steps)
         from_zero = (frame[steps[-1]] - frame[steps[0]]).to_numpy()
         against = (frame[steps[-1]] - per_robot.reindex(frame.index.get_level_values("robot")).to_numpy()).to_numpy()
         z_low, z_high = robot_interval(from_zero)
         a_low, a_high = robot_interval(against)
         runs = frame.index.get_level_values("seed").nunique()
         lines.append(
-            f"| {label} | {runs} | {per_robot.mean():.0f} ({base.eval_seed.nunique()} seeds x {base.episode.nunique()} episodes) | {means} "
-            f"| {from_zero.mean():+.0f} [{z_low:+.0f}, {z_high:+.0f}] | **{against.mean():+.0f} [{a_low:+.0f}, {a_high:+.0f}]** |"
+            f"| {label} | {runs} | {per_robot.mean():.{digits}f} ({base.eval_seed.nunique()} seeds x {base.episode.nunique()} episodes) | {means} "
+            f"| {from_zero.mean():+.{digits}f} [{z_low:+.{digits}f}, {z_high:+.{digits}f}] "
+            f"| **{against.mean():+.{digits}f} [{a_low:+.{digits}f}, {a_high:+.{digits}f}]** |"
         )
     steps_header = " | ".join(f"{round(int(s) / 1000)}k" for s in (header or []))
     print(
