@@ -160,12 +160,10 @@ def closest_task(profile: Profile, out: Path, task: str, by: str | None = None) 
     return choice
 
 
-def task_instruction(profile: Profile, out: Path, task: str, arm: str) -> str | None:
-    """The instruction an arm's envs give on ``task`` (``None``: the built-in one).
-
-    ``transfer.instructions`` rewords a task for every arm; with ``transfer.task_gates: closest`` the
-    DivMorph-way arms are told the ``closest`` training task's instruction instead, so that their
-    router (the only reader of the task embedding) selects that task's tailors.
+def gate_instruction(profile: Profile, out: Path, task: str, arm: str) -> str | None:
+    """The closest training task's instruction when ``transfer.task_gates: closest`` gives it to this
+    arm (a DivMorph-way arm, whose router -- the only reader of the task embedding -- then selects that
+    task's tailors), else ``None``.
 
     :raises ConfigError: an unknown ``task_gates``.
     """
@@ -174,13 +172,6 @@ def task_instruction(profile: Profile, out: Path, task: str, arm: str) -> str | 
         raise ConfigError(f"transfer.task_gates must be 'instruction' or 'closest', got {cfg.task_gates!r}")
     if cfg.task_gates == "closest" and ARMS[arm].divmorph_transfer:
         return INSTRUCTIONS[closest_task(profile, out, task)["closest"]]
-    return cfg.instructions.get(task)
-
-
-def gate_instruction(profile: Profile, out: Path, task: str, arm: str) -> str | None:
-    """The closest training task's instruction when ``transfer.task_gates: closest`` gives it to this arm, else ``None``."""
-    if profile.transfer.task_gates == "closest" and ARMS[arm].divmorph_transfer:
-        return task_instruction(profile, out, task, arm)
     return None
 
 
@@ -401,7 +392,8 @@ def transfer_run(
     run_seed = transfer_seed(profile, task, seed)
     gamma = entry.ppo_kwargs.get("gamma", 0.99)
     env_kwargs = {"morphologies": robots, **profile_env_kwargs(profile)}
-    instruction = task_instruction(profile, out, task, arm)
+    gated = gate_instruction(profile, out, task, arm)
+    instruction = gated or cfg.instructions.get(task)
     if instruction is not None:
         env_kwargs["instruction"] = instruction
 
@@ -500,7 +492,7 @@ def transfer_run(
                 # the fine-tuned actor's rate for the actor, a multiple of it for the critic (the hooks live on the optimiser)
                 installed["critic"] = UnitLearningRates(model.policy.optimizer, critic_rate_scales(model.policy, cfg.critic_lr_scale))
 
-    _check_source(folder, _source_record(out, arm, seed, source, gate_instruction(profile, out, task, arm)))
+    _check_source(folder, _source_record(out, arm, seed, source, gated))
     return TrainingRun(
         folder,
         cfg.n_timesteps,
