@@ -1172,6 +1172,47 @@ def test_with_learning_rate_zero_a_transfer_run_leaves_every_fine_tuned_arms_act
     assert np.abs(trained.predict(trained.get_vec_normalize_env().normalize_obs(raw), deterministic=True)[0] - before).max() > 1e-4
 
 
+def test_transfer_action_std_changes_what_a_fine_tuned_arm_samples_and_not_its_mean(finished_run, tmp_path):
+    """``transfer.action_std: 0.3``: every arm that starts from trained weights samples its actions
+    with std 0.3 for the whole run (the checkpoint it saves and resumes from included), while its
+    deterministic actions at step 0 are the source's; without the setting they sample with the
+    source's 0.9; scratch keeps its own."""
+    from sb3_divmorph.pipeline.robots import profile_robots
+    from sb3_divmorph.pipeline.training import stage_model
+    from sb3_divmorph.pipeline.transfer import transfer_run
+
+    out, profiles = copied_run(finished_run, tmp_path)
+    raw = fixed_states("Escape", profile_robots(load_profile("tiny", profiles), "train"))
+
+    def sampling_std(model):
+        obs = model.policy.obs_to_tensor(model.get_vec_normalize_env().normalize_obs(raw))[0]
+        with th.no_grad():
+            return model.policy.get_distribution(obs).distribution.stddev
+
+    def mean_action(model):
+        return model.predict(model.get_vec_normalize_env().normalize_obs(raw), deterministic=True)[0]
+
+    base = load_profile("tiny", profiles, overrides={"transfer.finetune_overrides": {"learning_rate": 0.0}, "transfer.eval_every": 0})
+    narrow = load_profile(
+        "tiny",
+        profiles,
+        overrides={"transfer.finetune_overrides": {"learning_rate": 0.0}, "transfer.eval_every": 0, "transfer.action_std": 0.3},
+    )
+    for arm in ("closest", "divmorph", "grl"):
+        source = transfer_run(base, out, "Escape", arm, 5, progress_bar=False).make_model()  # the same seed: GRL's fresh layers alike
+        assert th.allclose(sampling_std(source), th.tensor(0.9)), arm
+        run = transfer_run(narrow, out, "Escape", arm, 5, progress_bar=False)
+        start = run.make_model()
+        assert th.allclose(sampling_std(start), th.tensor(0.3)), arm
+        np.testing.assert_array_equal(mean_action(start), mean_action(source), err_msg=arm)
+        trained = run.run()  # saved and loaded from its checkpoint on the way
+        assert th.allclose(sampling_std(trained), th.tensor(0.3)), arm
+        reloaded = type(trained).load(stage_model(run.folder), device="cpu")
+        assert th.allclose(reloaded.policy.log_std.exp(), th.tensor(0.3)), arm
+    scratch = transfer_run(narrow, out, "Escape", "scratch", 5, progress_bar=False).make_model()
+    assert th.allclose(sampling_std(scratch), th.tensor(0.9))
+
+
 def test_transfer_curves_roll_out_the_first_eval_robots_of_each_split(finished_run, tmp_path):
     """``transfer.eval_robots: 1``: the evaluation curves (zero-shot, every ``eval_every`` steps, final)
     roll out only the first training and the first novel robot, every episode of each; the evaluation

@@ -202,6 +202,11 @@ class TransferConfig:
     #: A gate network trained on five instructions does not place a sixth: on PointNav the cpu100
     #: student's own gates return 56 zero-shot, Patrol's 113 (``results/novel-task-gates``)
     task_gates: str = "instruction"
+    #: std of the Gaussian the arms that start from trained weights sample from while they fine-tune
+    #: (``null``: the source's, MetaMorph's fixed 0.9). Their deterministic (mean) action is what the
+    #: race evaluates; under std 0.9 PPO improves the noisy policy, which need not improve its mean
+    #: (``results/finetune-known-task``, section 5). The deterministic actions at step 0 do not change
+    action_std: float | None = None
 
     def arm_list(self) -> list[str]:
         """The arms to run: ``arms``, or the pre-arms default (``divmorph`` [+ ``scratch``])."""

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -320,6 +321,7 @@ def finetuned_model(
     device: str,
     ppo_kwargs: dict[str, Any],
     algo: type[PPO] = PPO,
+    action_std: float | None = None,
 ) -> PPO:
     """A PPO model on ``venv`` that starts from ``saved``'s policy and sees ``task``'s inputs.
 
@@ -334,8 +336,12 @@ def finetuned_model(
     :param task: the novel task.
     :param task_policy_kwargs: the novel task's MetaMorph kwargs.
     :param algo: ``PPO``, or ``DevicePPO`` on the batched backend (rollouts on the device).
+    :param action_std: the std the fine-tuned policy samples from (``None``: ``saved``'s); its mean
+        action, every weight, stays ``saved``'s.
     """
     kwargs = dict(saved.policy_kwargs)
+    if action_std is not None:
+        kwargs["action_std"] = action_std
     extractor = saved.policy.features_extractor if saved.policy.share_features_extractor else saved.policy.pi_features_extractor
     has = set(extractor.exteroception.keys()) if hasattr(extractor, "exteroception") else None
     needed = [key for key in TASKS[task].observation_keys if has is not None and key not in has]
@@ -353,7 +359,26 @@ def finetuned_model(
         load_widened(model.policy, saved.policy)
     else:
         model.policy.load_state_dict(saved.policy.state_dict())
+    if action_std is not None:
+        set_action_std(model.policy, action_std)
     return model
+
+
+def set_action_std(policy, action_std: float) -> None:
+    """Sample ``policy``'s actions with std ``action_std`` from now on (a fixed std or a learned log-std's start).
+
+    The std lives in the policy's ``log_std`` (a buffer when fixed, a parameter when learned), which
+    a loaded state dict overwrites: this sets it after the weights are in.
+
+    :raises ConfigError: ``action_std`` is not positive, or the policy has no such std.
+    """
+    if not action_std > 0:
+        raise ConfigError(f"transfer.action_std must be positive, got {action_std!r}")
+    if not hasattr(policy, "log_std") or not hasattr(policy, "action_std"):
+        raise ConfigError(f"{type(policy).__name__} has no state-independent std to set (transfer.action_std)")
+    with th.no_grad():
+        policy.log_std.fill_(math.log(action_std))
+    policy.action_std = float(action_std)
 
 
 def transfer_seed(profile: Profile, task: str, seed: int) -> int:
@@ -451,6 +476,8 @@ def transfer_run(
                 "MetaMorphPolicy", venv, policy_kwargs=grl_policy_kwargs(profile), seed=run_seed, device=device, **entry.ppo_kwargs
             )
             inherit(model.policy, PPO.load(stage_model(source), device=device).policy, learngene["units"])
+            if cfg.action_std is not None:
+                set_action_std(model.policy, cfg.action_std)
             return model
 
     else:
@@ -461,7 +488,7 @@ def transfer_run(
             # new task; an encoder for a task input the source never had (a teacher of another task) is added
             saved = PPO.load(stage_model(source), device=device)
             venv = inherited_normalizer(source, make_env(), gamma, freeze_observations=cfg.observation_statistics == "frozen")
-            return finetuned_model(saved, venv, task, task_policy_kwargs, run_seed, device, entry.ppo_kwargs, algo)
+            return finetuned_model(saved, venv, task, task_policy_kwargs, run_seed, device, entry.ppo_kwargs, algo, cfg.action_std)
 
     installed: dict[str, UnitLearningRates] = {}
     if spec.divmorph_transfer:
