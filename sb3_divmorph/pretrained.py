@@ -53,7 +53,9 @@ class SavedModel:
     :param env_id: the env it was trained on, when the layout tells (``None`` otherwise).
     :param algo: ``ppo`` or ``a2c``, when the layout tells.
     :param env_kwargs: the env arguments its run made its envs with (rl-zoo's ``env_kwargs``, the
-        pipeline's env settings); its robots are under ``morphologies`` when the run records them.
+        pipeline's env settings); its robots are under ``morphologies`` when the run records them,
+        and the instruction a transfer run gave it (another task's, or its own in other words) under
+        ``instruction``.
     """
 
     model: Path
@@ -61,6 +63,13 @@ class SavedModel:
     env_id: str | None
     algo: str | None
     env_kwargs: dict[str, Any] = field(default_factory=dict)
+
+    def env_settings(self, env_id: str) -> dict[str, Any]:
+        """``env_kwargs`` for running the model on ``env_id``: its recorded instruction belongs to the
+        task it trained on, so on another task that task's own instruction is used."""
+        if env_id == self.env_id:
+            return dict(self.env_kwargs)
+        return {key: value for key, value in self.env_kwargs.items() if key != "instruction"}
 
 
 def _read_zoo_yaml(path: Path) -> dict[str, Any]:
@@ -133,9 +142,11 @@ def find_model(source: str | Path) -> SavedModel:
 
     # divmorph pipeline: teachers/<task>, transfer/<task>/<arm>, student (multi-task: no single task)
     from sb3_divmorph.pipeline.files import ENV_SETTINGS
-    from sb3_divmorph.pipeline.robots import trained_env_kwargs, trained_robots
+    from sb3_divmorph.pipeline.robots import trained_env_kwargs, trained_instruction, trained_robots
 
-    task = next((name for name in (folder.name, folder.parent.name) if name in TASK_NAMES), None)
+    # teachers/<task>, transfer/<task>/<arm>, transfer/<task>/<arm>/seed-<n>
+    names = (folder.name, folder.parent.name, *((folder.parent.parent.name,) if folder.name.startswith("seed-") else ()))
+    task = next((name for name in names if name in TASK_NAMES), None)
     normalizer = folder / NORMALIZER
     env_kwargs = dict(trained_env_kwargs(folder))
     robots = trained_robots(folder)
@@ -153,6 +164,9 @@ def find_model(source: str | Path) -> SavedModel:
             robots = saved["robots"]  # by name: the shipped and official sets on this machine
     if robots is not None:
         env_kwargs["morphologies"] = robots
+    instruction = trained_instruction(folder, task)
+    if instruction is not None:  # a transfer run told another task's instruction, or one in other words
+        env_kwargs["instruction"] = instruction
     return SavedModel(model, normalizer if normalizer.is_file() else None, f"Unimal-{task}-v0" if task else None, None, env_kwargs)
 
 
@@ -197,8 +211,8 @@ class Pretrained:
             raise PretrainedError(f"cannot tell which task {self.saved.model} was trained on; pass task= (one of {list(TASK_NAMES)})")
         return self.env_id
 
-    def _settings(self, overrides: dict[str, Any]) -> dict[str, Any]:
-        settings = dict(self.env_kwargs)
+    def _settings(self, overrides: dict[str, Any], env_id: str) -> dict[str, Any]:
+        settings = {key: value for key, value in self.saved.env_settings(env_id).items() if key != "morphologies"}
         for key, value in overrides.items():
             if key in settings and settings[key] != value:
                 warnings.warn(
@@ -231,7 +245,8 @@ class Pretrained:
         """
         import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
 
-        return gym.make(self._env_id(task), morphologies=self._robot_files(robots), **self._settings(env_kwargs))
+        env_id = self._env_id(task)
+        return gym.make(env_id, morphologies=self._robot_files(robots), **self._settings(env_kwargs, env_id))
 
     def predict(self, obs: dict[str, np.ndarray], deterministic: bool = True) -> np.ndarray:
         """The model's action for a (single or batched) observation, its statistics applied."""
@@ -261,7 +276,8 @@ class Pretrained:
         if episodes < 1:
             raise PretrainedError(f"episodes must be at least 1, got {episodes}")
         files = self._robot_files(robots)
-        venv = robot_venv(self._env_id(task), files, max_episode_steps, seed, **self._settings(env_kwargs))
+        env_id = self._env_id(task)
+        venv = robot_venv(env_id, files, max_episode_steps, seed, **self._settings(env_kwargs, env_id))
         try:
             normalize = self.normalizer.normalize_obs if self.normalizer is not None else None
             return rollout_returns(self.model, venv, files, episodes, normalize, deterministic=deterministic)

@@ -120,7 +120,7 @@ def record(args: argparse.Namespace) -> Path:
 
     # the model's own robots and env settings (a pipeline run's records, an rl-zoo run's env_kwargs):
     # a teacher filmed on other robots, or fed other observations, would look untrained
-    settings = dict(saved.env_kwargs)
+    settings = saved.env_settings(env_id)
     trained_on = settings.pop("morphologies", None)
     morphologies = args.morphologies if args.morphologies is not None else (trained_on or "train")
     for key in ("render_mode", "width", "height", "max_episode_steps"):

@@ -1390,3 +1390,38 @@ def test_task_gates_closest_tells_the_divmorph_arm_the_closest_training_task(fin
     assert run_instruction(base, transfer_folder(out, "Escape", "closest", 0), "Escape") is None
     with pytest.raises(ConfigError, match="built-in instruction"):
         transfer_run(base, out, "Escape", "divmorph", progress_bar=False)
+
+
+def test_a_loaded_transfer_run_plays_with_the_instruction_it_trained_with(finished_run, tmp_path):
+    """``load_pretrained`` (and so ``divmorph record``) of a transfer run folder, ``seed-<n>`` ones
+    included, knows its task and gives its envs the instruction the run trained with: the one
+    ``source.json`` records (``task_gates: closest``); on another task that task's own (break: drop
+    the recorded instruction in ``find_model`` -> the env reads Escape's)."""
+    import json
+
+    from sb3_divmorph.pipeline.training import has_model
+    from sb3_divmorph.pretrained import load_pretrained
+    from unimal_envs.instructions import INSTRUCTIONS, shipped_embeddings
+
+    out, _ = copied_run(finished_run, tmp_path)
+    folder = out / "transfer" / "Escape" / "divmorph" / "seed-0"
+    assert has_model(folder)
+    record = folder / "source.json"
+    recorded = json.loads(record.read_text())
+    embeddings = shipped_embeddings()
+
+    def embedding(model, task=None):
+        env = model.make_env(model.robots[:1], task=task)
+        obs = env.reset(seed=0)[0]
+        env.close()
+        return obs["task_embedding"]
+
+    record.write_text(json.dumps({k: v for k, v in recorded.items() if k != "instruction"}))
+    plain = load_pretrained(folder)
+    assert plain.env_id == "Unimal-Escape-v0"
+    assert np.allclose(embedding(plain), embeddings["Escape"], atol=1e-5)
+    record.write_text(json.dumps({**recorded, "instruction": INSTRUCTIONS["Patrol"]}))
+    told = load_pretrained(folder)
+    assert told.env_kwargs["instruction"] == INSTRUCTIONS["Patrol"]
+    assert np.allclose(embedding(told), embeddings["Patrol"], atol=1e-5)
+    assert np.allclose(embedding(told, task="FT"), embeddings["FT"], atol=1e-5)

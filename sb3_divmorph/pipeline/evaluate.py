@@ -35,7 +35,7 @@ from sb3_divmorph.pipeline.folders import TEACHER_RUN, student_folder, teacher_f
 from sb3_divmorph.pipeline.grid import job_builder
 from sb3_divmorph.pipeline.envs import profile_env_kwargs, robot_observations, task_env_name
 from sb3_divmorph.pipeline.files import atomic_save, atomic_write_text, is_done, log_file, mark_done, read_csv_rows
-from sb3_divmorph.pipeline.robots import profile_robots, profile_splits, transfer_eval_robots
+from sb3_divmorph.pipeline.robots import profile_robots, profile_splits, trained_instruction, transfer_eval_robots
 from sb3_divmorph.pipeline.training import has_model, stage_model, stage_normalizer
 from sb3_divmorph.pipeline.students import STUDENTS
 from unimal_envs.contract import TASK_NAMES
@@ -96,9 +96,7 @@ def transfer_robots_and_episodes(
 def run_instruction(profile: Profile, folder: Path, task: str) -> str | None:
     """The instruction a transfer run trained with: the one its ``source.json`` records
     (``transfer.task_gates: closest``), else the profile's ``transfer.instructions`` (``None``: built-in)."""
-    source = Path(folder) / "source.json"
-    recorded = json.loads(source.read_text()).get("instruction") if source.is_file() else None
-    return recorded or profile.transfer.instructions.get(task)
+    return trained_instruction(folder, None) or profile.transfer.instructions.get(task)
 
 
 def evaluation_plan(profile: Profile, out: Path) -> list[tuple[str, Path, str]]:

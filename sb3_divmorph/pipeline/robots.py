@@ -125,6 +125,29 @@ def trained_env_kwargs(folder: str | Path) -> dict[str, Any]:
     return {} if height == "world" else {"height_reference": height}
 
 
+def trained_instruction(folder: str | Path, task: str | None) -> str | None:
+    """The instruction a transfer run's envs gave its model: the one its ``source.json`` records
+    (``transfer.task_gates: closest``), else its run's ``transfer.instructions[task]``; ``None``: the
+    task's built-in one, and for every folder that is not a transfer run (no ``source.json``).
+
+    :param folder: a model folder or a ``model.zip`` inside one.
+    """
+    folder = Path(folder).resolve()
+    if folder.suffix == ".zip":
+        folder = folder.parent
+    source = folder / "source.json"
+    if not source.is_file():
+        return None
+    recorded = json.loads(source.read_text()).get("instruction")
+    if recorded is not None or task is None:
+        return recorded
+    record = next((d / "run.json" for d in folder.parents if (d / "run.json").is_file()), None)
+    if record is None:
+        return None
+    configured = json.loads(record.read_text()).get("configuration", {}).get("transfer", {}).get("instructions") or {}
+    return configured.get(task)
+
+
 def _robot_sets_record(folder: str | Path) -> Path | None:
     """The nearest ``robot_sets.json`` in ``folder`` (a model folder or a ``model.zip``) or above it."""
     folder = Path(folder).resolve()
