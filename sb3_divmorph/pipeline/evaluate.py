@@ -16,7 +16,6 @@ every evaluated robot go to ``evaluate/gates.npz`` (for the correlation heatmaps
 from __future__ import annotations
 
 import csv
-import json
 import io
 import shutil
 import time
