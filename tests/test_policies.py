@@ -241,6 +241,24 @@ def test_the_update_runs_on_real_tokens_only_and_equals_the_padded_pass(variant)
         assert th.allclose(a, b, rtol=1e-4, atol=1e-6)
 
 
+def test_a_batch_of_padding_alone_runs_as_the_padded_pass_does():
+    """Token packing has nothing to pack when every slot is padding (a minibatch of empty samples):
+    the encoder under autograd then gives what the padded pass gives, and gradients flow (break:
+    drop the guard -> every output differs from the padded pass's)."""
+    from sb3_divmorph.nn.transformer import TransformerEncoder
+
+    th.manual_seed(0)
+    encoder = TransformerEncoder(16, 2, 2, 32)
+    x = th.randn(3, contract.MAX_TOKENS, 16, requires_grad=True)
+    empty = th.ones(3, contract.MAX_TOKENS, dtype=th.bool)
+    packed = encoder(x, empty)
+    encoder.pack_tokens = False
+    padded = encoder(x, empty)
+    th.testing.assert_close(packed, padded, equal_nan=True)
+    packed.nan_to_num().sum().backward()
+    assert x.grad is not None and x.grad.shape == x.shape
+
+
 @pytest.mark.parametrize("variant", list(VARIANTS))
 def test_mixed_batch_equals_per_sample_evaluation(variant):
     policy = make_policy(variant)
