@@ -236,6 +236,35 @@ def test_a_custom_instruction_is_what_the_worlds_observe():
         make_batched_env("MultiTask", morphologies=ROBOTS[:1], worlds_per_robot=1, device="cpu", instruction=words)
 
 
+@pytest.mark.parametrize("task", ["Incline", "VT", "Escape"])
+def test_heights_measured_from_the_ground_are_the_single_envs(task):
+    """``height_reference="ground"``: a world moved off the spawn point, onto the incline's slope or
+    the terrain, observes the token heights the single env observes in the same state -- measured
+    from the ground under the torso, not from z = 0 (break: skip the subtraction in the block's
+    ``observe`` -> the heights differ by the ground's)."""
+    import mujoco
+
+    benv = make_batched_env(
+        task, morphologies=ROBOTS[:1], worlds_per_robot=2, device="cpu", seed=0, terrain_variants=2, height_reference="ground"
+    )
+    assert benv.get_attr("height_reference") == ["ground", "ground"]
+    benv.reset()
+    env = gym.make(f"Unimal-{task}-v0", morphologies=ROBOTS[:1], height_reference="ground").unwrapped
+    env.reset(seed=0)
+    if task == "Incline":
+        env.data.qpos[:2] += (6.0, 1.0)  # up the slope
+    else:  # onto the terrain's highest sample
+        grid = env.arena.grid
+        row, col = np.unravel_index(np.abs(grid.heights).argmax(), grid.heights.shape)
+        env.data.qpos[:2] = (grid.x0 + col * grid.resolution, grid.y0 + row * grid.resolution)
+    mujoco.mj_forward(env.model, env.data)
+    single = env._observation()
+    ground = env.arena.ground_height(*env.data.qpos[:2])
+    assert abs(ground) > 0.05, "the test needs a place where the ground is not at z = 0"
+    batched = mirror_world(benv, 1, env)
+    np.testing.assert_allclose(batched["proprioceptive"][1].numpy(), single["proprioceptive"], atol=1e-5)
+
+
 def test_without_mujoco_warp_the_message_names_the_extra(monkeypatch):
     import unimal_envs.batched as batched
 

@@ -12,6 +12,8 @@ import time
 from pathlib import Path
 
 import gymnasium as gym
+import importlib.util
+
 import numpy as np
 import pytest
 import torch as th
@@ -1352,8 +1354,25 @@ def test_a_profile_measuring_heights_from_the_ground_makes_every_env_of_the_run_
     assert len(made) > 20 and set(made) == {"ground"}
     heights = load_normalizer(out / "student" / "vecnormalize.pkl").obs_rms["proprioceptive"]
     assert 0 < heights.mean[0, 2] < 1.5 and heights.var[0, 2] ** 0.5 < 0.5  # torso above the ground, FT and Incline alike
-    with pytest.raises(ConfigError, match="height_reference 'ground' is not implemented by the batched backend"):
-        load_profile("tiny", profiles, overrides={"teachers.env_backend": "batched"})
+    # the batched backend measures heights the same way (tests/test_batched.py): a stage on it gets the setting too
+    batched = load_profile("tiny", profiles, overrides={"transfer.env_backend": "batched"})
+    if importlib.util.find_spec("mujoco_warp") is not None:
+        from sb3_divmorph.pipeline.envs import make_vec_env, profile_env_kwargs
+        from sb3_divmorph.pipeline.robots import profile_robots
+
+        venv = make_vec_env(
+            "Unimal-Incline-v0",
+            1,
+            0,
+            100,
+            "batched",
+            1,
+            "cpu",
+            1,
+            morphologies=profile_robots(batched, "train")[:1],
+            **profile_env_kwargs(batched),
+        )
+        assert venv.get_attr("height_reference") == ["ground"]
 
 
 def test_task_gates_closest_tells_the_divmorph_arm_the_closest_training_task(finished_run, tmp_path):

@@ -385,11 +385,6 @@ class Profile:
             )
         for section in ("teachers", "distill", "transfer"):
             cfg = getattr(profile, section)
-            if profile.height_reference != "world" and cfg.env_backend == "batched":
-                raise ConfigError(
-                    f"profile {name!r}: height_reference {profile.height_reference!r} is not implemented by the batched "
-                    f"backend ({section}.env_backend); use env_backend: single or height_reference: world"
-                )
             if cfg.env_backend not in ENV_BACKENDS or cfg.worlds_per_robot < 1 or cfg.terrain_variants < 1:
                 raise ConfigError(
                     f"profile {name!r}: {section}.env_backend must be one of {list(ENV_BACKENDS)}, "

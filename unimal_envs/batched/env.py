@@ -69,6 +69,9 @@ class _TaskBlock:
             "task_index": torch.as_tensor(env._task_index, device=dev).expand(self.n, -1),
         }
         self.real_slots = 1.0 - self.static["act_padding_mask"]
+        # height_reference "ground": every real token's z is measured from the ground under the torso, as in the single env
+        self.ground_reference = env.height_reference == "ground"
+        self.real_tokens = self.static["obs_padding_mask"] < 0.5
         self.fall_height = per_robot([[g.fall_height] for g in self.groups])[:, 0].float()
         self.names = [m.name for m in morphologies for _ in range(worlds)]
 
@@ -85,8 +88,11 @@ class _TaskBlock:
         return r
 
     def observe(self, r: Readings) -> dict[str, torch.Tensor]:
+        proprioceptive = self.proprio.clone()
+        if self.ground_reference:
+            proprioceptive[..., C.Z_COLUMN] -= self.task.ground_height(r)[:, None] * self.real_tokens
         obs = {
-            "proprioceptive": self.proprio.clone(),
+            "proprioceptive": proprioceptive,
             **self.static,
             "hfield": torch.zeros(self.n, C.HFIELD_DIM, device=self.device),
             "goal": torch.zeros(self.n, C.GOAL_DIM, device=self.device),
@@ -184,6 +190,8 @@ class BatchedUnimalEnv(VecEnv):
         n = sum(b.n for b in blocks)
         self.render_mode = None
         super().__init__(n, C.observation_space(), C.action_space())
+        #: what the height column of ``proprioceptive`` is measured from (``world`` or ``ground``, as the single env's)
+        self.height_reference = blocks[0].env.height_reference
         self.morphology_names = [name for b in blocks for name in b.names]
         self.task_names = [b.task_name for b in blocks for _ in range(b.n)]
         self.steps = torch.zeros(n, dtype=torch.long, device=self.torch_device)
@@ -394,6 +402,7 @@ def make_batched_env(
     reset_noise_scale: float = 0.005,
     instruction: str | None = None,
     text_encoder: str = DEFAULT_ENCODER,
+    height_reference: str = "world",
 ) -> BatchedUnimalEnv:
     """A UNIMAL task on MuJoCo Warp: ``len(morphologies) x worlds_per_robot`` worlds (see
     :class:`BatchedUnimalEnv`).
@@ -416,6 +425,9 @@ def make_batched_env(
     :param reset_noise_scale: as for the single env.
     :param instruction: replaces the task's instruction (its embedding is the ``task_embedding``
         observation), embedded with ``text_encoder``; not with MultiTask.
+    :param height_reference: what the height column of ``proprioceptive`` is measured from, as for
+        :class:`~unimal_envs.env.UnimalEnv`: ``"world"`` (z = 0) or ``"ground"`` (the ground under
+        the torso: the incline's plane, the terrain variant's height field; flat arenas: 0).
     :raises ValueError: unknown task, a device that does not exist, fewer than one world, or more
         worlds than the device's free memory holds (estimated before anything is allocated).
     :raises MorphologyError: a robot whose world MuJoCo Warp cannot simulate (named, with the feature).
@@ -439,6 +451,7 @@ def make_batched_env(
             text_encoder=text_encoder,
             ctrl_cost_weight=ctrl_cost_weight,
             reset_noise_scale=reset_noise_scale,
+            height_reference=height_reference,
         )
         for name in names
     ]
