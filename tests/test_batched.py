@@ -204,6 +204,75 @@ def test_ppo_trains_saves_and_loads_on_the_batched_env(tmp_path):
     np.testing.assert_allclose(loaded.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0], atol=1e-6)
 
 
+def test_the_batched_evaluation_plays_each_robots_episodes_as_the_single_env_evaluation_does():
+    """``batched_returns``: one world per episode, each counted to its own first end, with the
+    model's frozen statistics and clipped mean action -- per robot the returns of the single-env
+    evaluation (episodes differ only by the 0.005 reset noise over 20 steps), every episode once,
+    the same rows again on a second call (break: feed raw observations -> the returns leave the
+    single env's)."""
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    import sb3_divmorph  # noqa: F401  (registers the policy aliases)
+    from sb3_divmorph.pipeline.batched_evaluation import batched_returns, make_evaluation_env
+    from sb3_divmorph.pipeline.curves import robot_venv, rollout_returns
+
+    steps, episodes = 20, 3
+    train = VecNormalize(robot_venv("Unimal-FT-v0", ROBOTS, steps, 0), norm_obs_keys=["proprioceptive"], norm_reward=False)
+    model = PPO("MetaMorphPolicy", train, seed=0, policy_kwargs=dict(d_model=16, n_layers=1, ff_dim=32))
+    train.reset()
+    for _ in range(30):  # statistics that differ from raw observations
+        train.step(np.stack([train.action_space.sample() for _ in ROBOTS]))
+    train.training = False
+    single = rollout_returns(model, robot_venv("Unimal-FT-v0", ROBOTS, steps, 0), ROBOTS, episodes, train.normalize_obs)
+    env = make_evaluation_env("Unimal-FT-v0", ROBOTS, episodes, steps, 0, "cpu", 2)
+    batched = batched_returns(model, env, train, seed=0)
+    assert sorted((r["robot"], r["episode"]) for r in batched) == sorted((p.stem, e) for p in ROBOTS for e in range(episodes))
+    assert all(r["length"] == steps for r in batched)
+    for robot in ROBOTS:
+        ours = np.mean([r["return"] for r in batched if r["robot"] == robot.stem])
+        theirs = np.mean([r["return"] for r in single if r["robot"] == robot.stem])
+        assert ours == pytest.approx(theirs, rel=0.05, abs=0.05), robot.stem
+    assert batched_returns(model, env, train, seed=0) == batched
+
+
+def test_the_batched_evaluation_counts_each_world_to_its_own_first_end():
+    """Worlds end at different steps (world i after i + 2) and go on after their auto-reset: each
+    return and length is its first episode's alone (break: drop the ``running`` mask -> the early
+    worlds are credited with the steps the others still take)."""
+    from types import SimpleNamespace
+
+    from gymnasium import spaces
+
+    from sb3_divmorph.pipeline.batched_evaluation import batched_returns
+
+    class Worlds:  # the slice of BatchedUnimalEnv's torch interface the evaluation uses
+        num_envs, worlds_per_robot, torch_device = 4, 2, torch.device("cpu")
+        morphology_names = ["a", "a", "b", "b"]
+
+        def seed(self, seed):
+            self.t = 0
+
+        def reset_tensors(self):
+            return {"x": torch.zeros(4, 1)}
+
+        def step_tensors(self, actions):
+            self.t += 1
+            ended = torch.arange(4) + 2 == self.t
+            return {"x": torch.zeros(4, 1)}, torch.ones(4), ended, torch.zeros(4, dtype=torch.bool), {}
+
+    policy = SimpleNamespace(training=False, device=torch.device("cpu"), set_training_mode=lambda mode: None)
+    policy._predict = lambda obs, deterministic: torch.zeros(4, C.ACTION_DIM)
+    model = SimpleNamespace(policy=policy, action_space=spaces.Box(-1, 1, (C.ACTION_DIM,)))
+    rows = batched_returns(model, Worlds(), None, seed=0)
+    assert [(r["robot"], r["episode"], r["return"], r["length"]) for r in rows] == [
+        ("a", 0, 2.0, 2),
+        ("a", 1, 3.0, 3),
+        ("b", 0, 4.0, 4),
+        ("b", 1, 5.0, 5),
+    ]
+
+
 def test_bad_input_is_refused_with_a_message_that_names_the_problem(write_robot):
     from conftest import unimal_xml
 
@@ -301,7 +370,10 @@ def test_the_pipeline_trains_its_stages_on_the_batched_backend_when_the_profile_
         **{f"{stage}__{key}": value for stage in ("teachers", "distill", "transfer") for key, value in on_warp.items()},
         transfer__tasks=["PointNav"],
         transfer__arms=["divmorph"],
-        transfer__eval_every=0,
+        transfer__eval_every=32,
+        transfer__eval_episodes=2,
+        transfer__eval_robots=1,
+        transfer__eval_backend="batched",
         transfer__overrides={"n_steps": 16, "batch_size": 32, "n_epochs": 1},
         transfer__n_timesteps=64,
         distill__n_steps=16,
@@ -310,9 +382,20 @@ def test_the_pipeline_trains_its_stages_on_the_batched_backend_when_the_profile_
     out = tmp_path / "run"
     for stage in ("teachers", "distill", "transfer"):
         assert cli([stage, "--profile", "tiny", "--profiles", str(profiles), "--out", str(out), "--no-progress"]) == 0
-    assert [task for task, _, _, _ in built] == ["FT", "Patrol", "MultiTask", "PointNav"]
+    # the transfer run's curves too: one env per robot split, a world per episode (transfer.eval_backend: batched)
+    assert [task for task, _, _, _ in built] == ["FT", "Patrol", "MultiTask", "PointNav", "PointNav", "PointNav"]
     assert len(on_device) >= 2, "each teacher's rollouts stayed on the device (DevicePPO)"
     assert all(worlds == 2 and device == "cpu" and variants == 3 for _, worlds, device, variants in built)
     assert (out / "transfer" / "PointNav" / "divmorph" / "seed-0" / "model.zip").is_file()
+    from sb3_divmorph.pipeline.curves import read_eval
+
+    rows = read_eval(out / "transfer" / "PointNav" / "divmorph" / "seed-0" / "eval.csv")
+    for step in (0, 32, 64):
+        assert sorted((r["split"], r["episode"]) for r in rows if r["timesteps"] == step) == [
+            ("novel", 0),
+            ("novel", 1),
+            ("train", 0),
+            ("train", 1),
+        ]
     recorded = json.loads((out / "run.json").read_text())["configuration"]
     assert recorded["teachers"]["env_backend"] == recorded["distill"]["env_backend"] == "batched"

@@ -179,6 +179,11 @@ class TransferConfig:
     #: episodes per robot of each of those evaluations (deterministic policy; the episodes differ
     #: by their reset noise and terrain)
     eval_episodes: int = 3
+    #: where those evaluations run: ``single`` (each robot's episodes in turn, C MuJoCo) or
+    #: ``batched`` (every episode of every robot at once, a MuJoCo Warp world each, on the profile's
+    #: device: many draws per point at the cost of one episode; :mod:`~sb3_divmorph.pipeline.batched_evaluation`).
+    #: Curves of one backend compare with each other, not episode for episode with the other's
+    eval_backend: str = "single"
     #: robots per split of those evaluations: the first N training and the first N novel robots
     #: (a fixed subset, chosen by position, never by result); ``null``: every robot of both splits
     eval_robots: int | None = None
@@ -391,6 +396,10 @@ class Profile:
                     f"{section}.worlds_per_robot >= 1 and {section}.terrain_variants >= 1, got "
                     f"{cfg.env_backend!r}, {cfg.worlds_per_robot}, {cfg.terrain_variants}"
                 )
+        if profile.transfer.eval_backend not in ENV_BACKENDS:
+            raise ConfigError(
+                f"profile {name!r}: transfer.eval_backend must be one of {list(ENV_BACKENDS)}, got {profile.transfer.eval_backend!r}"
+            )
         for section in ("teachers", "distill", "transfer"):
             for key in ("n_timesteps", "checkpoint_every"):
                 value = getattr(getattr(profile, section), key)

@@ -32,6 +32,7 @@ from sb3_divmorph.pipeline.config import Profile
 from sb3_divmorph.pipeline.metrics import ArmMetrics, RobotCurves, task_metrics_from_curves
 from sb3_divmorph.pipeline.envs import task_env_name
 from sb3_divmorph.pipeline.files import atomic_write_text, is_done, read_csv_rows, write_csv
+from sb3_divmorph.pipeline.batched_evaluation import batched_returns, make_evaluation_env
 from sb3_divmorph.pipeline.robots import SPLITS, trained_env_kwargs
 from sb3_divmorph.pipeline.training import stage_model, stage_normalizer
 
@@ -170,6 +171,12 @@ class EvalCurveCallback(BaseCallback):
     :param episodes: episodes per robot.
     :param max_steps: episode length limit.
     :param seed: seed of the evaluation envs (the same at every evaluation).
+    :param backend: ``single``: each robot's episodes in turn in a C-MuJoCo env of its own
+        (:func:`robot_venv`); ``batched``: all of them at once, one MuJoCo Warp world per episode on
+        ``device`` (:mod:`~sb3_divmorph.pipeline.batched_evaluation`; the same episodes at every
+        evaluation, but not the single env's).
+    :param device: where the batched evaluation runs.
+    :param terrain_variants: the batched evaluation's terrain pool per split.
     :param env_kwargs: further env arguments (e.g. a custom ``instruction``).
     """
 
@@ -182,9 +189,15 @@ class EvalCurveCallback(BaseCallback):
         episodes: int,
         max_steps: int,
         seed: int,
+        backend: str = "single",
+        device: str = "cpu",
+        terrain_variants: int = 64,
         **env_kwargs: Any,
     ):
         super().__init__()
+        if backend not in ("single", "batched"):
+            raise ValueError(f"the evaluation backend must be 'single' or 'batched', got {backend!r}")
+        self.backend, self.device, self.terrain_variants = backend, device, terrain_variants
         self.path = Path(path)
         self.env_name = env_name
         self.splits = {name: list(robots) for name, robots in splits.items() if robots}
@@ -222,6 +235,21 @@ class EvalCurveCallback(BaseCallback):
         """Evaluate the current model on every split and rewrite ``eval.csv``."""
         normalizer = self.model.get_vec_normalize_env()
         for split, robots in self.splits.items():
+            if self.backend == "batched":
+                if split not in self._venvs:
+                    self._venvs[split] = make_evaluation_env(
+                        self.env_name,
+                        robots,
+                        self.episodes,
+                        self.max_steps,
+                        self.seed,
+                        self.device,
+                        self.terrain_variants,
+                        **self.env_kwargs,
+                    )
+                for row in batched_returns(self.model, self._venvs[split], normalizer, self.seed):
+                    self._rows.append({"timesteps": self.num_timesteps, "split": split, **row})
+                continue
             if split not in self._venvs:
                 self._venvs[split] = robot_venv(self.env_name, robots, self.max_steps, self.seed, **self.env_kwargs)
             venv = self._venvs[split]

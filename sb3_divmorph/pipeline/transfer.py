@@ -453,6 +453,9 @@ def transfer_run(
                 cfg.eval_episodes,
                 profile.max_episode_steps,
                 profile.seed,
+                backend=cfg.eval_backend,
+                device=device,
+                terrain_variants=cfg.terrain_variants,
                 **profile_env_kwargs(profile),
                 **({"instruction": instruction} if instruction is not None else {}),
             )
