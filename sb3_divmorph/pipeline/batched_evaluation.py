@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import torch as th
+from gymnasium import spaces
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.vec_env import VecNormalize
 
@@ -75,7 +76,9 @@ def batched_returns(model: BaseAlgorithm, env, normalizer: VecNormalize | None, 
     policy = model.policy
     was_training = policy.training
     policy.set_training_mode(False)
-    low, high = (th.as_tensor(bound, device=device) for bound in (model.action_space.low, model.action_space.high))
+    space = model.action_space
+    assert isinstance(space, spaces.Box), "the UNIMAL envs' actions are a Box"
+    low, high = (th.as_tensor(bound, device=device) for bound in (space.low, space.high))
     env.seed(seed)
     obs = env.reset_tensors()
     n = env.num_envs
