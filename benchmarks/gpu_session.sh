@@ -17,7 +17,8 @@
 #      per robot, beside the single C env on the same machine (benchmarks/batched_throughput.py);
 #   2. end-to-end PPO samples/s on 100 robots with the small and the paper-size MetaMorph policy
 #      (SB3's VecEnv path and DevicePPO), with the rollout/update split;
-#   3. a paper-size FT teacher on the 100 robots (the `gpu` profile) for the time left (over a minute).
+#   3. a paper-size FT teacher on the 100 robots (the `gpu` profile) for the time left (over a minute);
+#   4. (STEPS=4) the transfer race of issue 42 on the device from the cpu100 models (RACE_* below, at step 4).
 # WORLDS="128 512" picks step 1's worlds per robot; PPO_SHARE=60 keeps 40% of step 2's time for step 3.
 # STEPS="3" runs only the teacher (steps 1 and 2 were measured already); TEACHER_SET="key=value ..." adds
 # --set overrides to it. The teacher's last checkpoint comes back too (ckpt.tgz.part-*), so that it can
@@ -79,6 +80,34 @@ if want 3 && [ "$(share 100)" -gt 60 ]; then
   timeout -k 20 -s INT "$(share 100)" python3 -m divmorph teachers --profile gpu --out /tmp/gpu-run \
     --train-robots unimals100-train --task FT --no-progress --set teachers.checkpoint_every=1000000 $(for kv in ${TEACHER_SET:-}; do printf -- "--set %s " "$kv"; done)
   echo "step 3 exit $?"
+fi
+
+# 4. The transfer race of issue 42 on the device (results/gpu/LEDGER.md, lines R1-R3): the cpu100 teachers and
+# students (tracked files) fine-tuned and scratch trained on MuJoCo Warp, every curve point evaluated on the
+# device against many draws (transfer.eval_backend: batched, 15 episodes of 20 training + 20 held-out robots).
+# RACE_TASKS, RACE_ARMS, RACE_SEEDS, RACE_STEPS pick the runs; a run carried in (.gpu/race, copied to
+# /tmp/resume/race by the job before) resumes from its checkpoint, finished ones are skipped.
+if want 4 && [ "$(share 100)" -gt 60 ]; then
+  stamp "4. the transfer race on the device: ${RACE_TASKS:=PointNav} x ${RACE_ARMS:=scratch} x seeds ${RACE_SEEDS:=0}, ${RACE_STEPS:=10000000} steps"
+  [ -d /tmp/race ] || python3 -m divmorph branch --from results/cpu100 --out /tmp/race
+  [ -d /tmp/resume/race/transfer ] && cp -rn /tmp/resume/race/transfer /tmp/race/ && echo "resuming the race's runs"
+  # shellcheck disable=SC2086  # the lists are word lists
+  timeout -k 20 -s INT "$(share 100)" python3 -m divmorph transfer --profile cpu100 --out /tmp/race --no-progress \
+    $(for t in $RACE_TASKS; do printf -- "--task %s " "$t"; done) --arms "${RACE_ARMS// /,}" --seeds $RACE_SEEDS \
+    --set device=cuda --set torch_threads=8 --set transfer.env_backend=batched --set transfer.worlds_per_robot=16 \
+    --set transfer.terrain_variants=32 --set transfer.eval_backend=batched --set transfer.eval_episodes=15 \
+    --set transfer.eval_every=1000000 --set transfer.checkpoint_every=1000000 --set transfer.n_timesteps="$RACE_STEPS" \
+    --set transfer.task_gates=closest --set "transfer.overrides={n_steps: 32, batch_size: 6400, n_epochs: 4, learning_rate: lin_1e-3}" \
+    $(for kv in ${RACE_SET:-}; do printf -- "--set %s " "$kv"; done)
+  echo "step 4 exit $?"
+  # the curves, logs and records of every run; the latest checkpoint only of the runs that did not finish
+  mkdir -p "$res/race" && (cd /tmp/race && find transfer -type f ! -path "*/checkpoints/*" ! -name "*.zip" ! -name "*.pkl" -print0 |
+    tar --null -T - -cf - | tar -C "$res/race" -xf -)
+  for run in /tmp/race/transfer/*/*/seed-*; do
+    [ -f "$run/done.json" ] && continue
+    [ -f "$run/checkpoints/latest.json" ] && (cd /tmp/race && tar -rf /tmp/race-ckpt.tar "${run#/tmp/race/}/checkpoints")
+  done
+  [ -f /tmp/race-ckpt.tar ] && gzip -c /tmp/race-ckpt.tar | split -b 15M - "$OUT/race-ckpt.tgz.part-"
 fi
 
 stamp "packing"
