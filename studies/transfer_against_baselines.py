@@ -50,23 +50,27 @@ def main() -> None:
     args = parser.parse_args()
     rows = pd.read_csv(args.baseline_rows)
     rows = rows[rows.task == args.task]
-    lines, header = [], None
+    lines = []
+    variants = []
     for item in args.variant:
         label, _, spec = item.partition("=")
         folder, arm, model, told = spec.split(":")
-        frame = curves(Path(folder), args.task, arm)
+        variants.append((label, model, told, curves(Path(folder), args.task, arm)))
+    # the evaluation steps of every variant (a run resumed from a checkpoint ends a few steps off the others')
+    header = sorted({step for *_, frame in variants for step in frame.columns})
+    for label, model, told, frame in variants:
         if frame.empty:
             lines.append(f"| {label} | 0 | (no finished run) |")
             continue
         base = rows[(rows.model == model) & (rows.instruction_of == told)]
         per_robot = base.groupby("robot")["return"].mean()
         steps = list(frame.columns)
-        if header is None:
-            header = steps
         digits = 1 if abs(per_robot.mean()) < 50 else 0  # Escape's returns are a few units
-        means = " | ".join(f"{frame[s].mean():.{digits}f}" for s in steps)
-        from_zero = (frame[steps[-1]] - frame[steps[0]]).to_numpy()
-        against = (frame[steps[-1]] - per_robot.reindex(frame.index.get_level_values("robot")).to_numpy()).to_numpy()
+        means = " | ".join(f"{frame[s].mean():.{digits}f}" if s in frame else "-" for s in header)
+        # each run's own last evaluation
+        last = frame.apply(lambda row: row.dropna().iloc[-1], axis=1)
+        from_zero = (last - frame[steps[0]]).to_numpy()
+        against = (last - per_robot.reindex(frame.index.get_level_values("robot")).to_numpy()).to_numpy()
         z_low, z_high = robot_interval(from_zero)
         a_low, a_high = robot_interval(against)
         runs = frame.index.get_level_values("seed").nunique()
@@ -75,11 +79,11 @@ def main() -> None:
             f"| {from_zero.mean():+.{digits}f} [{z_low:+.{digits}f}, {z_high:+.{digits}f}] "
             f"| **{against.mean():+.{digits}f} [{a_low:+.{digits}f}, {a_high:+.{digits}f}]** |"
         )
-    steps_header = " | ".join(f"{round(int(s) / 1000)}k" for s in (header or []))
+    steps_header = " | ".join(f"{int(s) / 1000:g}k" for s in header)
     print(
         f"| variant | runs | zero-shot baseline (many draws) | {steps_header} | change from step 0 [95% CI] | last against the baseline [95% CI] |"
     )
-    print("|---|---:|---:|" + "---:|" * len(header or []) + "---|---|")
+    print("|---|---:|---:|" + "---:|" * len(header) + "---|---|")
     print("\n".join(lines))
 
 
