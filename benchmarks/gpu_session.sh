@@ -82,17 +82,24 @@ if want 3 && [ "$(share 100)" -gt 60 ]; then
   echo "step 3 exit $?"
 fi
 
-# 4. The transfer race of issue 42 on the device (results/gpu/LEDGER.md, lines R1-R3): the cpu100 teachers and
+# 4. The transfer race of issue 42 on the device (results/gpu/LEDGER.md, lines R1-): the cpu100 teachers and
 # students (tracked files) fine-tuned and scratch trained on MuJoCo Warp, every curve point evaluated on the
 # device against many draws (transfer.eval_backend: batched, 15 episodes of 20 training + 20 held-out robots).
-# RACE_TASKS, RACE_ARMS, RACE_SEEDS, RACE_STEPS pick the runs; a run carried in (.gpu/race, copied to
-# /tmp/resume/race by the job before) resumes from its checkpoint, finished ones are skipped.
+# RACE_TASKS, RACE_ARMS, RACE_SEEDS, RACE_STEPS pick the runs. A race folder is one budget (race-<RACE_STEPS>:
+# its run.json records the settings, and a later window must repeat them); one carried in (.gpu/race copied
+# to /tmp/resume/race by the job before) is restored over a fresh branch: its runs resume from their
+# checkpoints, finished ones are skipped.
 if want 4 && [ "$(share 100)" -gt 60 ]; then
-  stamp "4. the transfer race on the device: ${RACE_TASKS:=PointNav} x ${RACE_ARMS:=scratch} x seeds ${RACE_SEEDS:=0}, ${RACE_STEPS:=10000000} steps"
-  [ -d /tmp/race ] || python3 -m divmorph branch --from results/cpu100 --out /tmp/race
-  [ -d /tmp/resume/race/transfer ] && cp -rn /tmp/resume/race/transfer /tmp/race/ && echo "resuming the race's runs"
+  : "${RACE_TASKS:=PointNav}" "${RACE_ARMS:=scratch}" "${RACE_SEEDS:=0}" "${RACE_STEPS:=10000000}"
+  race="race-$RACE_STEPS"
+  stamp "4. the transfer race on the device: $RACE_TASKS x $RACE_ARMS x seeds $RACE_SEEDS, $RACE_STEPS steps ($race)"
+  [ -d "/tmp/$race" ] || python3 -m divmorph branch --from results/cpu100 --out "/tmp/$race"
+  if [ -f "/tmp/resume/race/$race/run.json" ]; then  # the race's own records (settings, robots) and runs
+    cp -r "/tmp/resume/race/$race/." "/tmp/$race/" && echo "resuming $race: $(ls -d /tmp/$race/transfer/*/*/seed-* | wc -l) runs"
+  fi
+  # 90%: the rest of the window packs what the race wrote
   # shellcheck disable=SC2086  # the lists are word lists
-  timeout -k 20 -s INT "$(share 100)" python3 -m divmorph transfer --profile cpu100 --out /tmp/race --no-progress \
+  timeout -k 20 -s INT "$(share 90)" python3 -m divmorph transfer --profile cpu100 --out "/tmp/$race" --no-progress \
     $(for t in $RACE_TASKS; do printf -- "--task %s " "$t"; done) --arms "${RACE_ARMS// /,}" --seeds $RACE_SEEDS \
     --set device=cuda --set torch_threads=8 --set transfer.env_backend=batched --set transfer.worlds_per_robot=16 \
     --set transfer.terrain_variants=32 --set transfer.eval_backend=batched --set transfer.eval_episodes=15 \
@@ -100,12 +107,14 @@ if want 4 && [ "$(share 100)" -gt 60 ]; then
     --set transfer.task_gates=closest --set "transfer.overrides={n_steps: 32, batch_size: 6400, n_epochs: 4, learning_rate: lin_1e-3}" \
     $(for kv in ${RACE_SET:-}; do printf -- "--set %s " "$kv"; done)
   echo "step 4 exit $?"
-  # the curves, logs and records of every run; the latest checkpoint only of the runs that did not finish
-  mkdir -p "$res/race" && (cd /tmp/race && find transfer -type f ! -path "*/checkpoints/*" ! -name "*.zip" ! -name "*.pkl" -print0 |
-    tar --null -T - -cf - | tar -C "$res/race" -xf -)
-  for run in /tmp/race/transfer/*/*/seed-*; do
+  # the race's records (run.json, robot_sets.json) and every run's curves, logs and records; the latest
+  # checkpoint only of the runs that did not finish (models of finished runs stay: made again by the commands)
+  mkdir -p "$res/race/$race" && cp "/tmp/$race/run.json" "/tmp/$race/robot_sets.json" "$res/race/$race/"
+  (cd "/tmp/$race" && find transfer -type f ! -path "*/checkpoints/*" ! -name "*.zip" ! -name "*.pkl" -print0 |
+    tar --null -T - -cf - | tar -C "$res/race/$race" -xf -)
+  for run in /tmp/"$race"/transfer/*/*/seed-*; do
     [ -f "$run/done.json" ] && continue
-    [ -f "$run/checkpoints/latest.json" ] && (cd /tmp/race && tar -rf /tmp/race-ckpt.tar "${run#/tmp/race/}/checkpoints")
+    [ -f "$run/checkpoints/latest.json" ] && (cd /tmp && tar -rf /tmp/race-ckpt.tar "${run#/tmp/}/checkpoints")
   done
   [ -f /tmp/race-ckpt.tar ] && gzip -c /tmp/race-ckpt.tar | split -b 15M - "$OUT/race-ckpt.tgz.part-"
 fi

@@ -1213,6 +1213,8 @@ def test_transfer_action_std_changes_what_a_fine_tuned_arm_samples_and_not_its_m
         assert th.allclose(reloaded.policy.log_std.exp(), th.tensor(0.3)), arm
     scratch = transfer_run(narrow, out, "Escape", "scratch", 5, progress_bar=False).make_model()
     assert th.allclose(sampling_std(scratch), th.tensor(0.9))
+    with pytest.raises(ConfigError, match="transfer.action_std must be a positive number"):
+        load_profile("tiny", profiles, overrides={"transfer.action_std": 0})
 
 
 def test_transfer_curves_roll_out_the_first_eval_robots_of_each_split(finished_run, tmp_path):

@@ -9,7 +9,7 @@ batched backend the same evaluation is one rollout of ``robots x episodes`` MuJo
 stops when every world has ended once.
 
 What it shares with the single-env evaluation: the deterministic (mean) action clipped to the action
-space, the model's frozen observation statistics, the raw task reward summed over the episode, the
+space, the model's observation statistics as they are (used, never updated), the raw task reward summed over the episode, the
 1000-step truncation, and the same episodes at every call (the env's generator is seeded again).
 What differs, because batching imposes it (``docs/batched.md``): float32 physics, terrain drawn from
 the env's pool of variants, and episodes drawn by the env's own generator, so a robot's episodes

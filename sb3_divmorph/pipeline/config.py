@@ -396,6 +396,14 @@ class Profile:
                     f"{section}.worlds_per_robot >= 1 and {section}.terrain_variants >= 1, got "
                     f"{cfg.env_backend!r}, {cfg.worlds_per_robot}, {cfg.terrain_variants}"
                 )
+        if profile.transfer.action_std is not None and not (
+            isinstance(profile.transfer.action_std, (int, float))
+            and not isinstance(profile.transfer.action_std, bool)
+            and profile.transfer.action_std > 0
+        ):
+            raise ConfigError(
+                f"profile {name!r}: transfer.action_std must be a positive number or null, got {profile.transfer.action_std!r}"
+            )
         if profile.transfer.eval_backend not in ENV_BACKENDS:
             raise ConfigError(
                 f"profile {name!r}: transfer.eval_backend must be one of {list(ENV_BACKENDS)}, got {profile.transfer.eval_backend!r}"

@@ -475,12 +475,9 @@ def transfer_run(
         def make_model():
             # a new MetaMorph; only the learngene's layers (and the observation statistics they were trained with) inherited
             venv = inherited_normalizer(source, make_env(), gamma, freeze_observations=cfg.observation_statistics == "frozen")
-            model = algo(
-                "MetaMorphPolicy", venv, policy_kwargs=grl_policy_kwargs(profile), seed=run_seed, device=device, **entry.ppo_kwargs
-            )
+            policy_kwargs = {**grl_policy_kwargs(profile), **({"action_std": cfg.action_std} if cfg.action_std is not None else {})}
+            model = algo("MetaMorphPolicy", venv, policy_kwargs=policy_kwargs, seed=run_seed, device=device, **entry.ppo_kwargs)
             inherit(model.policy, PPO.load(stage_model(source), device=device).policy, learngene["units"])
-            if cfg.action_std is not None:
-                set_action_std(model.policy, cfg.action_std)
             return model
 
     else:
