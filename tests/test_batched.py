@@ -397,5 +397,16 @@ def test_the_pipeline_trains_its_stages_on_the_batched_backend_when_the_profile_
             ("train", 0),
             ("train", 1),
         ]
+    # the evaluation stage plays the run's model again in the single env rather than reuse a batched curve point
+    import pandas as pd
+
+    from sb3_divmorph.pipeline.config import load_profile
+    from sb3_divmorph.pipeline.evaluate import evaluate
+
+    folder = evaluate(load_profile("tiny", profiles), out, models=["transfer-divmorph"], progress_bar=False, into=tmp_path / "evaluation")
+    table = pd.read_csv(folder / "returns.csv")
+    played = table[(table.model == "transfer-divmorph") & (table.split == "train")].sort_values("episode")["return"].to_numpy()
+    curve = [r["return"] for r in sorted(rows, key=lambda r: r["episode"]) if r["timesteps"] == 64 and r["split"] == "train"]
+    assert len(played) == 2 and not np.allclose(played, curve)
     recorded = json.loads((out / "run.json").read_text())["configuration"]
     assert recorded["teachers"]["env_backend"] == recorded["distill"]["env_backend"] == "batched"

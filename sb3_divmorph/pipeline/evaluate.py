@@ -246,7 +246,10 @@ def evaluate(
         if label == "teacher-untrained":
             found = evaluate_untrained_teacher(profile, out, task, robots, count, profile.seed)
         else:
-            found = final_evaluation(model, split, robots, count) if label.startswith("transfer-") else None
+            # a curve played on the batched backend is not the single-env episodes of this table:
+            # reused only where the run's model is not here to play them again
+            reusable = label.startswith("transfer-") and (profile.transfer.eval_backend == "single" or not has_model(model))
+            found = final_evaluation(model, split, robots, count) if reusable else None
             if found is None:
                 found = evaluate_model(
                     model,
