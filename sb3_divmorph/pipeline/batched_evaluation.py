@@ -28,6 +28,7 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_divmorph.algos.device_ppo import DeviceNormalizer
+from sb3_divmorph.pipeline.envs import batched_env
 
 
 def make_evaluation_env(
@@ -46,19 +47,7 @@ def make_evaluation_env(
     :param env_kwargs: further :func:`~unimal_envs.batched.make_batched_env` arguments (``instruction``,
         ``height_reference``).
     """
-    from unimal_envs.batched import make_batched_env
-
-    task = env_name.removeprefix("Unimal-").removesuffix("-v0")
-    return make_batched_env(
-        task,
-        morphologies=list(robots),
-        worlds_per_robot=episodes,
-        device=device,
-        seed=seed,
-        max_episode_steps=max_steps,
-        terrain_variants=terrain_variants,
-        **env_kwargs,
-    )
+    return batched_env(env_name, episodes, device, seed, terrain_variants, max_steps, morphologies=list(robots), **env_kwargs)
 
 
 @th.no_grad()

@@ -40,20 +40,7 @@ def make_vec_env(
     (:func:`unimal_envs.batched.make_batched_env`; ``n_envs`` unused).
     """
     if backend == "batched":
-        from unimal_envs.batched import make_batched_env
-
-        task = env_name.removeprefix("Unimal-").removesuffix("-v0")
-        return VecMonitor(
-            make_batched_env(
-                task,
-                worlds_per_robot=worlds_per_robot,
-                device=device,
-                seed=seed,
-                terrain_variants=terrain_variants,
-                max_episode_steps=max_episode_steps,
-                **env_kwargs,
-            )
-        )
+        return VecMonitor(batched_env(env_name, worlds_per_robot, device, seed, terrain_variants, max_episode_steps, **env_kwargs))
 
     def factory(rank: int) -> Callable[[], gym.Env]:
         def make() -> gym.Env:
@@ -66,6 +53,25 @@ def make_vec_env(
     venv = VecMonitor(DummyVecEnv([factory(i) for i in range(n_envs)]))
     venv.seed(seed)
     return venv
+
+
+def batched_env(
+    env_name: str, worlds_per_robot: int, device: str, seed: int, terrain_variants: int, max_episode_steps: int, **env_kwargs: Any
+):
+    """The MuJoCo Warp env of a task given by its env id (:func:`unimal_envs.batched.make_batched_env`;
+    ``env_kwargs``: ``morphologies``, ``instruction``, ``height_reference``...)."""
+    from unimal_envs.batched import make_batched_env
+
+    task = env_name.removeprefix("Unimal-").removesuffix("-v0")
+    return make_batched_env(
+        task,
+        worlds_per_robot=worlds_per_robot,
+        device=device,
+        seed=seed,
+        terrain_variants=terrain_variants,
+        max_episode_steps=max_episode_steps,
+        **env_kwargs,
+    )
 
 
 def profile_env_kwargs(profile: Profile) -> dict[str, Any]:

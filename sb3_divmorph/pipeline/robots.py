@@ -115,10 +115,7 @@ def trained_env_kwargs(folder: str | Path) -> dict[str, Any]:
 
     :param folder: a model folder or a ``model.zip`` inside one.
     """
-    folder = Path(folder).resolve()
-    if folder.suffix == ".zip":
-        folder = folder.parent
-    record = next((d / "run.json" for d in (folder, *folder.parents) if (d / "run.json").is_file()), None)
+    record = _nearest_record(folder, "run.json")
     if record is None:
         return {}
     height = json.loads(record.read_text()).get("configuration", {}).get("height_reference", "world")
@@ -132,28 +129,34 @@ def trained_instruction(folder: str | Path, task: str | None) -> str | None:
 
     :param folder: a model folder or a ``model.zip`` inside one.
     """
-    folder = Path(folder).resolve()
-    if folder.suffix == ".zip":
-        folder = folder.parent
-    source = folder / "source.json"
+    source = _model_folder(folder) / "source.json"
     if not source.is_file():
         return None
     recorded = json.loads(source.read_text()).get("instruction")
     if recorded is not None or task is None:
         return recorded
-    record = next((d / "run.json" for d in folder.parents if (d / "run.json").is_file()), None)
+    record = _nearest_record(folder, "run.json")
     if record is None:
         return None
     configured = json.loads(record.read_text()).get("configuration", {}).get("transfer", {}).get("instructions") or {}
     return configured.get(task)
 
 
+def _model_folder(folder: str | Path) -> Path:
+    """A model folder, given it or a ``model.zip`` inside it (resolved)."""
+    folder = Path(folder).resolve()
+    return folder.parent if folder.suffix == ".zip" else folder
+
+
+def _nearest_record(folder: str | Path, name: str) -> Path | None:
+    """The nearest file ``name`` (a run's ``run.json``, ``robot_sets.json``) in a model folder or above it."""
+    start = _model_folder(folder)
+    return next((d / name for d in (start, *start.parents) if (d / name).is_file()), None)
+
+
 def _robot_sets_record(folder: str | Path) -> Path | None:
     """The nearest ``robot_sets.json`` in ``folder`` (a model folder or a ``model.zip``) or above it."""
-    folder = Path(folder).resolve()
-    if folder.suffix == ".zip":
-        folder = folder.parent
-    return next((d / ROBOT_SETS for d in (folder, *folder.parents) if (d / ROBOT_SETS).is_file()), None)
+    return _nearest_record(folder, ROBOT_SETS)
 
 
 def robot_set_record(profile: Profile) -> dict[str, Any]:
