@@ -127,8 +127,9 @@ def test_every_stage_writes_its_outputs(finished_run):
     assert all(np.isfinite(float(r["return"])) for r in rows)
     with np.load(out / "evaluate" / "gates.npz") as gates:
         assert gates["task_gates"].shape == (10, 6) and gates["morphology_gates"].shape == (4, 6)
-    for png in ("curves.png", "gates.png", "returns.png"):
+    for png in ("curves.png", "figures/gates.png", "returns.png"):
         assert (out / "report" / png).stat().st_size > 10_000
+    assert not (out / "report" / "gates.png").exists()  # one gates figure, not a copy beside figures/
     summary = (out / "summary.md").read_text()
     assert "Deployment" in summary and "transfer-divmorph" in summary and "Transfer metrics" in summary
     assert "## Findings" in summary and "| FT | " in summary

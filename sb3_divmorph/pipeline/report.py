@@ -2,7 +2,7 @@
 
 Reads what the other stages wrote into the run folder (``logs/run-*/progress.csv`` of every
 training run, ``evaluate/returns.csv`` and ``gates.npz``, ``export/*/report.json``) and writes
-``report/curves.png``, ``report/gates.png``, ``report/returns.png``, the paper's figures
+``report/curves.png``, ``report/returns.png``, the paper's figures, the gate correlations among them
 (``report/figures/*.png`` + ``.csv``, :mod:`sb3_divmorph.pipeline.figures`), the transfer metrics
 (``transfer/<task>/metrics.csv``) and ``summary.md``.
 """
@@ -531,13 +531,13 @@ def report(profile: Profile, out: Path, command: str = "") -> str:
     if gates_file.is_file():
         with np.load(gates_file) as data:
             gates = {k: data[k] for k in data.files}
-        plot_gates(gates, folder / "gates.png")
+        # the gates figure is the one make_figures wrote (report/figures/gates.png): one file, not two copies
         used = (gates["task_gates"] > 0).sum(0)
         lines += [
             "",
             "## Gates",
             "",
-            "![gates](report/gates.png)",
+            f"![gates]({figures['gates'].relative_to(out)})" if "gates" in figures else "",
             "",
             f"Task tailors selected by at least one of the 10 instructions: {int((used > 0).sum())} of {len(used)}; "
             f"distinct task-tailor selections: {distinct_selections(gates['task_gates'])} among {len(gates['tasks'])} tasks; "
