@@ -15,6 +15,13 @@ model's mean over many draws (per robot, paired with each run), taken from
         --variant "MetaMorph->=/work/race/closest:closest:teacher-Patrol:PointNav"
 
 A variant is ``label=folder:arm:baseline model:baseline instruction``.
+
+``--reference LABEL`` adds the two readings of the paper's claim (``results/transfer-pointnav/race-600k-rule.md``):
+against direct fine-tuning (the abstract's 3x), the steps each variant needs to reach and hold the
+reference's final return (the many-draw baseline standing for step 0; the race's own
+:func:`~sb3_divmorph.pipeline.metrics.steps_to_hold`) and the gap between their last evaluations;
+with ``--scratch FOLDER`` (a scratch control run, e.g. ``results/cpu100-scratch-long``) also the steps
+to reach and hold scratch's final return (the paper's Sec. 6.1 wording).
 """
 
 from __future__ import annotations
@@ -26,7 +33,7 @@ import numpy as np
 import pandas as pd
 
 from sb3_divmorph.pipeline.files import is_done, log_file
-from sb3_divmorph.pipeline.metrics import robot_interval
+from sb3_divmorph.pipeline.metrics import robot_interval, steps_to_hold
 
 
 def curves(folder: Path, task: str, arm: str) -> pd.DataFrame:
@@ -42,11 +49,87 @@ def curves(folder: Path, task: str, arm: str) -> pd.DataFrame:
     return pd.concat(parts) if parts else pd.DataFrame()
 
 
+def last_per_robot(frame: pd.DataFrame) -> pd.Series:
+    """Each robot's return at its runs' own last evaluations, averaged over the runs (seeds)."""
+    last = frame.apply(lambda row: row.dropna().iloc[-1], axis=1)
+    return last.groupby(level="robot").mean()
+
+
+def start_and_curve(frame: pd.DataFrame, baseline: pd.Series) -> tuple[np.ndarray, np.ndarray]:
+    """The mean curve with the many-draw baseline standing for step 0: the evaluations every run made,
+    then each run's own last evaluation at the last step (a resumed run ends a few steps off the others')."""
+    robots = frame.index.get_level_values("robot")
+    steps, values = [0.0], [float(baseline.reindex(robots).mean())]
+    inner = [s for s in frame.columns if 0 < s < frame.columns.max() and frame[s].notna().all()]
+    steps += [float(s) for s in inner]
+    values += [float(frame[s].mean()) for s in inner]
+    steps.append(float(frame.columns.max()))
+    values.append(float(frame.apply(lambda row: row.dropna().iloc[-1], axis=1).mean()))
+    return np.array(steps), np.array(values)
+
+
+def efficiency_reading(steps_arm: float | None, steps_reference: float | None) -> str:
+    """The rule's wording for the abstract's 3x (``race-600k-rule.md``)."""
+    if steps_arm is None:
+        return "does not hold at this budget (never reaches and holds the level)"
+    if steps_reference is None:  # cannot happen for the reference's own final; kept for completeness
+        return "no reference"
+    if steps_arm == 0 and steps_reference == 0:
+        return "level from the start; no efficiency difference"
+    if steps_arm == 0 or steps_arm <= steps_reference / 3:
+        ratio = "from the start" if steps_arm == 0 else f"{steps_reference / steps_arm:.1f}x"
+        return f"holds ({ratio})"
+    return f"does not hold ({steps_reference / steps_arm:.2f}x)"
+
+
+def readings(variants: list, rows: pd.DataFrame, task: str, reference: str, scratch: Path | None) -> list[str]:
+    """Both readings of the paper's claim, one line per variant (see the module docstring)."""
+    found = {label: (model, told, frame) for label, model, told, frame in variants if not frame.empty}
+    if reference not in found:
+        return [f"(no finished run of the reference {reference!r})"]
+    baselines = {
+        label: rows[(rows.model == model) & (rows.instruction_of == told)].groupby("robot")["return"].mean()
+        for label, (model, told, _) in found.items()
+    }
+    curve = {label: start_and_curve(frame, baselines[label]) for label, (_, _, frame) in found.items()}
+    level = curve[reference][1][-1]
+    to_level = {label: steps_to_hold(*curve[label], level) for label in found}
+    ref_last = last_per_robot(found[reference][2])
+    digits = 1 if abs(level) < 50 else 0
+    lines = [
+        "",
+        f"Against direct fine-tuning ({reference}'s final return, {level:.{digits}f}: the steps to reach and hold it):",
+        "",
+        "| variant | steps to the level | reading | last minus the reference's last, per robot [95% CI] |",
+        "|---|---:|---|---|",
+    ]
+    for label in found:
+        steps = to_level[label]
+        gap = (last_per_robot(found[label][2]) - ref_last).dropna()
+        low, high = robot_interval(gap.to_numpy())
+        reading = "(the reference)" if label == reference else efficiency_reading(steps, to_level[reference])
+        told = "not reached" if steps is None else f"{steps / 1000:.0f}k"
+        lines.append(f"| {label} | {told} | {reading} | {gap.mean():+.{digits}f} [{low:+.{digits}f}, {high:+.{digits}f}] |")
+    if scratch is not None:
+        control = curves(scratch, task, "scratch")
+        if control.empty:
+            return lines + ["", f"(no finished scratch run of {task} in {scratch})"]
+        final = float(last_per_robot(control).mean())
+        lines += ["", f"Against scratch (its final return after {int(control.columns.max()) / 1e6:.1f}M steps, {final:.{digits}f}):", ""]
+        for label in found:
+            steps = steps_to_hold(*curve[label], final)
+            told = "never holds it" if steps is None else ("from the start" if steps == 0 else f"after {steps / 1000:.0f}k steps")
+            lines.append(f"- {label}: {told}")
+    return lines
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--task", required=True)
     parser.add_argument("--baseline-rows", type=Path, required=True)
     parser.add_argument("--variant", action="append", required=True, metavar="LABEL=FOLDER:ARM:MODEL:INSTRUCTION")
+    parser.add_argument("--reference", metavar="LABEL", help="the direct fine-tuning variant whose final return sets the level")
+    parser.add_argument("--scratch", type=Path, help="a scratch control run folder (its transfer/<task>/scratch/seed-*)")
     args = parser.parse_args()
     rows = pd.read_csv(args.baseline_rows)
     rows = rows[rows.task == args.task]
@@ -67,8 +150,7 @@ def main() -> None:
         steps = list(frame.columns)
         digits = 1 if abs(per_robot.mean()) < 50 else 0  # Escape's returns are a few units
         means = " | ".join(f"{frame[s].mean():.{digits}f}" if s in frame else "-" for s in header)
-        # each run's own last evaluation
-        last = frame.apply(lambda row: row.dropna().iloc[-1], axis=1)
+        last = frame.apply(lambda row: row.dropna().iloc[-1], axis=1)  # each run's own last evaluation
         from_zero = (last - frame[steps[0]]).to_numpy()
         against = (last - per_robot.reindex(frame.index.get_level_values("robot")).to_numpy()).to_numpy()
         z_low, z_high = robot_interval(from_zero)
@@ -85,6 +167,8 @@ def main() -> None:
     )
     print("|---|---:|---:|" + "---:|" * len(header) + "---|---|")
     print("\n".join(lines))
+    if args.reference:
+        print("\n".join(readings(variants, rows, args.task, args.reference, args.scratch)))
 
 
 if __name__ == "__main__":
