@@ -187,8 +187,8 @@ def report(args: argparse.Namespace) -> None:
         "",
         (__doc__ or "").split("\n\n")[1].replace("\n", " "),
         "",
-        f"{args.steps:,} env steps per run, evaluations every {args.eval_every:,} on the run's curve robots (3 deterministic "
-        "episodes each, averaged per robot); mean over robots x seeds with a 95% bootstrap interval; the change is paired "
+        f"{args.steps:,} env steps per run, evaluations every {args.eval_every:,} on the run's curve robots "
+        f"({overrides(args)['transfer.eval_episodes']} deterministic episodes each, averaged per robot); mean over robots x seeds with a 95% bootstrap interval; the change is paired "
         "per robot and seed.",
         "",
         "| model | seeds | " + " | ".join(f"{s / 1000:.0f}k" for s in steps) + " | change 0 -> last [95% CI] |",
