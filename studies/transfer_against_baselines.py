@@ -79,6 +79,8 @@ def efficiency_reading(steps_arm: float | None, steps_reference: float | None) -
     if steps_arm == 0 or steps_arm <= steps_reference / 3:
         ratio = "from the start" if steps_arm == 0 else f"{steps_reference / steps_arm:.1f}x"
         return f"holds ({ratio})"
+    if steps_reference == 0:
+        return "does not hold (direct fine-tuning holds the level from the start)"
     return f"does not hold ({steps_reference / steps_arm:.2f}x)"
 
 
