@@ -49,10 +49,14 @@ def curves(folder: Path, task: str, arm: str) -> pd.DataFrame:
     return pd.concat(parts) if parts else pd.DataFrame()
 
 
+def last_per_run(frame: pd.DataFrame) -> pd.Series:
+    """Each (robot, seed)'s return at its run's own last evaluation (a resumed run ends a few steps off the others')."""
+    return frame.apply(lambda row: row.dropna().iloc[-1], axis=1)
+
+
 def last_per_robot(frame: pd.DataFrame) -> pd.Series:
     """Each robot's return at its runs' own last evaluations, averaged over the runs (seeds)."""
-    last = frame.apply(lambda row: row.dropna().iloc[-1], axis=1)
-    return last.groupby(level="robot").mean()
+    return last_per_run(frame).groupby(level="robot").mean()
 
 
 def start_and_curve(frame: pd.DataFrame, baseline: pd.Series) -> tuple[np.ndarray, np.ndarray]:
@@ -64,7 +68,7 @@ def start_and_curve(frame: pd.DataFrame, baseline: pd.Series) -> tuple[np.ndarra
     steps += [float(s) for s in inner]
     values += [float(frame[s].mean()) for s in inner]
     steps.append(float(frame.columns.max()))
-    values.append(float(frame.apply(lambda row: row.dropna().iloc[-1], axis=1).mean()))
+    values.append(float(last_per_run(frame).mean()))
     return np.array(steps), np.array(values)
 
 
@@ -152,7 +156,7 @@ def main() -> None:
         steps = list(frame.columns)
         digits = 1 if abs(per_robot.mean()) < 50 else 0  # Escape's returns are a few units
         means = " | ".join(f"{frame[s].mean():.{digits}f}" if s in frame else "-" for s in header)
-        last = frame.apply(lambda row: row.dropna().iloc[-1], axis=1)  # each run's own last evaluation
+        last = last_per_run(frame)
         from_zero = (last - frame[steps[0]]).to_numpy()
         against = (last - per_robot.reindex(frame.index.get_level_values("robot")).to_numpy()).to_numpy()
         z_low, z_high = robot_interval(from_zero)
