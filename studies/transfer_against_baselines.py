@@ -72,12 +72,11 @@ def start_and_curve(frame: pd.DataFrame, baseline: pd.Series) -> tuple[np.ndarra
     return np.array(steps), np.array(values)
 
 
-def efficiency_reading(steps_arm: float | None, steps_reference: float | None) -> str:
-    """The rule's wording for the abstract's 3x (``race-600k-rule.md``)."""
+def efficiency_reading(steps_arm: float | None, steps_reference: float) -> str:
+    """The rule's wording for the abstract's 3x (``race-600k-rule.md``); ``steps_reference`` is always
+    found, the level being the reference's own final return."""
     if steps_arm is None:
         return "does not hold at this budget (never reaches and holds the level)"
-    if steps_reference is None:  # cannot happen for the reference's own final; kept for completeness
-        return "no reference"
     if steps_arm == 0 and steps_reference == 0:
         return "level from the start; no efficiency difference"
     if steps_arm == 0 or steps_arm <= steps_reference / 3:
@@ -88,19 +87,15 @@ def efficiency_reading(steps_arm: float | None, steps_reference: float | None) -
     return f"does not hold ({steps_reference / steps_arm:.2f}x)"
 
 
-def readings(variants: list, rows: pd.DataFrame, task: str, reference: str, scratch: Path | None) -> list[str]:
+def readings(variants: list, task: str, reference: str, scratch: Path | None) -> list[str]:
     """Both readings of the paper's claim, one line per variant (see the module docstring)."""
-    found = {label: (model, told, frame) for label, model, told, frame in variants if not frame.empty}
+    found = {label: (start, frame) for label, start, frame in variants if not frame.empty}
     if reference not in found:
         return [f"(no finished run of the reference {reference!r})"]
-    baselines = {
-        label: rows[(rows.model == model) & (rows.instruction_of == told)].groupby("robot")["return"].mean()
-        for label, (model, told, _) in found.items()
-    }
-    curve = {label: start_and_curve(frame, baselines[label]) for label, (_, _, frame) in found.items()}
+    curve = {label: start_and_curve(frame, start.groupby("robot")["return"].mean()) for label, (start, frame) in found.items()}
     level = curve[reference][1][-1]
     to_level = {label: steps_to_hold(*curve[label], level) for label in found}
-    ref_last = last_per_robot(found[reference][2])
+    ref_last = last_per_robot(found[reference][1])
     digits = 1 if abs(level) < 50 else 0
     lines = [
         "",
@@ -111,9 +106,11 @@ def readings(variants: list, rows: pd.DataFrame, task: str, reference: str, scra
     ]
     for label in found:
         steps = to_level[label]
-        gap = (last_per_robot(found[label][2]) - ref_last).dropna()
+        gap = (last_per_robot(found[label][1]) - ref_last).dropna()
         low, high = robot_interval(gap.to_numpy())
-        reading = "(the reference)" if label == reference else efficiency_reading(steps, to_level[reference])
+        reference_steps = to_level[reference]
+        assert reference_steps is not None  # the reference's last point is its own final return
+        reading = "(the reference)" if label == reference else efficiency_reading(steps, reference_steps)
         told = "not reached" if steps is None else f"{steps / 1000:.0f}k"
         lines.append(f"| {label} | {told} | {reading} | {gap.mean():+.{digits}f} [{low:+.{digits}f}, {high:+.{digits}f}] |")
     if scratch is not None:
@@ -144,14 +141,14 @@ def main() -> None:
     for item in args.variant:
         label, _, spec = item.partition("=")
         folder, arm, model, told = spec.split(":")
-        variants.append((label, model, told, curves(Path(folder), args.task, arm)))
+        # the starting model's many-draw rows (evaluation seeds x episodes per robot) beside the run's curves
+        variants.append((label, rows[(rows.model == model) & (rows.instruction_of == told)], curves(Path(folder), args.task, arm)))
     # the evaluation steps of every variant (a run resumed from a checkpoint ends a few steps off the others')
     header = sorted({step for *_, frame in variants for step in frame.columns})
-    for label, model, told, frame in variants:
+    for label, base, frame in variants:
         if frame.empty:
             lines.append(f"| {label} | 0 | (no finished run) |")
             continue
-        base = rows[(rows.model == model) & (rows.instruction_of == told)]
         per_robot = base.groupby("robot")["return"].mean()
         steps = list(frame.columns)
         digits = 1 if abs(per_robot.mean()) < 50 else 0  # Escape's returns are a few units
@@ -174,7 +171,7 @@ def main() -> None:
     print("|---|---:|---:|" + "---:|" * len(header) + "---|---|")
     print("\n".join(lines))
     if args.reference:
-        print("\n".join(readings(variants, rows, args.task, args.reference, args.scratch)))
+        print("\n".join(readings(variants, args.task, args.reference, args.scratch)))
 
 
 if __name__ == "__main__":

@@ -531,13 +531,12 @@ def report(profile: Profile, out: Path, command: str = "") -> str:
     if gates_file.is_file():
         with np.load(gates_file) as data:
             gates = {k: data[k] for k in data.files}
-        # the gates figure is the one make_figures wrote (report/figures/gates.png): one file, not two copies
         used = (gates["task_gates"] > 0).sum(0)
         lines += [
             "",
             "## Gates",
             "",
-            f"![gates]({figures['gates'].relative_to(out)})" if "gates" in figures else "",
+            f"![gates]({figures['gates'].relative_to(out)})",  # make_figures wrote it from the same gates.npz
             "",
             f"Task tailors selected by at least one of the 10 instructions: {int((used > 0).sum())} of {len(used)}; "
             f"distinct task-tailor selections: {distinct_selections(gates['task_gates'])} among {len(gates['tasks'])} tasks; "
