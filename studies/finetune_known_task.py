@@ -45,7 +45,15 @@ from sb3_divmorph.pipeline.provenance import recorded_profile
 from sb3_divmorph.pipeline.files import is_done, log_file
 from sb3_divmorph.pipeline.transfer import transfer_run
 
-ARMS = {"closest": "teacher (MetaMorph->)", "distilled": "dense MetaMorph⚗ student", "divmorph": "DivMorph student"}
+ARMS = {
+    "closest": "teacher (MetaMorph->)",
+    "distilled": "dense MetaMorph⚗ student",
+    "divmorph": "DivMorph student",
+    # the paper's ablations: their students are distilled in a branch of --source (`divmorph distill --students ...`)
+    "no-kdiv-transformer": "DivMorph student w/o diversion in the Transformer",
+    "no-kdiv-decoder": "DivMorph student w/o diversion in the decoder",
+    "no-orthogonality": "DivMorph student w/o orthogonality",
+}
 LOGGED = {
     "rollout/ep_rew_mean": "training return (stochastic)",
     "train/explained_variance": "critic's explained variance",

@@ -16,12 +16,16 @@ study resumes); ``--report`` writes ``<out>/README.md``'s tables.
 
     python studies/novel_task_gates.py --run results/cpu100 --out results/novel-task-gates --tasks PointNav
     python studies/novel_task_gates.py --run results/cpu100 --out results/novel-task-gates --report
+
+The ablated students (distilled in a branch of the run, ``divmorph distill --students no-kdiv-transformer``)
+join the same rows, each told its own task and the closest training task's (their race starts)::
+
+    python studies/novel_task_gates.py --run runs/ablate-no-kdiv-transformer --out results/novel-task-gates --students no-kdiv-transformer
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import time
 from pathlib import Path
@@ -33,15 +37,20 @@ from sb3_divmorph.pipeline.folders import student_folder, teacher_folder
 from sb3_divmorph.pipeline.metrics import robot_interval
 from sb3_divmorph.pipeline.provenance import recorded_profile
 from sb3_divmorph.pipeline.robots import transfer_eval_robots
+from sb3_divmorph.pipeline.transfer import closest_task
 from sb3_divmorph.pretrained import load_pretrained
 from unimal_envs.instructions import INSTRUCTIONS
 
 ROWS = "returns.csv.gz"
 
 
-def conditions(run: Path, task: str, training_tasks: list[str]) -> list[tuple[str, Path, str]]:
-    """``(model label, folder, instruction of)`` for one novel task."""
-    closest = json.loads((run / "transfer" / task / "closest-by-embedding.json").read_text())["closest"]
+def conditions(run: Path, task: str, training_tasks: list[str], students: list[str] | None = None) -> list[tuple[str, Path, str]]:
+    """``(model label, folder, instruction of)`` for one novel task: the DivMorph student under every
+    instruction, the dense student and MetaMorph→'s start; with ``students``, only those students
+    (e.g. the ablations, distilled in a branch of the run), each told its own task and the closest's."""
+    closest = closest_task(recorded_profile(run / "run.json"), run, task, by="embedding")["closest"]
+    if students:
+        return [(name, student_folder(run, name), told) for name in students for told in dict.fromkeys((task, closest))]
     found = [("divmorph", student_folder(run, "divmorph"), task)]
     found += [("divmorph", student_folder(run, "divmorph"), other) for other in training_tasks]
     found += [("distilled", student_folder(run, "distilled"), task), ("distilled", student_folder(run, "distilled"), closest)]
@@ -57,7 +66,7 @@ def measure(args: argparse.Namespace) -> None:
     table = pd.read_csv(path) if path.is_file() else pd.DataFrame(columns=["task", "model", "instruction_of", "eval_seed"])
     done = set(map(tuple, table[["task", "model", "instruction_of", "eval_seed"]].astype(str).to_numpy()))
     for task in args.tasks:
-        for label, folder, instruction_of in conditions(args.run, task, list(profile.teachers.tasks)):
+        for label, folder, instruction_of in conditions(args.run, task, list(profile.teachers.tasks), args.students):
             model = load_pretrained(folder)
             for seed in args.eval_seeds:
                 if (task, label, instruction_of, str(seed)) in done:
@@ -113,6 +122,12 @@ def main() -> None:
     parser.add_argument("--tasks", nargs="+", default=["PointNav", "Escape", "Exploration"])
     parser.add_argument("--eval-seeds", type=int, nargs="+", default=[0, 1])
     parser.add_argument("--episodes", type=int, default=3)
+    parser.add_argument(
+        "--students",
+        nargs="+",
+        default=None,
+        help="only these students of --run (e.g. no-kdiv-transformer), each told its own task and the closest training task's",
+    )
     parser.add_argument("--report", action="store_true", help="print the tables from the rows recorded so far")
     args = parser.parse_args()
     th.set_num_threads(1)
