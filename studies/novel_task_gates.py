@@ -35,6 +35,7 @@ import torch as th
 
 from sb3_divmorph.pipeline.folders import student_folder, teacher_folder
 from sb3_divmorph.pipeline.metrics import robot_interval
+from sb3_divmorph.pipeline.config import Profile
 from sb3_divmorph.pipeline.provenance import recorded_profile
 from sb3_divmorph.pipeline.robots import transfer_eval_robots
 from sb3_divmorph.pipeline.transfer import closest_task
@@ -44,15 +45,15 @@ from unimal_envs.instructions import INSTRUCTIONS
 ROWS = "returns.csv.gz"
 
 
-def conditions(run: Path, task: str, training_tasks: list[str], students: list[str] | None = None) -> list[tuple[str, Path, str]]:
+def conditions(run: Path, profile: Profile, task: str, students: list[str] | None = None) -> list[tuple[str, Path, str]]:
     """``(model label, folder, instruction of)`` for one novel task: the DivMorph student under every
     instruction, the dense student and MetaMorph→'s start; with ``students``, only those students
     (e.g. the ablations, distilled in a branch of the run), each told its own task and the closest's."""
-    closest = closest_task(recorded_profile(run / "run.json"), run, task, by="embedding")["closest"]
+    closest = closest_task(profile, run, task, by="embedding")["closest"]
     if students:
         return [(name, student_folder(run, name), told) for name in students for told in dict.fromkeys((task, closest))]
     found = [("divmorph", student_folder(run, "divmorph"), task)]
-    found += [("divmorph", student_folder(run, "divmorph"), other) for other in training_tasks]
+    found += [("divmorph", student_folder(run, "divmorph"), other) for other in profile.teachers.tasks]
     found += [("distilled", student_folder(run, "distilled"), task), ("distilled", student_folder(run, "distilled"), closest)]
     found += [(f"teacher-{closest}", teacher_folder(run, closest), task)]
     return found
@@ -66,7 +67,7 @@ def measure(args: argparse.Namespace) -> None:
     table = pd.read_csv(path) if path.is_file() else pd.DataFrame(columns=["task", "model", "instruction_of", "eval_seed"])
     done = set(map(tuple, table[["task", "model", "instruction_of", "eval_seed"]].astype(str).to_numpy()))
     for task in args.tasks:
-        for label, folder, instruction_of in conditions(args.run, task, list(profile.teachers.tasks), args.students):
+        for label, folder, instruction_of in conditions(args.run, profile, task, args.students):
             model = load_pretrained(folder)
             for seed in args.eval_seeds:
                 if (task, label, instruction_of, str(seed)) in done:
