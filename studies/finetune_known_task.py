@@ -49,6 +49,7 @@ ARMS = {
     "closest": "teacher (MetaMorph->)",
     "distilled": "dense MetaMorph⚗ student",
     "divmorph": "DivMorph student",
+    "divmorph-finetuned": "DivMorph student, fully fine-tuned",
     # the paper's ablations: their students are distilled in a branch of --source (`divmorph distill --students ...`)
     "no-kdiv-transformer": "DivMorph student w/o diversion in the Transformer",
     "no-kdiv-decoder": "DivMorph student w/o diversion in the decoder",

@@ -1406,12 +1406,31 @@ def test_task_gates_closest_tells_the_divmorph_arm_the_closest_training_task(fin
         return obs["task_embedding"][0]
 
     assert closest != "Escape" and np.allclose(told("divmorph"), embeddings[closest], atol=1e-5)
+    assert np.allclose(told("divmorph-finetuned"), embeddings[closest], atol=1e-5)  # it starts from the same gates
     assert np.allclose(told("closest"), embeddings["Escape"], atol=1e-5)
     # the evaluation stage plays the run with the instruction it trained with
     assert run_instruction(base, transfer_folder(out, "Escape", "divmorph", 0), "Escape") == INSTRUCTIONS[closest]
     assert run_instruction(base, transfer_folder(out, "Escape", "closest", 0), "Escape") is None
     with pytest.raises(ConfigError, match="built-in instruction"):
         transfer_run(base, out, "Escape", "divmorph", progress_bar=False)
+
+
+def test_the_fully_finetuned_divmorph_arm_moves_its_gates_and_the_divmorph_arm_keeps_them(finished_run):
+    """``divmorph-finetuned`` fine-tunes the DivMorph student like MetaMorph⚗ (every weight), so its
+    router -- and with it the gates -- moves under PPO, while the DivMorph arm's stays exactly as
+    distilled (break: give ``divmorph-finetuned`` ``divmorph_transfer=True`` -> its router is frozen)."""
+    from sb3_divmorph.pipeline.folders import student_folder, transfer_folder
+    from sb3_divmorph.pipeline.training import stage_model
+
+    out, _ = finished_run
+    distilled = PPO.load(stage_model(student_folder(out, "divmorph")), device="cpu").policy.router
+
+    def router_change(arm: str) -> float:
+        router = PPO.load(stage_model(transfer_folder(out, "Escape", arm, 0)), device="cpu").policy.router
+        return max(float((a - b).detach().abs().max()) for a, b in zip(distilled.parameters(), router.parameters()))
+
+    assert router_change("divmorph") == 0.0
+    assert router_change("divmorph-finetuned") > 0.0
 
 
 def test_a_loaded_transfer_run_plays_with_the_instruction_it_trained_with(finished_run, tmp_path):

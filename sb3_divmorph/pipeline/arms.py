@@ -18,6 +18,9 @@ arm                       start
                           fine-tuned
 ``modumorph``             ModuMorph, random init
 ``grl``                   MetaMorph with GRL's best evolved learngene (whole layers) inherited
+``divmorph-finetuned``    the distilled DivMorph student fine-tuned like MetaMorph⚗: every weight, its
+                          router (so its gates) included, at the fine-tuning rate. It separates what
+                          DivMorph's transfer rule does from what its diverted weights do
 ``no-kdiv-transformer``   a DivMorph student distilled without diversion in the Transformer,
                           transferred the DivMorph way
 ``no-kdiv-decoder``       likewise without diversion in the decoder
@@ -40,6 +43,8 @@ class Arm:
         :data:`sb3_divmorph.pipeline.students.STUDENTS`), or ``None``.
     :param divmorph_transfer: transferred the DivMorph way (fixed gates, per-unit learning rates).
     :param ablation: one of the paper's ablations (plotted in the ablation figure).
+    :param gated: starts from a DivMorph student, whose router reads the task (so
+        ``transfer.task_gates`` decides the instruction it is told).
     """
 
     name: str
@@ -47,18 +52,27 @@ class Arm:
     student: str | None = None
     divmorph_transfer: bool = False
     ablation: bool = False
+    gated: bool = False
 
 
 _ARMS = (
-    Arm("divmorph", "DivMorph", student="divmorph", divmorph_transfer=True),
+    Arm("divmorph", "DivMorph", student="divmorph", divmorph_transfer=True, gated=True),
     Arm("scratch", "MetaMorph (scratch)"),
     Arm("closest", "MetaMorph→ (closest task)"),
     Arm("distilled", "MetaMorph⚗ (distilled)", student="distilled"),
     Arm("modumorph", "ModuMorph (scratch)"),
     Arm("grl", "GRL (evolved learngene)"),
-    Arm("no-kdiv-transformer", "DivMorph w/o KDiv (Transformer)", student="no-kdiv-transformer", divmorph_transfer=True, ablation=True),
-    Arm("no-kdiv-decoder", "DivMorph w/o KDiv (decoder)", student="no-kdiv-decoder", divmorph_transfer=True, ablation=True),
-    Arm("no-orthogonality", "DivMorph w/o orthogonality", student="no-orthogonality", divmorph_transfer=True, ablation=True),
+    Arm("divmorph-finetuned", "DivMorph (fully fine-tuned)", student="divmorph", gated=True),
+    Arm(
+        "no-kdiv-transformer",
+        "DivMorph w/o KDiv (Transformer)",
+        student="no-kdiv-transformer",
+        divmorph_transfer=True,
+        ablation=True,
+        gated=True,
+    ),
+    Arm("no-kdiv-decoder", "DivMorph w/o KDiv (decoder)", student="no-kdiv-decoder", divmorph_transfer=True, ablation=True, gated=True),
+    Arm("no-orthogonality", "DivMorph w/o orthogonality", student="no-orthogonality", divmorph_transfer=True, ablation=True, gated=True),
 )
 
 #: Every arm by name, in the order of plots and tables.

@@ -201,7 +201,8 @@ class TransferConfig:
     #: slower); 1.0: the full rate, like any fine-tuned network; ``null``: ``learngene_lr_scale``
     #: (the rule before issue 26)
     undiverted_lr_scale: float | None = 1.0
-    #: where the DivMorph-way arms' fixed task gates come from: ``instruction`` (the novel task's own
+    #: where the task gates of the arms that start from a DivMorph student come from (fixed in the
+    #: DivMorph-way arms, the start of ``divmorph-finetuned``'s): ``instruction`` (the novel task's own
     #: instruction through the gate network, the paper's rule) or ``closest`` (the instruction of the
     #: training task the ``closest`` arm starts from, chosen by ``closest_by`` as for MetaMorph->).
     #: A gate network trained on five instructions does not place a sixth: on PointNav the cpu100

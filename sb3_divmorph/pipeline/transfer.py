@@ -163,15 +163,15 @@ def closest_task(profile: Profile, out: Path, task: str, by: str | None = None) 
 
 def gate_instruction(profile: Profile, out: Path, task: str, arm: str) -> str | None:
     """The closest training task's instruction when ``transfer.task_gates: closest`` gives it to this
-    arm (a DivMorph-way arm, whose router -- the only reader of the task embedding -- then selects that
-    task's tailors), else ``None``.
+    arm (an arm that starts from a DivMorph student, whose router -- the only reader of the task
+    embedding -- then selects that task's tailors), else ``None``.
 
     :raises ConfigError: an unknown ``task_gates``.
     """
     cfg = profile.transfer
     if cfg.task_gates not in ("instruction", "closest"):
         raise ConfigError(f"transfer.task_gates must be 'instruction' or 'closest', got {cfg.task_gates!r}")
-    if cfg.task_gates == "closest" and ARMS[arm].divmorph_transfer:
+    if cfg.task_gates == "closest" and ARMS[arm].gated:
         return INSTRUCTIONS[closest_task(profile, out, task)["closest"]]
     return None
 
