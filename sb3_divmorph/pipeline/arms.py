@@ -45,6 +45,7 @@ class Arm:
     :param ablation: one of the paper's ablations (plotted in the ablation figure).
     :param gated: starts from a DivMorph student, whose router reads the task (so
         ``transfer.task_gates`` decides the instruction it is told).
+    :param control: a diagnostic arm, not one of the paper's (in none of its figures).
     """
 
     name: str
@@ -53,6 +54,7 @@ class Arm:
     divmorph_transfer: bool = False
     ablation: bool = False
     gated: bool = False
+    control: bool = False
 
 
 _ARMS = (
@@ -62,7 +64,7 @@ _ARMS = (
     Arm("distilled", "MetaMorph⚗ (distilled)", student="distilled"),
     Arm("modumorph", "ModuMorph (scratch)"),
     Arm("grl", "GRL (evolved learngene)"),
-    Arm("divmorph-finetuned", "DivMorph (fully fine-tuned)", student="divmorph", gated=True),
+    Arm("divmorph-finetuned", "DivMorph (fully fine-tuned)", student="divmorph", gated=True, control=True),
     Arm(
         "no-kdiv-transformer",
         "DivMorph w/o KDiv (Transformer)",
@@ -78,8 +80,8 @@ _ARMS = (
 #: Every arm by name, in the order of plots and tables.
 ARMS: dict[str, Arm] = {arm.name: arm for arm in _ARMS}
 
-#: Arms of the transfer figures (Figs 3-4); the ablation figure (Fig 6) shows ``divmorph`` and the ablations.
-MAIN_ARMS = tuple(name for name, arm in ARMS.items() if not arm.ablation)
+#: Arms of the transfer figures (Figs 3-4: the paper's, no control arm); the ablation figure (Fig 6) shows ``divmorph`` and the ablations.
+MAIN_ARMS = tuple(name for name, arm in ARMS.items() if not (arm.ablation or arm.control))
 ABLATION_ARMS = ("divmorph", *(name for name, arm in ARMS.items() if arm.ablation))
 
 
