@@ -254,3 +254,28 @@ def test_a_teacher_without_an_encoder_for_a_task_input_gets_one_and_keeps_its_we
         changed = {k: v.copy() for k, v in obs.items()}
         changed[key] = changed[key] + np.random.default_rng(1).normal(0, 1, changed[key].shape).astype(np.float32)
         assert np.abs(model.predict(changed, deterministic=True)[0] - actions).max() > 1e-6, f"{task}: blind to {key}"
+
+
+def test_rotation_lr_scale_turns_the_square_factors_that_much_slower_and_moves_the_rest_as_before():
+    """transfer.rotation_lr_scale: the Cayley generators, whose full-rate steps dominate a DivMorph
+    student's update, move ``scale`` times as far; the tall factors and singular values as before."""
+    moved = {}
+    for scale in (1.0, 0.1, 0.0):
+        model, venv = distilled_like_student(seed=4)
+        obs = venv.reset()
+        gates = model.policy.get_gates(obs)
+        selection = UnitSelection.from_gates(gates.morphology.numpy(), gates.task.numpy())
+        prepare_transfer(model.policy, selection, learngene_scale=1.0, rotation_scale=scale)
+        layers = diverted_actor_layers(model.policy)
+        squares = [layer.square_factor().detach().clone() for layer in layers]
+        before = {name: p.detach().clone() for name, p in model.policy.named_parameters()}
+        after = one_ppo_like_step(model, obs)
+        moved[scale] = {name: (after[name] - before[name]).abs().sum().item() for name in before}
+        if scale == 0.0:  # the policy's square factors stay exactly where transfer re-based them
+            assert all(th.equal(layer.square_factor().detach(), old) for layer, old in zip(layers, squares))
+    skews = [name for name in moved[1.0] if name.endswith("square_skew") and moved[1.0][name] > 0]
+    assert skews, "no Cayley generator moved at the full rate"
+    for name in skews:
+        assert moved[0.1][name] == pytest.approx(0.1 * moved[1.0][name], rel=1e-3), name
+    others = [name for name in moved[1.0] if not name.endswith("square_skew")]
+    assert all(moved[0.1][n] == pytest.approx(moved[1.0][n], rel=1e-5, abs=1e-9) for n in others), "the other factors' steps changed"

@@ -67,11 +67,16 @@ def unit_scales(layer: FactorizedLinear, selection: UnitSelection, learngene_sca
     return scales
 
 
-def factor_parameter_scales(layer: FactorizedLinear, unit: th.Tensor, bias_scale: float) -> dict[nn.Parameter, th.Tensor]:
+def factor_parameter_scales(
+    layer: FactorizedLinear, unit: th.Tensor, bias_scale: float, rotation_scale: float = 1.0
+) -> dict[nn.Parameter, th.Tensor]:
     """Per-element scales of a factorized layer's parameters from its per-unit scales.
 
     A Cayley skew entry ``A_ij`` rotates units ``i`` and ``j`` into each other, so it moves at the
-    rate of the slower of the two.
+    rate of the slower of the two, times ``rotation_scale``: Adam moves every entry by about the
+    rate at once, and each rotates two whole singular directions weighted by their singular values,
+    so at one rate for all the rotations move the function far more than the other factors do
+    (``results/transfer-pointnav/update-kl-by-parameter.md``).
     """
     scales: dict[nn.Parameter, th.Tensor] = {
         layer.singular_values: unit.clone(),
@@ -79,7 +84,7 @@ def factor_parameter_scales(layer: FactorizedLinear, unit: th.Tensor, bias_scale
     }
     if layer.orthogonal:
         rows, cols = _upper_indices(layer.rank, th.device("cpu"))
-        scales[layer.square_skew] = th.minimum(unit[rows], unit[cols])
+        scales[layer.square_skew] = th.minimum(unit[rows], unit[cols]) * float(rotation_scale)
     else:
         scales[layer.square] = unit.expand_as(layer.square).clone()
     if layer.bias is not None:
@@ -318,6 +323,7 @@ def prepare_transfer(
     adam_eps: float | None = TRANSFER_ADAM_EPS,
     undiverted_scale: float | None = 1.0,
     critic_scale: float = 1.0,
+    rotation_scale: float = 1.0,
 ) -> UnitLearningRates:
     """Set a DivMorph policy up for DivMorph transfer, in place.
 
@@ -333,6 +339,8 @@ def prepare_transfer(
       rate, as any fine-tuned network, so that the ablation differs from DivMorph in its
       diversion, not in a learning rate;
     * the critic (never distilled) trains at ``critic_scale`` times the full rate;
+    * the Cayley generators of the square factors train at ``rotation_scale`` times their units'
+      rate (:func:`factor_parameter_scales`);
     * the optimiser's ``eps`` is set to ``adam_eps`` so that Adam normalises even the small
       gradients of a distilled student and the configured ratio is the one applied.
 
@@ -343,6 +351,7 @@ def prepare_transfer(
     :param undiverted_scale: learning-rate scale of the parts an ablation does not divert;
         ``None``: ``learngene_scale`` (every unit a learngene, the behaviour before this option).
     :param critic_scale: learning-rate scale of the critic (:func:`critic_rate_scales`).
+    :param rotation_scale: learning-rate scale of every Cayley generator relative to its units'.
     :return: the installed :class:`UnitLearningRates` (keep it, or call ``remove``); its
         :meth:`~UnitLearningRates.measured_ratio` is the learngene / selected-tailor update ratio
         (units of undiverted parts are measured apart, as the group ``undiverted``).
@@ -355,6 +364,8 @@ def prepare_transfer(
         undiverted_scale = learngene_scale
     if not 0 <= undiverted_scale <= 1:
         raise ValueError(f"undiverted_scale must be in [0, 1] (or None), got {undiverted_scale}")
+    if not 0 <= rotation_scale <= 1:
+        raise ValueError(f"rotation_scale must be in [0, 1], got {rotation_scale}")
     freeze([policy.router])
     optimizer = policy.optimizer
     scales: dict[nn.Parameter, th.Tensor] = {}
@@ -367,7 +378,7 @@ def prepare_transfer(
                 if layer.orthogonal:
                     optimizer.state.pop(layer.square_skew, None)
                 unit = th.full((layer.rank,), float(undiverted_scale))
-                scales.update(factor_parameter_scales(layer, unit, undiverted_scale))
+                scales.update(factor_parameter_scales(layer, unit, undiverted_scale, rotation_scale))
                 groups["undiverted"].update(unit_groups(layer, unit)["learngene"])
         for p in part.parameters():
             if p.requires_grad and p not in scales:
@@ -381,7 +392,7 @@ def prepare_transfer(
                     # Adam's moments of the skew belonged to the old parametrisation
                     optimizer.state.pop(layer.square_skew, None)
                 unit = unit_scales(layer, selection, learngene_scale)
-                scales.update(factor_parameter_scales(layer, unit, learngene_scale))
+                scales.update(factor_parameter_scales(layer, unit, learngene_scale, rotation_scale))
                 for name, masks in unit_groups(layer, unit).items():
                     groups[name].update(masks)
         for p in module.parameters():

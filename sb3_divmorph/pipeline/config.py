@@ -201,6 +201,14 @@ class TransferConfig:
     #: slower); 1.0: the full rate, like any fine-tuned network; ``null``: ``learngene_lr_scale``
     #: (the rule before issue 26)
     undiverted_lr_scale: float | None = 1.0
+    #: learning-rate scale of the Cayley generators of the DivMorph-way arms' square factors, relative
+    #: to the rate of the units they rotate. Adam moves every generator entry by about the rate at
+    #: once and each turns two whole singular directions, so at 1.0 the rotations dominate an
+    #: update where the policy is far from its training: on PointNav one update of the cpu100
+    #: student with its learngenes at the full rate moves the policy by a KL of ~60, by 0.027 with
+    #: the rotations frozen (MetaMorph⚗: 0.026); on FT by 0.034 and 0.020
+    #: (``results/transfer-pointnav/update-kl-by-parameter*.md``). 1.0: the rule before issue 42
+    rotation_lr_scale: float = 1.0
     #: where the task gates of the arms that start from a DivMorph student come from (fixed in the
     #: DivMorph-way arms, the start of ``divmorph-finetuned``'s): ``instruction`` (the novel task's own
     #: instruction through the gate network, the paper's rule) or ``closest`` (the instruction of the
@@ -476,6 +484,8 @@ def check_transfer(cfg: TransferConfig, where: str) -> None:
             raise ConfigError(f"{where}.adam_eps must be a number > 0 or null, got {cfg.adam_eps!r}") from None
         if not cfg.adam_eps > 0:
             raise ConfigError(f"{where}.adam_eps must be a number > 0 or null, got {cfg.adam_eps!r}")
+    if not 0 <= cfg.rotation_lr_scale <= 1:
+        raise ConfigError(f"{where}.rotation_lr_scale must be in [0, 1], got {cfg.rotation_lr_scale}")
     if cfg.undiverted_lr_scale is not None and not 0 <= cfg.undiverted_lr_scale <= 1:
         raise ConfigError(f"{where}.undiverted_lr_scale must be in [0, 1] or null (= learngene_lr_scale), got {cfg.undiverted_lr_scale!r}")
 
