@@ -37,7 +37,7 @@ from stable_baselines3.common.logger import configure
 
 import sb3_divmorph  # noqa: F401
 import unimal_envs  # noqa: F401
-from sb3_divmorph.algos.finetune import prepare_transfer, set_adam_eps
+from sb3_divmorph.algos.finetune import critic_modules, prepare_transfer, set_adam_eps
 from sb3_divmorph.nn.layers import FactorizedLinear
 from sb3_divmorph.pipeline.envs import inherited_normalizer, make_vec_env, robot_observations
 from sb3_divmorph.pipeline.provenance import recorded_profile
@@ -53,11 +53,6 @@ CRITIC_SCALE = 10.0  # the race's critic_lr_scale; the critic has its own networ
 def factorized_layers(policy) -> dict[str, FactorizedLinear]:
     """The actor's factorized layers by module name."""
     return {name: module for name, module in policy.named_modules() if isinstance(module, FactorizedLinear)}
-
-
-def is_actor(name: str) -> bool:
-    """Whether a policy parameter belongs to the actor (the critic's extractor and head do not)."""
-    return not name.startswith(("vf_features_extractor", "mlp_extractor.value_net", "value_net"))
 
 
 def probe(run: Path, folder: str, task: str, instruction: str, robots, lr: float, seed: int, trains, setup=None):
@@ -83,8 +78,9 @@ def probe(run: Path, folder: str, task: str, instruction: str, robots, lr: float
         learngenes, rotations = setup
         prepare_transfer(model.policy, selection, learngenes, adam_eps=ADAM_EPS, critic_scale=CRITIC_SCALE, rotation_scale=rotations)
     else:
+        critic = {id(p) for module in critic_modules(model.policy) for p in module.parameters()}
         for name, parameter in model.policy.named_parameters():
-            parameter.requires_grad_(not is_actor(name) or trains(name, parameter))
+            parameter.requires_grad_(id(parameter) in critic or trains(name, parameter))
     model.set_logger(configure(None, []))
     model.learn(2048)
     values = model.logger.name_to_value
