@@ -120,14 +120,17 @@ class Update:
             th.cuda.synchronize(self.device)
 
 
-def measure(args: argparse.Namespace, device: th.device) -> list[dict]:
+def measure(args: argparse.Namespace, device: th.device, results: list[dict]) -> None:
+    """Appends to ``results`` the buffer's description, then one row per option and minibatch as it is
+    measured (so that an interrupted run still reports what it measured)."""
     pool, robots = robot_observations(args.robots, args.seed)
     real = float((pool["obs_padding_mask"] < 0.5).sum(1).mean())
+    results.append(dict(robots=robots, real_tokens=real))
+    rows = results
     buffer = make_buffer(pool, args.samples, args.seed)
     configs = [("padded", False, False, False), ("packed", True, False, False), ("packed+bf16", True, True, False)]
     if args.compile:
         configs.append(("packed+compile", True, False, True))
-    rows = []
     for preset in args.presets:
         for name, cls in POLICIES.items():
             updates, compile_s = {}, {}
@@ -173,10 +176,9 @@ def measure(args: argparse.Namespace, device: th.device) -> list[dict]:
                         f"[update-speed] {preset} {name} {label} batch {batch}: {args.samples / median:,.0f} samples/s ({base / median:.2f}x)",
                         flush=True,
                     )
-    return [dict(robots=robots, real_tokens=real)] + rows
 
 
-def render(results: list[dict], args: argparse.Namespace, device: th.device, seconds: float) -> str:
+def render(results: list[dict], args: argparse.Namespace, device: th.device, seconds: float, interrupted: bool = False) -> str:
     head, rows = results[0], results[1:]
     lines = [
         "# Speed of the PPO update: token packing, bfloat16, minibatch size",
@@ -190,6 +192,7 @@ def render(results: list[dict], args: argparse.Namespace, device: th.device, sec
         f"median of {args.repeats} epochs. Gradient checks on one minibatch of {min(args.batches)} against the padded "
         "float32 update's gradient (same parameters and samples).",
         "",
+        *(["**Interrupted** (SIGINT): the rows measured before it; the others are missing.", ""] if interrupted else []),
         "| preset | policy | option | minibatch | update samples/s | speed-up against padded fp32 | max relative gradient difference | gradient cosine |",
         "|---|---|---|---:|---:|---:|---:|---:|",
     ]
@@ -227,9 +230,19 @@ def main() -> None:
     th.set_num_threads(args.threads)
     device = th.device(args.device)
     start = time.time()
-    results = measure(args, device)
+    results: list[dict] = []
+    try:
+        measure(args, device, results)
+    except KeyboardInterrupt:  # a time limit (`timeout -s INT`): write what was measured, then stop as interrupted
+        if len(results) > 1:
+            write(results, args, device, start, interrupted=True)
+        raise
+    write(results, args, device, start)
+
+
+def write(results: list[dict], args: argparse.Namespace, device: th.device, start: float, interrupted: bool = False) -> None:
     output = args.output or Path("results") / f"update_speed_{device.type}.md"
-    output.write_text(render(results, args, device, time.time() - start))
+    output.write_text(render(results, args, device, time.time() - start, interrupted))
     print(f"[update-speed] -> {output}")
 
 

@@ -11,9 +11,11 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch as th
 import tomllib
 import yaml
 from stable_baselines3 import A2C, PPO
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import VecNormalize
 
@@ -21,8 +23,8 @@ import unimal_envs
 from divmorph.cli import main as cli
 from sb3_divmorph.pipeline import distill, evaluate, export_all, train_teachers, transfer
 from sb3_divmorph.pipeline.config import PPO_HYPERPARAMETERS, ConfigError, Profile, load_profile, load_profiles
-from sb3_divmorph.pipeline.files import atomic_write_json, mark_done
-from sb3_divmorph.pipeline.training import TrainingRun, save_checkpoint
+from sb3_divmorph.pipeline.files import atomic_write_json, mark_done, read_done
+from sb3_divmorph.pipeline.training import TrainingRun, latest_checkpoint, save_checkpoint
 from sb3_divmorph.policies import DivMorphPolicy
 from sb3_divmorph.record import RecordError, find_model, record
 from unimal_envs.morphology.loader import MorphologyError, morphology_files
@@ -181,6 +183,43 @@ def test_a_resumed_run_says_from_which_step(tmp_path, capsys):
     make_env = lambda: make_vec_env("Unimal-FT-v0", n_envs=1, env_kwargs=dict(morphologies=morphology_files("train")[:1]))  # noqa: E731
     TrainingRun(folder, 64, 1000, make_model=None, make_env=make_env, progress_bar=False).run()
     assert "resuming from step 32 of 64" in capsys.readouterr().out
+
+
+class _InterruptAt(BaseCallback):
+    """Raises KeyboardInterrupt (what SIGINT raises in Python) once ``steps`` steps are done."""
+
+    def __init__(self, steps: int):
+        super().__init__()
+        self.steps = steps
+
+    def _on_step(self) -> bool:
+        if self.num_timesteps >= self.steps:
+            raise KeyboardInterrupt
+        return True
+
+
+def test_an_interrupted_run_keeps_its_steps_and_the_same_command_resumes_from_them(tmp_path, capsys):
+    """A run stopped by SIGINT between checkpoints (a GPU window's time limit) saves where it stopped:
+    the next attempt resumes from there with the weights it had, not from the last periodic checkpoint."""
+    folder = tmp_path / "teacher"
+    make_env = lambda: make_vec_env("Unimal-FT-v0", n_envs=1, env_kwargs=dict(morphologies=morphology_files("train")[:1]))  # noqa: E731
+    make_model = lambda: PPO("MetaMorphPolicy", make_env(), n_steps=32, batch_size=32, n_epochs=1, policy_kwargs=TINY, seed=0)  # noqa: E731
+    run = TrainingRun(folder, 256, 10_000, make_model=make_model, make_env=make_env, callbacks=[_InterruptAt(80)], progress_bar=False)
+    with pytest.raises(KeyboardInterrupt):
+        run.run()
+    assert "[interrupted]" in capsys.readouterr().out
+    saved = latest_checkpoint(folder / "checkpoints")
+    # at the start of the rollout it stopped in (steps 64-95); the periodic interval (10,000) was never reached
+    assert saved is not None and saved.name == "step-000000000064"
+    weights = PPO.load(saved / "model.zip").policy.state_dict()
+    assert not (folder / "done.json").exists()
+
+    TrainingRun(folder, 256, 10_000, make_model=None, make_env=make_env, progress_bar=False).run()
+    assert "resuming from step 64 of 256" in capsys.readouterr().out
+    assert read_done(folder)["num_timesteps"] == 256
+    # the interrupted attempt had learnt (two updates): what was saved is not the fresh model's weights
+    fresh = make_model().policy.state_dict()
+    assert any(not th.equal(weights[key], fresh[key]) for key in fresh)
 
 
 def test_results_files_are_readable_by_others(tmp_path):

@@ -2,7 +2,8 @@
 
 Long training saves checkpoints (model + ``VecNormalize`` statistics) every ``checkpoint_every``
 steps into a fresh folder and then atomically points ``checkpoints/latest.json`` at it, so a run
-killed mid-way resumes from the last complete checkpoint and loses at most one interval. Callbacks
+killed mid-way resumes from the last complete checkpoint and loses at most one interval; one
+interrupted (SIGINT) saves a checkpoint where it stopped before it exits. Callbacks
 with state of their own (:class:`StatefulCallback`, e.g. DAgger's aggregated dataset) save it into
 the same checkpoint. A finished run continues to a larger budget from its final model (:func:`reopen`).
 """
@@ -60,6 +61,25 @@ class AtomicCheckpointCallback(BaseCallback):
         if self.num_timesteps - self._last >= self.every:
             self._last = self.num_timesteps
             save_checkpoint(self.model, self.folder, self.stateful)
+        return True
+
+
+class RolloutBoundary(BaseCallback):
+    """The step count at the start of the rollout being collected: an interrupted run's checkpoint
+    goes back to it, so that the unfinished rollout's steps are collected again, not skipped (the
+    weights and the callbacks' states change only between rollouts)."""
+
+    def __init__(self):
+        super().__init__()
+        self.steps = 0
+
+    def _on_training_start(self) -> None:
+        self.steps = self.num_timesteps
+
+    def _on_rollout_start(self) -> None:
+        self.steps = self.num_timesteps
+
+    def _on_step(self) -> bool:
         return True
 
 
@@ -203,8 +223,24 @@ class TrainingRun:
         model.set_logger(configure(str(self.folder / "logs" / f"run-{attempt}"), ["csv", "tensorboard"]))
         remaining = self.total_timesteps - model.num_timesteps
         if remaining > 0:
-            callback = CallbackList([*self.callbacks, AtomicCheckpointCallback(checkpoints, self.checkpoint_every, stateful)])
-            model.learn(remaining, callback=callback, reset_num_timesteps=False, progress_bar=self.progress_bar)
+            boundary = RolloutBoundary()
+            callback = CallbackList([*self.callbacks, AtomicCheckpointCallback(checkpoints, self.checkpoint_every, stateful), boundary])
+            started = model.num_timesteps
+            try:
+                model.learn(remaining, callback=callback, reset_num_timesteps=False, progress_bar=self.progress_bar)
+            except KeyboardInterrupt:
+                # SIGINT: Ctrl-C, or `timeout -s INT` at the end of a lent GPU window, where a checkpoint
+                # interval can be longer than the window's training: keep what was learnt since the last
+                # checkpoint, at the last rollout's start (an interrupt inside an update keeps its
+                # minibatches done so far; that rollout is collected again)
+                model.num_timesteps = boundary.steps
+                if model.num_timesteps > started:
+                    saved = save_checkpoint(model, checkpoints, stateful)
+                    print(
+                        f"[interrupted] {self.folder}: saved at step {model.num_timesteps} ({saved.name}); the same command resumes it",
+                        flush=True,
+                    )
+                raise
         self.save_final(model)
         return model
 
