@@ -24,8 +24,8 @@
 # --set overrides to it. The teacher's last checkpoint comes back too (ckpt.tgz.part-*), so that it can
 # be evaluated on the CPU machine beside the CPU run.
 # Warp compiles MuJoCo Warp's kernels on a fresh machine (~4 minutes for FT and 1 more for VT on an
-# H200, 2026-11-26); the steps after the first reuse them. The kernel cache does not travel: it is
-# ~76 MB compressed, more than a job brings back (64 MiB) or carries beside the parts.
+# H200, 2026-11-26); the steps after the first reuse them. The kernel cache travels in slices, a job
+# or two each way (benchmarks/gpu_kernel_cache.py): carried into /tmp/gpu/kernels, it is restored first.
 set -uo pipefail
 budget=${1:?usage: gpu_session.sh SECONDS}
 deadline=$((SECONDS + budget))
@@ -44,6 +44,9 @@ stamp "install"
 cp .gpu/p2/* /tmp/gpu/ && bash /tmp/gpu/install.sh || { echo "install failed"; exit 1; }
 # MUJOCO_GL=disable: the image has no EGL, and `import mujoco` would load it for rendering
 export PYTHONPATH=/tmp/site:$PWD UNIMAL_DATA=$PWD/.gpu/data PYTHONUNBUFFERED=1 MUJOCO_GL=disable
+# Warp's kernels compiled on an earlier machine, carried in by the jobs before (results/gpu/LEDGER.md, "The
+# kernel cache"): a hit loads a module instead of compiling it, the ~4-6 minutes a fresh machine spends
+[ -d /tmp/gpu/kernels ] && python3 benchmarks/gpu_kernel_cache.py restore /tmp/gpu/kernels
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
 python3 -c "import torch; print('torch', torch.__version__, torch.cuda.get_device_name(0))"
 
