@@ -106,8 +106,8 @@ def readings(variants: list, task: str, reference: str, scratch: Path | None) ->
         "the reading is the abstract's 3x when the reference is direct fine-tuning):",
         "",
         "| variant | steps to the level | reading | many-draw start minus the reference's, per robot [95% CI] "
-        "| last minus the reference's last, per robot [95% CI] |",
-        "|---|---:|---|---|---|",
+        "| last minus the reference's last, per robot [95% CI] | gain minus the reference's gain, per robot [95% CI] |",
+        "|---|---:|---|---|---|---|",
     ]
     for label in found:
         steps = to_level[label]
@@ -116,13 +116,17 @@ def readings(variants: list, task: str, reference: str, scratch: Path | None) ->
         # a gap at the end that was there before any fine-tuning is the starts', not transfer's
         start_gap = (found[label][0].groupby("robot")["return"].mean() - ref_start).dropna()
         s_low, s_high = robot_interval(start_gap.to_numpy()) if len(start_gap) else (np.nan, np.nan)
+        # what fine-tuning added, each from its own many-draw start: the comparison of two arms' learning
+        gain_gap = (gap - start_gap).dropna()
+        g_low, g_high = robot_interval(gain_gap.to_numpy()) if len(gain_gap) else (np.nan, np.nan)
         reference_steps = to_level[reference]
         assert reference_steps is not None  # the reference's last point is its own final return
         reading = "(the reference)" if label == reference else efficiency_reading(steps, reference_steps)
         told = "not reached" if steps is None else f"{steps / 1000:.0f}k"
         lines.append(
             f"| {label} | {told} | {reading} | {start_gap.mean():+.{digits}f} [{s_low:+.{digits}f}, {s_high:+.{digits}f}] "
-            f"| {gap.mean():+.{digits}f} [{low:+.{digits}f}, {high:+.{digits}f}] |"
+            f"| {gap.mean():+.{digits}f} [{low:+.{digits}f}, {high:+.{digits}f}] "
+            f"| {gain_gap.mean():+.{digits}f} [{g_low:+.{digits}f}, {g_high:+.{digits}f}] |"
         )
     if scratch is not None:
         control = curves(scratch, task, "scratch")
