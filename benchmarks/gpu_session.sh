@@ -88,13 +88,13 @@ fi
 # 4. The transfer race of issue 42 on the device (results/gpu/LEDGER.md, lines R1-): the cpu100 teachers and
 # students (tracked files) fine-tuned and scratch trained on MuJoCo Warp, every curve point evaluated on the
 # device against many draws (transfer.eval_backend: batched, 15 episodes of 20 training + 20 held-out robots).
-# RACE_TASKS, RACE_ARMS, RACE_SEEDS, RACE_STEPS pick the runs. A race folder is one budget (race-<RACE_STEPS>:
+# RACE_TASKS, RACE_ARMS, RACE_SEEDS, RACE_STEPS pick the runs. A race folder is one budget (race-<RACE_STEPS>[-<RACE_TAG>]:
 # its run.json records the settings, and a later window must repeat them); one carried in (.gpu/race copied
 # to /tmp/resume/race by the job before) is restored over a fresh branch: its runs resume from their
 # checkpoints, finished ones are skipped.
 if want 4 && [ "$(share 100)" -gt 60 ]; then
   : "${RACE_TASKS:=PointNav}" "${RACE_ARMS:=scratch}" "${RACE_SEEDS:=0}" "${RACE_STEPS:=10000000}"
-  race="race-$RACE_STEPS"
+  race="race-$RACE_STEPS${RACE_TAG:+-$RACE_TAG}"  # RACE_TAG: a second race at the same budget with other settings (RACE_SET)
   stamp "4. the transfer race on the device: $RACE_TASKS x $RACE_ARMS x seeds $RACE_SEEDS, $RACE_STEPS steps ($race)"
   [ -d "/tmp/$race" ] || python3 -m divmorph branch --from results/cpu100 --out "/tmp/$race"
   if [ -f "/tmp/resume/race/$race/run.json" ]; then  # the race's own records (settings, robots) and runs
