@@ -26,10 +26,10 @@ actions and the unclipped action means on the same observations (8 seeded steps 
 from __future__ import annotations
 
 import argparse
+import base64
 import io
 import json
 import pickle
-import re
 import subprocess
 import sys
 import tempfile
@@ -101,9 +101,27 @@ def slim_normalizer(data: bytes) -> bytes:
 
 
 def _saved_attributes(data: bytes) -> dict:
-    """The ``data`` entry of a saved model, without the memory addresses of its readable class summaries."""
+    """The ``data`` entry of a saved model: each attribute SB3 pickled as its pickle (a class by its
+    module and name), the rest as saved. SB3 writes a readable summary beside each pickle -- a class's
+    docstring, memory addresses -- which changes with the code, not with the model."""
     with zipfile.ZipFile(io.BytesIO(data)) as archive:
-        return json.loads(re.sub(r" at 0x[0-9a-f]+", "", archive.read("data").decode()))
+        saved = json.loads(archive.read("data").decode())
+    return {
+        key: _pickled(value[":serialized:"]) if isinstance(value, dict) and ":serialized:" in value else value
+        for key, value in saved.items()
+    }
+
+
+def _pickled(serialized: str) -> object:
+    """A pickled class as the class it loads (one class pickles under another module path once its
+    home moved: ``sb3_divmorph.policies.MetaMorphPolicy`` then, ``...policies.morphology_transformer``
+    now); any other pickle as its bytes."""
+    raw = base64.b64decode(serialized)
+    try:
+        loaded = pickle.loads(raw)
+    except Exception:  # noqa: BLE001 -- a pickle this environment cannot load: compare its bytes
+        return raw
+    return loaded if isinstance(loaded, type) else raw
 
 
 def _statistics(normalizer: VecNormalize) -> dict[str, np.ndarray]:
