@@ -535,9 +535,16 @@ def main(argv: list[str] | None = None) -> int:
         if record is not None:
             _put_back(out, record, previous_record)
         return 1
-    except BaseException:  # anything else (a corrupted model file, Ctrl-C): put the good results back, then fail loudly
+    except BaseException as error:  # anything else (a corrupted model file, Ctrl-C): put the good results back, then fail loudly
         if record is not None:
             _put_back(out, record, previous_record)
+        if isinstance(error, KeyboardInterrupt):  # Ctrl-C, or a time limit's SIGINT: not a bug, no traceback
+            print(
+                f"divmorph {args.command}: interrupted; a run that was training saved a checkpoint where it stopped "
+                "([interrupted] above), and the same command resumes the unfinished runs",
+                file=sys.stderr,
+            )
+            return 130
         raise
     where = getattr(args, "into", None) or out  # a selection evaluated --into a folder leaves the run untouched
     print(

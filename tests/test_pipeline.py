@@ -614,6 +614,40 @@ def test_a_killed_run_resumes_from_its_last_checkpoint(tmp_path):
     assert not [p for p in out.glob("**/*") if ".tmp" in p.name or ".staging" in p.name]
 
 
+def test_ctrl_c_keeps_the_steps_since_the_last_checkpoint_and_says_how_to_go_on(tmp_path):
+    """SIGINT (Ctrl-C, a GPU window's `timeout -s INT`) between checkpoints: the command saves the
+    teacher where it stopped, exits 130 with a sentence instead of a traceback, and the same command
+    resumes from that step, not from zero."""
+    profiles = write_profiles(tmp_path, teachers__n_timesteps=100_000, teachers__checkpoint_every=1_000_000, teachers__tasks=["FT"])
+    out = tmp_path / "run"
+    command = [
+        sys.executable,
+        "-m",
+        "divmorph.cli",
+        "teachers",
+        "--profile",
+        "tiny",
+        "--profiles",
+        str(profiles),
+        "--out",
+        str(out),
+        "--no-progress",
+    ]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    log = out / "teachers" / "FT" / "logs" / "run-0" / "progress.csv"
+    deadline = time.time() + 240
+    while time.time() < deadline and (not log.is_file() or len(log.read_text().splitlines()) < 4):
+        time.sleep(0.2)
+    process.send_signal(signal.SIGINT)
+    stdout, stderr = process.communicate(timeout=120)
+    assert process.returncode == 130, stderr
+    assert "interrupted" in stderr and "Traceback" not in stderr
+    assert "[interrupted]" in stdout
+    saved = _steps(out / "teachers" / "FT" / "checkpoints")
+    assert saved >= 2 * 64  # three rollouts were logged before the signal (64 steps each); the last may have been in its update
+    assert not (out / "teachers" / "FT" / "done.json").exists()
+
+
 def test_a_finished_stage_continues_past_its_budget_from_its_final_model(tmp_path, capsys):
     """``--continue teachers`` with a larger budget carries a finished teacher on from its final model
     (its weights, statistics and step count), as SB3's ``reset_num_timesteps=False``: the new attempt
