@@ -14,7 +14,8 @@ model's mean over many draws (per robot, paired with each run), taken from
         --variant "DivMorph, Patrol's gates=/work/race/gates-closest:divmorph:divmorph:Patrol" \\
         --variant "MetaMorph->=/work/race/closest:closest:teacher-Patrol:PointNav"
 
-A variant is ``label=folder:arm:baseline model:baseline instruction``.
+A variant is ``label=folder:arm:baseline model:baseline instruction``; ``-`` for the model (scratch: no
+starting model to draw from) reads it against its own step-0 points instead.
 
 ``--reference LABEL`` adds the two readings of the paper's claim (``results/transfer-pointnav/race-600k-rule.md``):
 against direct fine-tuning (the abstract's 3x), the steps each variant needs to reach and hold the
@@ -49,6 +50,14 @@ def curves(folder: Path, task: str, arm: str) -> pd.DataFrame:
         frame.index = pd.MultiIndex.from_product([frame.index, [run.name]], names=["robot", "seed"])
         parts.append(frame)
     return pd.concat(parts) if parts else pd.DataFrame()
+
+
+def own_start(frame: pd.DataFrame) -> pd.DataFrame:
+    """A variant's own step-0 points as its baseline rows (one row per robot and run: ``eval_seed`` is the run)."""
+    if frame.empty:
+        return pd.DataFrame(columns=["robot", "return", "eval_seed", "episode"])
+    start = frame[frame.columns[0]].rename("return").reset_index()
+    return start.rename(columns={"seed": "eval_seed"}).assign(episode=0)
 
 
 def last_per_run(frame: pd.DataFrame) -> pd.Series:
@@ -156,8 +165,10 @@ def main() -> None:
     for item in args.variant:
         label, _, spec = item.partition("=")
         folder, arm, model, told = spec.split(":")
+        frame = curves(Path(folder), args.task, arm)
         # the starting model's many-draw rows (evaluation seeds x episodes per robot) beside the run's curves
-        variants.append((label, rows[(rows.model == model) & (rows.instruction_of == told)], curves(Path(folder), args.task, arm)))
+        base = own_start(frame) if model == "-" else rows[(rows.model == model) & (rows.instruction_of == told)]
+        variants.append((label, base, frame))
     # the evaluation steps of every variant (a run resumed from a checkpoint ends a few steps off the others')
     header = sorted({step for *_, frame in variants for step in frame.columns})
     for label, base, frame in variants:
@@ -174,8 +185,13 @@ def main() -> None:
         z_low, z_high = robot_interval(from_zero)
         a_low, a_high = robot_interval(against)
         runs = frame.index.get_level_values("seed").nunique()
+        draws = (
+            "its step 0"
+            if base.episode.nunique() == 1 and base.eval_seed.nunique() == runs
+            else f"{base.eval_seed.nunique()} seeds x {base.episode.nunique()} episodes"
+        )
         lines.append(
-            f"| {label} | {runs} | {per_robot.mean():.{digits}f} ({base.eval_seed.nunique()} seeds x {base.episode.nunique()} episodes) | {means} "
+            f"| {label} | {runs} | {per_robot.mean():.{digits}f} ({draws}) | {means} "
             f"| {from_zero.mean():+.{digits}f} [{z_low:+.{digits}f}, {z_high:+.{digits}f}] "
             f"| **{against.mean():+.{digits}f} [{a_low:+.{digits}f}, {a_high:+.{digits}f}]** |"
         )
