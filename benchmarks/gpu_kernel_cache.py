@@ -19,17 +19,20 @@ Standard library only (it runs on the GPU machine before anything is installed):
 
 A job brings back at most 64 MiB in files of at most 16 MiB, hence slices of 15 MiB, four per job;
 a job carries 64 MiB with the project's tracked files (~24 MiB), hence two slices per carrying job
-(``collect`` groups them so: ``k0``, ``k1``, ...).
-The binaries are for the GPU's architecture (sm_90 on both the H100 and the H200); a cache from
+(``collect`` groups them so: ``k0``, ``k1``, ...). Each slice is named after its archive's hash and
+the number of slices (``kernels.<hash>.<i>-of-<n>``), so an incomplete or mixed set is refused by
+``collect`` and skipped by ``restore``, never half-restored. The binaries are for the GPU's architecture (sm_90 on both the H100 and the H200); a cache from
 another architecture or Warp version is simply not hit, and Warp compiles as before.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import io
 import lzma
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -40,7 +43,8 @@ SLICE_BYTES = 15 * 1024 * 1024
 SLICES_PER_JOB = 4
 #: slices a job carries to the device beside the project's tracked files (64 MiB in all)
 SLICES_PER_CARRY = 2
-PREFIX = "kernels.tar.xz."
+#: a slice's name (:func:`slice_name`)
+SLICE = re.compile(r"kernels\.([0-9a-f]{8})\.(\d+)-of-(\d+)")
 #: files Warp reads on a cache hit (the module's binary and its metadata)
 KEPT_SUFFIXES = (".cubin", ".ptx", ".meta", ".o", ".so", ".dll")
 
@@ -50,14 +54,46 @@ def default_cache() -> Path:
     return Path(os.environ.get("WARP_CACHE_PATH") or Path.home() / ".cache" / "warp")
 
 
+def slice_name(digest: str, index: int, count: int) -> str:
+    """``kernels.<first 8 hex digits of the archive's sha256>.<index>-of-<count>``: a slice says which
+    archive it belongs to and how many there are, so that a set is known complete or not."""
+    return f"kernels.{digest[:8]}.{index:02d}-of-{count:02d}"
+
+
+def read_set(paths: list[Path]) -> tuple[str, list[Path]]:
+    """The one complete archive among ``paths``' slices, ``(digest, slices in order)``.
+
+    :raises ValueError: no slices, slices of several archives, or a missing one (named).
+    """
+    sets: dict[str, dict[int, Path]] = {}
+    counts: dict[str, int] = {}
+    for path in paths:
+        match = SLICE.fullmatch(path.name)
+        if match:
+            digest, index, count = match.group(1), int(match.group(2)), int(match.group(3))
+            sets.setdefault(digest, {})[index] = path
+            counts[digest] = count
+    if not sets:
+        raise ValueError("no kernel-cache slices")
+    if len(sets) > 1:
+        raise ValueError(f"slices of {len(sets)} different archives ({', '.join(sorted(sets))}): keep one pack's")
+    (digest, found), count = next(iter(sets.items())), next(iter(counts.values()))
+    missing = [i for i in range(count) if i not in found]
+    if missing:
+        raise ValueError(f"archive {digest} misses slice(s) {missing} of {count} (run `send` again for their group)")
+    return digest, [found[i] for i in range(count)]
+
+
 def pack(cache: Path, staging: Path, slice_bytes: int = SLICE_BYTES) -> list[Path]:
-    """Write the cache's binaries as an xz tar cut in ``slice_bytes`` slices into ``staging`` (once)."""
-    done = sorted(staging.glob(PREFIX + "*"))
-    if done:
-        return done
+    """Write the cache's binaries as an xz tar cut in ``slice_bytes`` slices into ``staging``, once:
+    a later call reuses a complete set (written to a temporary folder first, then renamed)."""
+    if staging.is_dir():
+        try:
+            return read_set(sorted(staging.iterdir()))[1]
+        except ValueError:
+            shutil.rmtree(staging)
     if not cache.is_dir():
         raise SystemExit(f"no Warp kernel cache at {cache}: nothing was compiled on this machine yet")
-    staging.mkdir(parents=True, exist_ok=True)
     buffer = io.BytesIO()
     kept = 0
     with tarfile.open(fileobj=buffer, mode="w") as tar:
@@ -66,10 +102,18 @@ def pack(cache: Path, staging: Path, slice_bytes: int = SLICE_BYTES) -> list[Pat
                 tar.add(path, arcname=str(path.relative_to(cache)))
                 kept += 1
     packed = compress(buffer.getvalue())
-    for index, start in enumerate(range(0, len(packed), slice_bytes)):
-        (staging / f"{PREFIX}{index:02d}").write_bytes(packed[start : start + slice_bytes])
-    print(f"[kernel-cache] {kept} files of {cache}: {len(buffer.getvalue()) / 2**20:.1f} MiB -> {len(packed) / 2**20:.1f} MiB xz")
-    return sorted(staging.glob(PREFIX + "*"))
+    digest = hashlib.sha256(packed).hexdigest()
+    count = -(-len(packed) // slice_bytes)
+    partial = staging.with_name(staging.name + ".partial")
+    shutil.rmtree(partial, ignore_errors=True)
+    partial.mkdir(parents=True)
+    for index in range(count):
+        (partial / slice_name(digest, index, count)).write_bytes(packed[index * slice_bytes : (index + 1) * slice_bytes])
+    os.replace(partial, staging)
+    print(
+        f"[kernel-cache] {kept} files of {cache}: {len(buffer.getvalue()) / 2**20:.1f} MiB -> {len(packed) / 2**20:.1f} MiB xz, {count} slices"
+    )
+    return read_set(sorted(staging.iterdir()))[1]
 
 
 def compress(raw: bytes) -> bytes:
@@ -87,35 +131,42 @@ def send(job: int, cache: Path, staging: Path, out: Path, slice_bytes: int = SLI
     for path in group:
         shutil.copy2(path, out / path.name)
     jobs = -(-len(slices) // SLICES_PER_JOB)
-    print(f"[kernel-cache] slices {[p.name[-2:] for p in group]} of {len(slices)} into {out}", end="")
+    print(f"[kernel-cache] slices {[job * SLICES_PER_JOB + i for i in range(len(group))]} of {len(slices)} into {out}", end="")
     print(f"; run `send {job + 1}` in the next job" if job + 1 < jobs else "; that was the last")
 
 
 def collect(folders: list[Path], into: Path) -> None:
     """Gather the slices that came back (the runs' ``files_at`` folders) into ``into/k0``, ``into/k1``, ...
-    of ``SLICES_PER_CARRY`` slices each, one folder per carrying job; refuse a gap."""
-    found = {p.name: p for folder in folders for p in folder.glob(PREFIX + "*")}
-    indices = sorted(int(name[len(PREFIX) :]) for name in found)
-    if not indices or indices != list(range(len(indices))):
-        raise SystemExit(f"the folders hold slices {indices}: some are missing (run `send` again for their group)")
-    shutil.rmtree(into, ignore_errors=True)
-    for name, path in found.items():
-        group = into / f"k{int(name[len(PREFIX) :]) // SLICES_PER_CARRY}"
+    of ``SLICES_PER_CARRY`` slices each, one folder per carrying job; refuse an incomplete set."""
+    try:
+        digest, slices = read_set([p for folder in folders for p in folder.iterdir()])
+    except ValueError as error:
+        raise SystemExit(f"[kernel-cache] {error}") from None
+    for old in into.glob("k*/kernels.*"):  # an earlier set's slices (nothing else in `into` is touched)
+        old.unlink()
+    for index, path in enumerate(slices):
+        group = into / f"k{index // SLICES_PER_CARRY}"
         group.mkdir(parents=True, exist_ok=True)
-        shutil.copy2(path, group / name)
-    total = sum(p.stat().st_size for p in found.values())
-    groups = sorted(p.name for p in into.iterdir())
-    print(f"[kernel-cache] {len(indices)} slices, {total / 2**20:.1f} MiB in {into}: carry {', '.join(groups)}, one job each")
+        shutil.copy2(path, group / path.name)
+    total = sum(p.stat().st_size for p in slices)
+    groups = sorted({f"k{index // SLICES_PER_CARRY}" for index in range(len(slices))})
+    print(
+        f"[kernel-cache] archive {digest}: {len(slices)} slices, {total / 2**20:.1f} MiB in {into}: carry {', '.join(groups)}, one job each"
+    )
 
 
 def restore(folder: Path, cache: Path) -> None:
-    """Unpack the slices in ``folder`` into Warp's cache; a missing slice is reported and nothing is written."""
-    slices = sorted(folder.rglob(PREFIX + "*"), key=lambda p: p.name)
-    indices = [int(p.name[len(PREFIX) :]) for p in slices]
-    if not slices or indices != list(range(len(slices))):
-        print(f"[kernel-cache] {folder} holds slices {indices}: incomplete, Warp compiles as usual", file=sys.stderr)
+    """Unpack the slices in ``folder`` into Warp's cache. An incomplete or damaged set is reported
+    and nothing is written: Warp then compiles as it would have."""
+    try:
+        digest, slices = read_set(sorted(p for p in folder.rglob("kernels.*") if p.is_file()))
+        packed = b"".join(p.read_bytes() for p in slices)
+        if hashlib.sha256(packed).hexdigest()[:8] != digest:
+            raise ValueError(f"archive {digest}: its slices do not add up to it (damaged in transit?)")
+        data = lzma.decompress(packed)
+    except (ValueError, lzma.LZMAError) as error:
+        print(f"[kernel-cache] {folder}: {error}; Warp compiles as usual", file=sys.stderr)
         return
-    data = lzma.decompress(b"".join(p.read_bytes() for p in slices))
     cache.mkdir(parents=True, exist_ok=True)
     with tarfile.open(fileobj=io.BytesIO(data), mode="r") as tar:
         tar.extractall(cache, filter="data")

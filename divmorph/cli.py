@@ -540,8 +540,8 @@ def main(argv: list[str] | None = None) -> int:
             _put_back(out, record, previous_record)
         if isinstance(error, KeyboardInterrupt):  # Ctrl-C, or a time limit's SIGINT: not a bug, no traceback
             print(
-                f"divmorph {args.command}: interrupted; a run that was training saved a checkpoint where it stopped "
-                "([interrupted] above), and the same command resumes the unfinished runs",
+                f"divmorph {args.command}: interrupted. A run that had trained since its last checkpoint saved one "
+                "(an [interrupted] line above says where); the same command resumes unfinished runs from their latest checkpoint",
                 file=sys.stderr,
             )
             return 130

@@ -53,11 +53,12 @@ def curves(folder: Path, task: str, arm: str) -> pd.DataFrame:
 
 
 def own_start(frame: pd.DataFrame) -> pd.DataFrame:
-    """A variant's own step-0 points as its baseline rows (one row per robot and run: ``eval_seed`` is the run)."""
+    """A variant's own step-0 points as its baseline rows (one row per robot and run: ``eval_seed`` is
+    the run, ``episode`` -1 marks the rows as step-0 points, not draws of a starting model)."""
     if frame.empty:
         return pd.DataFrame(columns=["robot", "return", "eval_seed", "episode"])
     start = frame[frame.columns[0]].rename("return").reset_index()
-    return start.rename(columns={"seed": "eval_seed"}).assign(episode=0)
+    return start.rename(columns={"seed": "eval_seed"}).assign(episode=-1)
 
 
 def last_per_run(frame: pd.DataFrame) -> pd.Series:
@@ -187,7 +188,7 @@ def main() -> None:
         runs = frame.index.get_level_values("seed").nunique()
         draws = (
             "its step 0"
-            if base.episode.nunique() == 1 and base.eval_seed.nunique() == runs
+            if len(base) and (base.episode == -1).all()
             else f"{base.eval_seed.nunique()} seeds x {base.episode.nunique()} episodes"
         )
         lines.append(

@@ -186,36 +186,50 @@ def test_a_resumed_run_says_from_which_step(tmp_path, capsys):
 
 
 class _InterruptAt(BaseCallback):
-    """Raises KeyboardInterrupt (what SIGINT raises in Python) once ``steps`` steps are done."""
+    """Raises KeyboardInterrupt (what SIGINT raises in Python) once ``steps`` steps are done: in the
+    middle of collecting a rollout (``where="step"``), or once a whole rollout was collected and is
+    being learnt from (``where="rollout_end"``, as DAgger's labelling and update run)."""
 
-    def __init__(self, steps: int):
+    def __init__(self, steps: int, where: str):
         super().__init__()
-        self.steps = steps
+        self.steps, self.where = steps, where
 
     def _on_step(self) -> bool:
-        if self.num_timesteps >= self.steps:
+        if self.where == "step" and self.num_timesteps >= self.steps:
             raise KeyboardInterrupt
         return True
 
+    def _on_rollout_end(self) -> None:
+        if self.where == "rollout_end" and self.num_timesteps >= self.steps:
+            raise KeyboardInterrupt
 
-def test_an_interrupted_run_keeps_its_steps_and_the_same_command_resumes_from_them(tmp_path, capsys):
+
+@pytest.mark.parametrize(
+    "where, interrupted_at, saved_at",
+    [
+        ("step", 80, 64),  # in the third rollout (steps 64-95): it is collected again
+        ("rollout_end", 96, 96),  # the third rollout collected and being learnt from: not collected twice
+    ],
+)
+def test_an_interrupted_run_keeps_its_steps_and_the_same_command_resumes_from_them(tmp_path, capsys, where, interrupted_at, saved_at):
     """A run stopped by SIGINT between checkpoints (a GPU window's time limit) saves where it stopped:
     the next attempt resumes from there with the weights it had, not from the last periodic checkpoint."""
     folder = tmp_path / "teacher"
     make_env = lambda: make_vec_env("Unimal-FT-v0", n_envs=1, env_kwargs=dict(morphologies=morphology_files("train")[:1]))  # noqa: E731
     make_model = lambda: PPO("MetaMorphPolicy", make_env(), n_steps=32, batch_size=32, n_epochs=1, policy_kwargs=TINY, seed=0)  # noqa: E731
-    run = TrainingRun(folder, 256, 10_000, make_model=make_model, make_env=make_env, callbacks=[_InterruptAt(80)], progress_bar=False)
+    stop = _InterruptAt(interrupted_at, where)
+    run = TrainingRun(folder, 256, 10_000, make_model=make_model, make_env=make_env, callbacks=[stop], progress_bar=False)
     with pytest.raises(KeyboardInterrupt):
         run.run()
     assert "[interrupted]" in capsys.readouterr().out
     saved = latest_checkpoint(folder / "checkpoints")
-    # at the start of the rollout it stopped in (steps 64-95); the periodic interval (10,000) was never reached
-    assert saved is not None and saved.name == "step-000000000064"
+    # the periodic interval (10,000) was never reached
+    assert saved is not None and saved.name == f"step-{saved_at:012d}"
     weights = PPO.load(saved / "model.zip").policy.state_dict()
     assert not (folder / "done.json").exists()
 
     TrainingRun(folder, 256, 10_000, make_model=None, make_env=make_env, progress_bar=False).run()
-    assert "resuming from step 64 of 256" in capsys.readouterr().out
+    assert f"resuming from step {saved_at} of 256" in capsys.readouterr().out
     assert read_done(folder)["num_timesteps"] == 256
     # the interrupted attempt had learnt (two updates): what was saved is not the fresh model's weights
     fresh = make_model().policy.state_dict()

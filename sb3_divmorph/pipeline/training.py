@@ -65,9 +65,11 @@ class AtomicCheckpointCallback(BaseCallback):
 
 
 class RolloutBoundary(BaseCallback):
-    """The step count at the start of the rollout being collected: an interrupted run's checkpoint
-    goes back to it, so that the unfinished rollout's steps are collected again, not skipped (the
-    weights and the callbacks' states change only between rollouts)."""
+    """The step count of the last rollout handed to learning: an interrupted run's checkpoint goes
+    back to it, so that the steps of a rollout still being collected are collected again, not
+    skipped, and a rollout already handed on (to the update, to DAgger's dataset) is not collected
+    twice. Placed first among the callbacks, so that it counts a rollout before any other
+    callback's ``_on_rollout_end`` learns from it."""
 
     def __init__(self):
         super().__init__()
@@ -76,7 +78,7 @@ class RolloutBoundary(BaseCallback):
     def _on_training_start(self) -> None:
         self.steps = self.num_timesteps
 
-    def _on_rollout_start(self) -> None:
+    def _on_rollout_end(self) -> None:
         self.steps = self.num_timesteps
 
     def _on_step(self) -> bool:
@@ -224,15 +226,15 @@ class TrainingRun:
         remaining = self.total_timesteps - model.num_timesteps
         if remaining > 0:
             boundary = RolloutBoundary()
-            callback = CallbackList([*self.callbacks, AtomicCheckpointCallback(checkpoints, self.checkpoint_every, stateful), boundary])
+            callback = CallbackList([boundary, *self.callbacks, AtomicCheckpointCallback(checkpoints, self.checkpoint_every, stateful)])
             started = model.num_timesteps
             try:
                 model.learn(remaining, callback=callback, reset_num_timesteps=False, progress_bar=self.progress_bar)
             except KeyboardInterrupt:
                 # SIGINT: Ctrl-C, or `timeout -s INT` at the end of a lent GPU window, where a checkpoint
                 # interval can be longer than the window's training: keep what was learnt since the last
-                # checkpoint, at the last rollout's start (an interrupt inside an update keeps its
-                # minibatches done so far; that rollout is collected again)
+                # checkpoint, at the end of the last rollout handed to learning (an interrupt inside the
+                # update keeps the minibatches done so far, and the rest of that update is lost)
                 model.num_timesteps = boundary.steps
                 if model.num_timesteps > started:
                     saved = save_checkpoint(model, checkpoints, stateful)
