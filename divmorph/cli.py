@@ -28,7 +28,9 @@ from __future__ import annotations
 import argparse
 import os
 import shlex
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -402,6 +404,14 @@ def _remove_if_untouched(out: Path) -> None:
         out.rmdir()
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where Ctrl-C raises KeyboardInterrupt, so that both stop a command the same way."""
+
+
+def _terminate(signum: int, frame: object) -> None:
+    raise Terminated
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run one ``divmorph`` command (``argv``: its arguments, default ``sys.argv[1:]``); the exit status."""
     words = sys.argv[1:] if argv is None else argv
@@ -456,6 +466,10 @@ def main(argv: list[str] | None = None) -> int:
     start = time.perf_counter()
     record: dict | None = None
     previous_record: str | None = None
+    # SIGTERM (`kill`, `timeout`'s default, a scheduler's preemption) stops a command as Ctrl-C does:
+    # a run in training saves a checkpoint where it stopped (TrainingRun) before the command exits
+    on_main_thread = threading.current_thread() is threading.main_thread()
+    previous_sigterm = signal.signal(signal.SIGTERM, _terminate) if on_main_thread else None
     try:
         # out/run.json: the configuration, robots, versions, commit and device of this run; a run
         # is only continued with the settings it was started with (unless --force)
@@ -538,14 +552,17 @@ def main(argv: list[str] | None = None) -> int:
     except BaseException as error:  # anything else (a corrupted model file, Ctrl-C): put the good results back, then fail loudly
         if record is not None:
             _put_back(out, record, previous_record)
-        if isinstance(error, KeyboardInterrupt):  # Ctrl-C, or a time limit's SIGINT: not a bug, no traceback
+        if isinstance(error, KeyboardInterrupt):  # Ctrl-C, SIGTERM or a time limit's signal: not a bug, no traceback
             print(
                 f"divmorph {args.command}: interrupted. A run that had trained since its last checkpoint saved one "
                 "(an [interrupted] line above says where); the same command resumes unfinished runs from their latest checkpoint",
                 file=sys.stderr,
             )
-            return 130
+            return 128 + (signal.SIGTERM if isinstance(error, Terminated) else signal.SIGINT)
         raise
+    finally:
+        if previous_sigterm is not None:
+            signal.signal(signal.SIGTERM, previous_sigterm)
     where = getattr(args, "into", None) or out  # a selection evaluated --into a folder leaves the run untouched
     print(
         f"[divmorph] {args.command} finished in {time.perf_counter() - start:.0f} s (threads: {th.get_num_threads()}); outputs in {where}"
