@@ -132,7 +132,8 @@ def measure(args: argparse.Namespace, device: th.device, results: list[dict]) ->
     if args.compile:
         configs.append(("packed+compile", True, False, True))
     for preset in args.presets:
-        for name, cls in POLICIES.items():
+        for name in args.policies:
+            cls = POLICIES[name]
             updates, compile_s = {}, {}
             for label, pack, bf16, compile_ in configs:
                 updates[label] = Update(cls, preset, pack, bf16, compile_, buffer, device, args.seed)
@@ -214,6 +215,7 @@ def render(results: list[dict], args: argparse.Namespace, device: th.device, sec
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--presets", nargs="+", default=["small", "paper"])
+    parser.add_argument("--policies", nargs="+", default=list(POLICIES), choices=list(POLICIES), help="which policies to time")
     parser.add_argument("--batches", type=int, nargs="+", default=[256, 1024], help="minibatch sizes")
     parser.add_argument("--samples", type=int, default=2048, help="samples in the buffer (one epoch)")
     parser.add_argument("--repeats", type=int, default=3)
