@@ -126,7 +126,6 @@ def measure(args: argparse.Namespace, device: th.device, results: list[dict]) ->
     pool, robots = robot_observations(args.robots, args.seed)
     real = float((pool["obs_padding_mask"] < 0.5).sum(1).mean())
     results.append(dict(robots=robots, real_tokens=real))
-    rows = results
     buffer = make_buffer(pool, args.samples, args.seed)
     configs = [("padded", False, False, False), ("packed", True, False, False), ("packed+bf16", True, True, False)]
     if args.compile:
@@ -160,7 +159,7 @@ def measure(args: argparse.Namespace, device: th.device, results: list[dict]) ->
                 base = statistics.median(times["padded"])
                 for label in labels:
                     median = statistics.median(times[label])
-                    rows.append(
+                    results.append(
                         dict(
                             preset=preset,
                             policy=name,
