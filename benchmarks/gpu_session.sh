@@ -46,6 +46,10 @@ cp .gpu/p2/* /tmp/gpu/ && bash /tmp/gpu/install.sh || { echo "install failed"; e
 export PYTHONPATH=/tmp/site:$PWD UNIMAL_DATA=$PWD/.gpu/data PYTHONUNBUFFERED=1 MUJOCO_GL=disable
 # Warp's kernels compiled on an earlier machine, carried in by the jobs before (results/gpu/LEDGER.md, "The
 # kernel cache"): a hit loads a module instead of compiling it, the ~4-6 minutes a fresh machine spends
+# A small cache (one group, ~1.4 MiB for FT/PointNav) can instead travel with this job: carry .gpu/kernels
+if [ ! -d /tmp/gpu/kernels ] && compgen -G ".gpu/kernels/k*/kernels.*" > /dev/null; then
+  mkdir -p /tmp/gpu/kernels && cp .gpu/kernels/k*/kernels.* /tmp/gpu/kernels/
+fi
 [ -d /tmp/gpu/kernels ] && python3 benchmarks/gpu_kernel_cache.py restore /tmp/gpu/kernels
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
 python3 -c "import torch; print('torch', torch.__version__, torch.cuda.get_device_name(0))"
@@ -97,8 +101,10 @@ if want 4 && [ "$(share 100)" -gt 60 ]; then
   race="race-$RACE_STEPS${RACE_TAG:+-$RACE_TAG}"  # RACE_TAG: a second race at the same budget with other settings (RACE_SET)
   stamp "4. the transfer race on the device: $RACE_TASKS x $RACE_ARMS x seeds $RACE_SEEDS, $RACE_STEPS steps ($race)"
   [ -d "/tmp/$race" ] || python3 -m divmorph branch --from results/cpu100 --out "/tmp/$race"
-  if [ -f "/tmp/resume/race/$race/run.json" ]; then  # the race's own records (settings, robots) and runs
-    cp -r "/tmp/resume/race/$race/." "/tmp/$race/" && echo "resuming $race: $(ls -d /tmp/$race/transfer/*/*/seed-* | wc -l) runs"
+  carried=/tmp/resume/race  # a job before copied it there, or (small: ~1 MB a run) it travels with this job
+  [ -d "$carried" ] || carried=.gpu/race
+  if [ -f "$carried/$race/run.json" ]; then  # the race's own records (settings, robots) and runs
+    cp -r "$carried/$race/." "/tmp/$race/" && echo "resuming $race: $(ls -d /tmp/$race/transfer/*/*/seed-* | wc -l) runs"
   fi
   # 90%: the rest of the window packs what the race wrote
   # shellcheck disable=SC2086  # the lists are word lists
