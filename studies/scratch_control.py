@@ -29,6 +29,7 @@ import numpy as np
 from sb3_divmorph.pipeline.curves import seed_robot_curves
 from sb3_divmorph.pipeline.metrics import bootstrap_curves, interval, stack_seeds, steps_to_hold
 from sb3_divmorph.pipeline.metrics import speedup as metrics_speedup
+from sb3_divmorph.pipeline.figures import save_png
 from sb3_divmorph.pipeline.files import read_csv_rows
 
 SPLITS = ("train", "novel")
@@ -113,8 +114,7 @@ def plot(race: Path, control: Path, tasks: list[str], target: Path) -> None:
     handles, labels = axes[0][0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", ncol=4, fontsize=8, frameon=False)
     fig.tight_layout(rect=(0, 0.14, 1, 1))
-    fig.savefig(target, dpi=110)
-    plt.close(fig)
+    save_png(fig, target)  # a 256-colour palette: a third of the RGBA file in the tracked tree
 
 
 def _fmt_steps(x: float | None) -> str:

@@ -9,8 +9,8 @@ and reads the run's training curve and wall time. Novel robots are never rolled 
 chosen without looking at them.
 
 Writes ``<out>/README.md`` (mean return with a 95% bootstrap interval over robots, median, robots
-above thresholds, throughput), ``<out>/returns.csv`` (one row per run, model, robot and episode) and
-``<out>/training_curves.png`` with its numbers in ``<out>/curves.csv`` (the mean return of the episodes finished in each rollout -- stochastic
+above thresholds, throughput), ``<out>/returns.csv.gz`` (one row per run, model, robot and episode) and
+``<out>/training_curves.png`` with its numbers in ``<out>/curves.csv.gz`` (the mean return of the episodes finished in each rollout -- stochastic
 actions, so below the deterministic return -- against env steps).
 
     divmorph teachers --profile cpu100 --out results/cpu100-calibration/w32 --task FT --no-progress
@@ -52,7 +52,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--runs", nargs="+", type=Path, required=True, help="teacher run folders (one finished teacher each)")
     parser.add_argument("--task", default="FT", help="the teachers' task (default FT)")
     parser.add_argument("--episodes", type=int, default=1, help="deterministic episodes per training robot (default 1)")
-    parser.add_argument("--out", type=Path, required=True, help="folder for README.md, returns.csv and training_curves.png")
+    parser.add_argument("--out", type=Path, required=True, help="folder for README.md, returns.csv.gz and training_curves.png")
     args = parser.parse_args(argv)
     th.set_num_threads(1)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -77,11 +77,11 @@ def main(argv: list[str] | None = None) -> None:
         curves[run.name] = (steps, progress["rollout/ep_rew_mean"])
         summaries.append(_summary(run, profile, trained, untrained, float(steps[-1]), _wall_time(wall)))
 
-    pd.DataFrame(rows).to_csv(args.out / "returns.csv", index=False)
+    pd.DataFrame(rows).to_csv(args.out / "returns.csv.gz", index=False)  # gzip: the tracked tree stays small
     # the curves of the figure, small enough to keep in the tree (a run's logs are not)
     pd.concat(
         [pd.DataFrame({"run": name, "env_steps": steps, "ep_rew_mean": returns}) for name, (steps, returns) in curves.items()]
-    ).to_csv(args.out / "curves.csv", index=False, float_format="%.2f")
+    ).to_csv(args.out / "curves.csv.gz", index=False, float_format="%.2f")
     _plot(curves, args.task, args.out / "training_curves.png")
     (args.out / "README.md").write_text(_report(args, summaries))
     print((args.out / "README.md").read_text())
@@ -159,7 +159,7 @@ def _report(args: argparse.Namespace, summaries: list[dict]) -> str:
         "![training curves](training_curves.png)",
         "",
         f"Written {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())} on {platform.machine()} ({os.cpu_count()} cores), "
-        f"torch {th.__version__}, 1 thread per process. Per-robot returns: `returns.csv`; the curves' numbers: `curves.csv`.",
+        f"torch {th.__version__}, 1 thread per process. Per-robot returns: `returns.csv.gz`; the curves' numbers: `curves.csv.gz`.",
         "",
     ]
     return "\n".join(lines)
