@@ -339,6 +339,43 @@ def test_a_run_with_packed_logs_reads_and_reports_as_before(finished_run, tmp_pa
     assert (out / "evaluate" / "returns.csv.gz").is_file() and not (out / "evaluate" / "returns.csv").exists()
 
 
+def test_packed_transfer_runs_keep_every_evaluation_and_update(finished_run, tmp_path):
+    """tools/pack_transfer_runs.py keeps, for each finished transfer run, every evaluated episode (returns
+    to 0.01) and one training row per PPO update, skips a run without done.json, and packs byte-identically
+    twice (a re-pack of the same runs changes nothing in git)."""
+    import pandas as pd
+
+    from sb3_divmorph.pipeline.curves import read_eval
+
+    spec = importlib.util.spec_from_file_location(
+        "pack_transfer_runs", Path(__file__).resolve().parents[1] / "tools" / "pack_transfer_runs.py"
+    )
+    assert spec is not None and spec.loader is not None
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    out, _ = copied_run(finished_run, tmp_path)
+    finished = sorted(p.parent for p in out.glob("transfer/*/*/seed-*/done.json"))
+    assert len(finished) >= 2
+    (finished[-1] / "done.json").unlink()  # as if it were still running
+    results = tmp_path / "results"
+    assert tool.pack(results, out, "v") == [f"{p.parent.parent.name}/{p.parent.name}/{p.name}" for p in finished[:-1]]
+    run = finished[0]
+    task, arm = run.parent.parent.name, run.parent.name
+    packed = pd.read_csv(results / "v" / "transfer" / task / arm / run.name / "eval.csv.gz")
+    original = pd.DataFrame(read_eval(run / "eval.csv"))
+    assert len(packed) == len(original) > 0
+    assert np.allclose(packed["return"], original["return"].astype(float), atol=0.005)
+    assert not (results / "v" / "transfer" / finished[-1].parent.parent.name / finished[-1].parent.name / finished[-1].name).exists()
+    training = pd.read_csv(results / "training-v.csv.gz")
+    mine = training[(training.task == task) & (training.arm == arm) & (training.seed == int(run.name.removeprefix("seed-")))]
+    progress = pd.concat([pd.read_csv(p) for p in sorted(run.glob("logs/run-*/progress.csv*"))])
+    assert len(mine) == progress["train/clip_fraction"].notna().sum() > 0
+    assert mine["clip_fraction"].notna().all() and mine["timesteps"].is_monotonic_increasing
+    first = {p: p.read_bytes() for p in results.rglob("*") if p.is_file()}
+    tool.pack(results, out, "v")
+    assert {p: p.read_bytes() for p in results.rglob("*") if p.is_file()} == first
+
+
 def read_returns(path: Path) -> dict[tuple[str, ...], float]:
     with open(path, newline="") as f:
         return {(r["model"], r["task"], r["split"], r["morphology"], r["episode"]): float(r["return"]) for r in csv.DictReader(f)}
