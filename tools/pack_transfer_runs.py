@@ -27,6 +27,8 @@ from pathlib import Path
 
 import pandas as pd
 
+from sb3_divmorph.pipeline.files import log_file, read_progress
+
 # The progress.csv columns kept, and their names in the training table.
 TRAINING_COLUMNS = {
     "time/total_timesteps": "timesteps",
@@ -47,24 +49,21 @@ def write_gzip_csv(frame: pd.DataFrame, path: Path) -> None:
     path.write_bytes(buffer.getvalue())
 
 
-def read_log(folder: Path, name: str) -> pd.DataFrame:
-    """A run's log ``name`` (plain or packed; with several ``logs/run-*`` parts, all of them in order)."""
-    direct = [folder / name, folder / f"{name}.gz"]
-    found = [p for p in direct if p.is_file()] or sorted(folder.glob(f"logs/run-*/{name}")) + sorted(folder.glob(f"logs/run-*/{name}.gz"))
-    if not found:
-        raise FileNotFoundError(f"{folder}: no {name} (nor {name}.gz) -- is this a transfer run folder?")
-    return pd.concat([pd.read_csv(p) for p in found], ignore_index=True)
-
-
 def pack_run(run: Path, target: Path) -> pd.DataFrame:
     """Copy one finished run's evaluations and records into ``target``; return its training rows."""
-    evaluations = read_log(run, "eval.csv")
+    found = log_file(run / "eval.csv")
+    if found is None:
+        raise FileNotFoundError(f"{run}: finished but no eval.csv (nor eval.csv.gz) -- is this a transfer run folder?")
+    evaluations = pd.read_csv(found)
     evaluations["return"] = evaluations["return"].round(2)
     write_gzip_csv(evaluations, target / "eval.csv.gz")
     for name in ("done.json", "source.json"):
         if (run / name).is_file():
             shutil.copyfile(run / name, target / name)
-    progress = read_log(run, "progress.csv")
+    progress = pd.DataFrame(read_progress(run))  # every logs/run-* attempt of a resumed run, in order
+    missing = sorted(set(TRAINING_COLUMNS) - set(progress.columns))
+    if missing:
+        raise ValueError(f"{run}: its progress.csv lacks {missing} -- not a PPO transfer run?")
     rows = progress[list(TRAINING_COLUMNS)].rename(columns=TRAINING_COLUMNS).dropna(subset=["clip_fraction"])
     rows = rows.drop_duplicates("timesteps", keep="last").round(5)
     rows["timesteps"] = rows["timesteps"].astype(int)
