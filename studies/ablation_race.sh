@@ -9,10 +9,13 @@
 # the closest training task's gates, the race's rates, 602,112 steps, 20 training robots x 5 episodes at every
 # 200,704 steps), PointNav's nine runs first, then Escape's, then Exploration's.
 #
-# The jobs are a list worked through by any number of workers; a worker claims a job by creating its folder under
-# CLAIMS (mkdir is atomic), so two workers never run the same job. Every job resumes from its last checkpoint or
-# skips what is finished, so after an interruption start the workers again with a fresh CLAIMS folder. A job that
-# needs a student waits until it is distilled. One worker per core:
+# The jobs are a list in order of priority, worked by any number of workers. A worker takes the first job that
+# nobody has claimed and that can start -- a student's starts and races wait until it is distilled, and meanwhile
+# the worker takes later jobs rather than leave its core idle -- and claims it by creating its folder under CLAIMS
+# (mkdir is atomic), so two workers never run the same job. Every job resumes from its last checkpoint or skips what
+# is finished, so after an interruption start the workers again with a fresh CLAIMS folder. A student whose
+# distillation fails is marked (ablate-<name>/FAILED, cleared when it distils again) and its jobs are skipped with a
+# message. One worker per core:
 #
 #     git worktree add /work/wt-abl e61a1b2    # the commit the race's students are distilled and raced with
 #     for i in 1 2; do CODE=/work/wt-abl WORK=/work nohup bash studies/ablation_race.sh /work/claims-1 >> ablation.log 2>&1 & done
@@ -27,12 +30,15 @@
 set -u
 CLAIMS=${1:?usage: ablation_race.sh CLAIMS_FOLDER}
 REPO=$(cd "$(dirname "$0")/.." && pwd)
-CODE=${CODE:-$REPO}
+CODE=$(cd "${CODE:-$REPO}" && pwd) || exit 1
 WORK=${WORK:-$REPO/runs/ablation-race}
 PY=${PY:-$REPO/.venv/bin/python}
 POLL=${POLL:-60}
+mkdir -p "$CLAIMS" "$WORK/race600" || exit 1
+# absolute, since the jobs run from $CODE
+CLAIMS=$(cd "$CLAIMS" && pwd)
+WORK=$(cd "$WORK" && pwd)
 export PYTHONPATH=$CODE MUJOCO_GL=${MUJOCO_GL:-egl} HF_HUB_OFFLINE=1 TRANSFORMERS_OFFLINE=1
-mkdir -p "$CLAIMS" "$WORK/race600"
 cd "$CODE" || exit 1
 
 JOBS=(
@@ -60,17 +66,32 @@ done
 
 # distill STUDENT: DAgger into the ablated student, in its own branch of results/cpu100
 distill() {
-    [ -f "$WORK/ablate-$1/run.json" ] || "$PY" -m divmorph.cli branch --from results/cpu100 --out "$WORK/ablate-$1"
-    "$PY" -m divmorph.cli distill --run "$WORK/ablate-$1" --no-progress --students "$1"
+    [ -f "$WORK/ablate-$1/run.json" ] || "$PY" -m divmorph.cli branch --from results/cpu100 --out "$WORK/ablate-$1" || return
+    rm -f "$WORK/ablate-$1/FAILED"
+    "$PY" -m divmorph.cli distill --run "$WORK/ablate-$1" --no-progress --students "$1" || {
+        local status=$?
+        touch "$WORK/ablate-$1/FAILED"
+        return $status
+    }
 }
 
-wait_for_student() {
-    until [ -f "$WORK/ablate-$1/students/$1/done.json" ]; do sleep "$POLL"; done
+distilled() {
+    [ -f "$WORK/ablate-$1/students/$1/done.json" ]
+}
+
+failed() {
+    [ -f "$WORK/ablate-$1/FAILED" ] && ! distilled "$1"
+}
+
+# ready JOB...: the job can start now (a distillation always can; the others once their student is distilled,
+# or has failed, which they report)
+ready() {
+    [ "$1" = distill ] || distilled "$2" || failed "$2"
 }
 
 # starts STUDENT: its mean return over many draws, told each novel task's instruction and the closest task's
 starts() {
-    wait_for_student "$1"
+    failed "$1" && { echo "not run: $1 failed to distil"; return 1; }
     [ -f "$WORK/starts-$1/finished" ] && return 0
     "$PY" studies/novel_task_gates.py --run "$WORK/ablate-$1" --out "$WORK/starts-$1" --students "$1" --eval-seeds 0 1 2 3 4 &&
         touch "$WORK/starts-$1/finished"
@@ -78,22 +99,33 @@ starts() {
 
 # race STUDENT TASK SEED: one run of the race, in a branch shared by the student's three seeds on the task
 race() {
-    wait_for_student "$1"
+    failed "$1" && { echo "not run: $1 failed to distil"; return 1; }
     local out=$WORK/race600/$2-$1
     # the seeds' workers would otherwise race to create the same branch
     (
-        flock 9
+        flock 9 || exit 1
         [ -f "$out/run.json" ] || "$PY" -c "import sys; from pathlib import Path; from sb3_divmorph.pipeline.branch import branch; \
 branch(Path(sys.argv[1]), Path(sys.argv[2]), ('teachers', 'distill'), command='python studies/finetune_known_task.py')" \
             "$WORK/ablate-$1" "$out"
-    ) 9> "$WORK/race600/.branch-lock"
+    ) 9> "$WORK/race600/.branch-lock" || return
     "$PY" studies/finetune_known_task.py --source "$WORK/ablate-$1" --task "$2" --steps 602112 --eval-every 200704 \
         --set transfer.eval_episodes=5 --set transfer.task_gates=closest --arms "$1" --seeds "$3" --out "$out"
 }
 
-for i in "${!JOBS[@]}"; do
-    mkdir "$CLAIMS/$i" 2> /dev/null || continue
-    echo "[$(date -u '+%F %T')] worker $$ starts job $i: ${JOBS[$i]}"
-    ${JOBS[$i]}
-    echo "[$(date -u '+%F %T')] worker $$ ends job $i (exit $?): ${JOBS[$i]}"
+# Scan the list from the top after every job, so a job that becomes ready goes before lower-priority ones.
+while :; do
+    unclaimed=0
+    for i in "${!JOBS[@]}"; do
+        [ -d "$CLAIMS/$i" ] && continue
+        unclaimed=1
+        # shellcheck disable=SC2086  # a job is words without spaces or patterns: split on purpose
+        ready ${JOBS[$i]} && mkdir "$CLAIMS/$i" 2> /dev/null || continue
+        echo "[$(date -u '+%F %T')] worker $$ starts job $i: ${JOBS[$i]}"
+        ${JOBS[$i]}
+        status=$?
+        echo "[$(date -u '+%F %T')] worker $$ ends job $i (exit $status): ${JOBS[$i]}"
+        continue 2
+    done
+    [ $unclaimed = 0 ] && break
+    sleep "$POLL"
 done
