@@ -41,26 +41,14 @@ WORK=$(cd "$WORK" && pwd)
 export PYTHONPATH=$CODE MUJOCO_GL=${MUJOCO_GL:-egl} HF_HUB_OFFLINE=1 TRANSFORMERS_OFFLINE=1
 cd "$CODE" || exit 1
 
-JOBS=(
-    "distill no-orthogonality"
-    "distill no-kdiv-transformer"
-    "starts no-orthogonality"
-    "starts no-kdiv-transformer"
-    "race no-orthogonality PointNav 0"
-    "race no-orthogonality PointNav 1"
-    "distill no-kdiv-decoder"
-    "race no-orthogonality PointNav 2"
-    "race no-kdiv-transformer PointNav 0"
-    "race no-kdiv-transformer PointNav 1"
-    "race no-kdiv-transformer PointNav 2"
-    "starts no-kdiv-decoder"
-)
+STUDENTS=(no-orthogonality no-kdiv-transformer no-kdiv-decoder)
+# the distillations first: the longest jobs, on which everything else waits
+JOBS=()
+for student in "${STUDENTS[@]}"; do JOBS+=("distill $student"); done
+for student in "${STUDENTS[@]}"; do JOBS+=("starts $student"); done
 for task in PointNav Escape Exploration; do
-    for student in no-kdiv-decoder no-orthogonality no-kdiv-transformer; do
-        for seed in 0 1 2; do
-            # PointNav's no-orthogonality and no-kdiv-transformer runs are listed above
-            [[ $task == PointNav && $student != no-kdiv-decoder ]] || JOBS+=("race $student $task $seed")
-        done
+    for student in "${STUDENTS[@]}"; do
+        for seed in 0 1 2; do JOBS+=("race $student $task $seed"); done
     done
 done
 
