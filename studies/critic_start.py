@@ -34,7 +34,7 @@ import torch as th
 from sb3_divmorph.pipeline.branch import branch
 from sb3_divmorph.pipeline.folders import transfer_folder
 from sb3_divmorph.pipeline.provenance import recorded_profile
-from sb3_divmorph.pipeline.files import log_file
+from sb3_divmorph.pipeline.files import log_file, read_progress
 from sb3_divmorph.pipeline.transfer import transfer_run
 
 ARMS = ("divmorph", "distilled")
@@ -154,8 +154,9 @@ def explained_variance(args: argparse.Namespace, variant: str, arm: str) -> floa
     """Mean ``train/explained_variance`` over the second half of each seed's updates."""
     means = []
     for seed in args.seeds:
-        progress = pd.read_csv(log_file(transfer_folder(args.out / variant, args.task, arm, seed) / "logs" / "run-0" / "progress.csv"))
-        values = progress["train/explained_variance"].dropna().to_numpy()
+        progress = read_progress(transfer_folder(args.out / variant, args.task, arm, seed))  # every attempt of a resumed run
+        values = progress["train/explained_variance"]
+        values = values[~np.isnan(values)]
         means.append(values[len(values) // 2 :].mean())
     return float(np.mean(means))
 

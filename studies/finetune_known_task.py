@@ -42,7 +42,7 @@ from sb3_divmorph.pipeline.branch import branch
 from sb3_divmorph.pipeline.folders import transfer_folder
 from sb3_divmorph.pipeline.metrics import robot_interval
 from sb3_divmorph.pipeline.provenance import recorded_profile
-from sb3_divmorph.pipeline.files import is_done, log_file
+from sb3_divmorph.pipeline.files import is_done, log_file, read_progress
 from sb3_divmorph.pipeline.transfer import transfer_run
 
 ARMS = {
@@ -185,7 +185,8 @@ def report(args: argparse.Namespace) -> None:
             frame = pd.read_csv(log_file(folder / "eval.csv"))
             frame = frame[frame.split == "train"].groupby(["timesteps", "robot"], as_index=False)["return"].mean()
             rows.append(frame.assign(arm=arm, seed=seed))
-            progress = pd.read_csv(log_file(folder / "logs" / "run-0" / "progress.csv"))
+            # a resumed run logs each attempt to its own logs/run-K; an attempt cut off early may be empty
+            progress = pd.DataFrame(read_progress(folder))
             logs.append(progress.assign(arm=arm, seed=seed))
     if not rows:
         raise SystemExit(f"no finished run in {args.out}")

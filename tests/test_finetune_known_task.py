@@ -1,0 +1,44 @@
+"""The fine-tuning study's report (``studies/finetune_known_task.py --report``) on the runs a queue leaves behind."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pandas as pd
+
+SCRIPT = Path(__file__).resolve().parents[1] / "studies" / "finetune_known_task.py"
+
+
+def load_study():
+    spec = importlib.util.spec_from_file_location("finetune_known_task", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def finished_run(folder: Path) -> None:
+    """A run cut off two minutes in (an empty ``logs/run-0``), resumed to the end in ``logs/run-1``."""
+    folder.mkdir(parents=True)
+    (folder / "done.json").write_text(json.dumps({"finished": "now"}))
+    pd.DataFrame(
+        {"split": "train", "timesteps": [0, 0, 100, 100], "robot": ["a", "b", "a", "b"], "return": [10.0, 20.0, 30.0, 40.0]}
+    ).to_csv(folder / "eval.csv", index=False)
+    (folder / "logs" / "run-0").mkdir(parents=True)
+    (folder / "logs" / "run-0" / "progress.csv").write_text("")
+    (folder / "logs" / "run-1").mkdir()
+    pd.DataFrame({"rollout/ep_rew_mean": [5.0, 7.0], "train/explained_variance": [0.25, 0.75]}).to_csv(
+        folder / "logs" / "run-1" / "progress.csv", index=False
+    )
+
+
+def test_the_report_of_a_resumed_run_reads_the_attempt_that_finished_it(tmp_path, capsys):
+    # Broken once by reading only logs/run-0 again: pandas raises EmptyDataError on the cut-off attempt.
+    study = load_study()
+    finished_run(tmp_path / "transfer" / "PointNav" / "divmorph" / "seed-0")
+    study.main(["--out", str(tmp_path), "--task", "PointNav", "--steps", "100", "--eval-every", "100", "--seeds", "0", "--report"])
+    printed = capsys.readouterr().out
+    assert "| DivMorph student | 1 | 15 [" in printed and "| +20 [" in printed  # the curve: 15 -> 35 over the two robots
+    assert "| DivMorph student | 5 / 7 | 0.25 / 0.75 |" in printed  # the resumed attempt's training log, halves
+    assert (tmp_path / "README.md").is_file()
