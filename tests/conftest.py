@@ -3,15 +3,26 @@
 from __future__ import annotations
 
 import os
+import shutil
+import tempfile
 from pathlib import Path
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
+# Every worker starts from an empty robot cache of its own: a test that reads an official set by name
+# must ask for the `official_cache` fixture, never find the user's ~/.cache/unimal_envs (or another test's).
+_EMPTY_CACHE = tempfile.mkdtemp(prefix="unimal-data-empty-")
+os.environ["UNIMAL_DATA"] = _EMPTY_CACHE
 
 import pytest  # noqa: E402
 
-OFFICIAL_TRAIN = Path(__file__).resolve().parents[1].parent / "shared" / "unimals_100" / "train"
+OFFICIAL = Path(__file__).resolve().parents[1].parent / "shared" / "unimals_100"
+OFFICIAL_TRAIN = OFFICIAL / "train"
+
+
+def pytest_unconfigure(config) -> None:
+    shutil.rmtree(_EMPTY_CACHE, ignore_errors=True)
 
 
 def unimal_xml(legs: int = 2, hinges: str = "xy", torso_z: float = 0.6, extra_body: str = "", joint_type: str = "hinge") -> str:
@@ -74,6 +85,27 @@ def official_train() -> Path:
     if not (OFFICIAL_TRAIN / "xml").is_dir():
         pytest.skip(f"official unimals_100 set not found at {OFFICIAL_TRAIN}")
     return OFFICIAL_TRAIN
+
+
+@pytest.fixture(scope="session")
+def official_sets(tmp_path_factory) -> Path:
+    """A robot cache holding the official ``unimals100-train`` and ``unimals100-test`` sets, installed
+    once per worker from ../shared (the same fetch and checks a user's ``unimal-envs fetch`` runs)."""
+    if not all((OFFICIAL / name / "xml").is_dir() for name in ("train", "test")):
+        pytest.skip(f"official unimals_100 sets not found at {OFFICIAL}")
+    from unimal_envs.morphology.official import fetch
+
+    cache = tmp_path_factory.mktemp("unimal-data")
+    fetch(OFFICIAL, ["train", "test"], cache=cache)
+    return cache
+
+
+@pytest.fixture
+def official_cache(official_sets, monkeypatch) -> Path:
+    """Point ``$UNIMAL_DATA`` at :func:`official_sets` for one test, so the official sets resolve by
+    name (``unimals100-train``, ``unimals100-test``, their subsets)."""
+    monkeypatch.setenv("UNIMAL_DATA", str(official_sets))
+    return official_sets
 
 
 @pytest.fixture(scope="session")

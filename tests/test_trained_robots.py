@@ -29,13 +29,13 @@ def test_a_model_folder_names_the_robots_of_its_run(tmp_path):
         trained_robots(run / "teachers" / "FT")
 
 
-def test_the_shipped_teachers_default_to_the_official_robots(official_train, monkeypatch):
+def test_the_shipped_teachers_default_to_the_official_robots(official_cache):
     robots = trained_robots(RUN100 / "teachers" / "Obstacle")
     assert len(robots) == 100 and robots[0].stem == "floor-1409-0-12-01-12-30-07"
     assert trained_robot_set(RUN / "student") == "unimals100-train"
 
 
-def test_the_load_example_runs_the_shipped_teacher_on_its_robot_with_no_env_flags(official_train, capsys):
+def test_the_load_example_runs_the_shipped_teacher_on_its_robot_with_no_env_flags(official_cache, capsys):
     """The example finds the robot among the run's training robots and builds the env the run trained
     with (heights above the ground): the Obstacle teacher gets far over solid blocks (1941 when the
     run was recorded, 809 on the host of 2026-11-28 -- a 1,000-step episode is chaotic, so the last bits of

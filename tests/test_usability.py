@@ -486,7 +486,7 @@ def test_a_failed_redo_puts_the_good_results_back(tmp_path, monkeypatch, capsys)
     assert (run / "evaluate" / "returns.csv").is_file()
 
 
-def test_evaluate_a_selection_of_a_shipped_run_into_a_folder_of_ones_own(official_train, tmp_path, capsys):
+def test_evaluate_a_selection_of_a_shipped_run_into_a_folder_of_ones_own(official_cache, tmp_path, capsys):
     import csv
 
     from divmorph.cli import main as cli
