@@ -605,6 +605,14 @@ def test_bad_inputs_name_the_problem(tmp_path, capsys):
     assert done.returncode == 2 and "--steps must be a positive number" in done.stderr and not (tmp_path / "example").exists()
 
 
+def same_episode(a: dict, b: dict) -> bool:
+    """Two evaluation rows describe the same episode: a batch of 3 and a batch of 1 run the policy's
+    matmuls in a different order, so returns agree to float32 rounding, not bit for bit."""
+    return {k: v for k, v in a.items() if k != "return"} == {k: v for k, v in b.items() if k != "return"} and a[
+        "return"
+    ] == pytest.approx(b["return"], rel=1e-5)
+
+
 def test_load_pretrained_names_the_robot_that_ran_and_keeps_the_run_settings(tmp_path):
     """``load_pretrained(folder).evaluate`` labels each return with the robot that produced it: a robot's
     row in a batch equals that robot run alone with the same seed, whatever its place in the batch, and
@@ -627,9 +635,9 @@ def test_load_pretrained_names_the_robot_that_ran_and_keeps_the_run_settings(tmp
     assert sorted(together) == ["train-001", "train-003", "train-005"]
     for robot in ["train-003", "train-001", "train-005"]:
         alone = model.evaluate([robot], max_episode_steps=60, seed=10)[0]
-        assert alone == together[robot], robot
+        assert same_episode(alone, together[robot]), robot
     two = {row["episode"]: row for row in model.evaluate(["train-001"], episodes=2, max_episode_steps=60, seed=10)}
-    assert two[0] == together["train-001"]
+    assert same_episode(two[0], together["train-001"])
     # episode 1, played by hand from its reset seed, is the evaluation's episode 1
     env = model.make_env("train-001", max_episode_steps=60)
     obs, _ = env.reset(seed=episode_seed(10, "train-001", 1))
