@@ -608,9 +608,9 @@ def test_bad_inputs_name_the_problem(tmp_path, capsys):
 def same_episode(a: dict, b: dict) -> bool:
     """Two evaluation rows describe the same episode: a batch of 3 and a batch of 1 run the policy's
     matmuls in a different order, so returns agree to float32 rounding, not bit for bit."""
-    return {k: v for k, v in a.items() if k != "return"} == {k: v for k, v in b.items() if k != "return"} and a[
-        "return"
-    ] == pytest.approx(b["return"], rel=1e-5)
+    rest_a = {k: v for k, v in a.items() if k != "return"}
+    rest_b = {k: v for k, v in b.items() if k != "return"}
+    return rest_a == rest_b and a["return"] == pytest.approx(b["return"], rel=1e-5)
 
 
 def test_load_pretrained_names_the_robot_that_ran_and_keeps_the_run_settings(tmp_path):
