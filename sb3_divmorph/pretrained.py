@@ -159,7 +159,9 @@ def find_model(source: str | Path) -> SavedModel:
             warnings.warn(
                 f"{folder}: its run's run.json and {ENV_SETTINGS} disagree on height_reference; using {ENV_SETTINGS}", stacklevel=2
             )
-        env_kwargs = {} if saved["height_reference"] == "world" else {"height_reference": saved["height_reference"]}
+        env_kwargs.pop("height_reference", None)
+        if saved["height_reference"] != "world":
+            env_kwargs["height_reference"] = saved["height_reference"]
         if robots is None:
             robots = saved["robots"]  # by name: the shipped and official sets on this machine
     if robots is not None:

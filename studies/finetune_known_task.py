@@ -89,6 +89,7 @@ def evaluate_baselines(args: argparse.Namespace, profile) -> dict[str, dict[str,
     under ``--baseline-seeds`` evaluation seeds (kept in ``<out>/baseline.json``; the missing ones added)."""
     import json
 
+    from sb3_divmorph.pipeline.envs import profile_env_kwargs
     from sb3_divmorph.pipeline.robots import transfer_eval_robots
     from sb3_divmorph.pretrained import load_pretrained
 
@@ -96,12 +97,22 @@ def evaluate_baselines(args: argparse.Namespace, profile) -> dict[str, dict[str,
     found = json.loads(path.read_text()) if path.is_file() else {}
     robots = transfer_eval_robots(profile, "train")
     for arm in args.arms:
-        source = json.loads((transfer_folder(args.out, args.task, arm, args.seeds[0]) / "source.json").read_text())["source"]
-        model = load_pretrained(args.out / source)
+        record = json.loads((transfer_folder(args.out, args.task, arm, args.seeds[0]) / "source.json").read_text())
+        model = load_pretrained(args.out / record["source"])
+        # told what the runs are told: the closest task's instruction under ``transfer.task_gates: closest``
+        told = {"instruction": record["instruction"]} if "instruction" in record else {}
         for seed in range(args.baseline_seeds):
             if str(seed) in found.get(arm, {}):
                 continue
-            rows = model.evaluate(robots, task=args.task, episodes=3, seed=seed, max_episode_steps=profile.max_episode_steps)
+            rows = model.evaluate(
+                robots,
+                task=args.task,
+                episodes=3,
+                seed=seed,
+                max_episode_steps=profile.max_episode_steps,
+                **told,
+                **profile_env_kwargs(profile),
+            )
             found.setdefault(arm, {})[str(seed)] = pd.DataFrame(rows).groupby("robot")["return"].mean().to_dict()
             path.write_text(json.dumps(found, indent=1))
             print(f"[finetune-known-task] baseline {arm} eval seed {seed}: {np.mean(list(found[arm][str(seed)].values())):.1f}", flush=True)
@@ -297,7 +308,8 @@ def main(argv: list[str] | None = None) -> None:
         compare(args)
         return
     if args.baseline_seeds:
-        evaluate_baselines(args, recorded_profile(args.out / "run.json"))
+        # the starts are measured in the envs the runs train in (``--set goal_range=...`` included)
+        evaluate_baselines(args, recorded_profile(args.out / "run.json", overrides(args)))
     if not args.report:
         if not (args.out / "run.json").exists():
             branch(args.source, args.out, ("teachers", "distill"), command="python studies/finetune_known_task.py")

@@ -410,3 +410,18 @@ def test_the_pipeline_trains_its_stages_on_the_batched_backend_when_the_profile_
     assert len(played) == 2 and not np.allclose(played, curve)
     recorded = json.loads((out / "run.json").read_text())["configuration"]
     assert recorded["teachers"]["env_backend"] == recorded["distill"]["env_backend"] == "batched"
+
+
+def test_goal_range_bounds_the_goal_as_the_single_env_does():
+    """``goal_range``: a world's bounded goal and object positions are the single env's in the same
+    state (break: drop the bound from the block's ``observe`` -> the world reads the raw ~30 m goal)."""
+    benv = make_batched_env("ManipulateBox", morphologies=ROBOTS[:1], worlds_per_robot=2, device="cpu", seed=0, goal_range=4.0)
+    assert benv.get_attr("goal_range") == [4.0, 4.0]
+    benv.reset()
+    env = gym.make("Unimal-ManipulateBox-v0", morphologies=ROBOTS[:1], goal_range=4.0).unwrapped
+    env.reset(seed=0)
+    single = env._observation()
+    batched = mirror_world(benv, 1, env)
+    assert np.linalg.norm(single["goal"]) == pytest.approx(4.0, rel=1e-5)
+    np.testing.assert_allclose(batched["goal"][1].numpy(), single["goal"], atol=1e-4)
+    np.testing.assert_allclose(batched["object"][1].numpy(), single["object"], atol=1e-4)

@@ -319,3 +319,32 @@ def test_height_above_the_ground_is_an_option_of_the_contract_and_world_height_s
     assert abs(multitask.reset(seed=0, options={"task": "Incline"})[0]["proprioceptive"][0, C.Z_COLUMN] - flat[0, C.Z_COLUMN]) < 0.05
     with pytest.raises(ValueError, match="height_reference must be one of"):
         gym.make("Unimal-FT-v0", morphologies=robot, height_reference="sea level")
+
+
+def test_goal_range_observes_a_far_goal_in_its_direction_at_the_range_and_changes_nothing_else(train_files):
+    """``goal_range=R``: PointNav's goal (tens of metres away) is observed at length R in the raw
+    goal's direction; a goal nearer than R (Patrol's first, 10 m) reads as the raw one; ManipulateBox's
+    box and goal rows of ``object`` are bounded alike (its velocities are not); rewards and every other
+    key are untouched (break: skip the bound in ``_observation`` -> the far goal reads ~30 m)."""
+    robot = train_files[:1]
+    raw_env = gym.make("Unimal-PointNav-v0", morphologies=robot)
+    bounded_env = gym.make("Unimal-PointNav-v0", morphologies=robot, goal_range=10)
+    raw, bounded = raw_env.reset(seed=3)[0], bounded_env.reset(seed=3)[0]
+    assert np.linalg.norm(raw["goal"]) > 15  # PointNav's goals lie far beyond Patrol's
+    assert np.linalg.norm(bounded["goal"]) == pytest.approx(10, rel=1e-5)
+    np.testing.assert_allclose(bounded["goal"] / 10, raw["goal"] / np.linalg.norm(raw["goal"]), atol=1e-6)
+    for key in ("proprioceptive", "context", "task_embedding", "hfield", "object"):
+        assert np.array_equal(raw[key], bounded[key]), key
+    action = np.full(C.ACTION_DIM, 0.3, dtype=np.float32)
+    for _ in range(5):
+        (_, r1, *_), (o2, r2, *_) = raw_env.step(action), bounded_env.step(action)
+        assert r1 == r2 and np.linalg.norm(o2["goal"]) <= 10 + 1e-4
+    near = gym.make("Unimal-Patrol-v0", morphologies=robot, goal_range=10.5).reset(seed=0)[0]
+    assert np.array_equal(near["goal"], gym.make("Unimal-Patrol-v0", morphologies=robot).reset(seed=0)[0]["goal"])
+    box_raw = gym.make("Unimal-ManipulateBox-v0", morphologies=robot).reset(seed=1)[0]["object"].reshape(4, 3)
+    box = gym.make("Unimal-ManipulateBox-v0", morphologies=robot, goal_range=5).reset(seed=1)[0]["object"].reshape(4, 3)
+    assert np.allclose(np.linalg.norm(box[[0, 3]], axis=1), 5) and np.array_equal(box[[1, 2]], box_raw[[1, 2]])
+    multitask = gym.make("Unimal-MultiTask-v0", morphologies=robot, tasks=["Patrol", "PointNav"], goal_range=10)
+    assert np.linalg.norm(multitask.reset(seed=3, options={"task": "PointNav"})[0]["goal"]) <= 10 + 1e-4
+    with pytest.raises(ValueError, match="goal_range is the distance"):
+        gym.make("Unimal-PointNav-v0", morphologies=robot, goal_range=0)

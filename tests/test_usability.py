@@ -656,6 +656,31 @@ def test_load_pretrained_names_the_robot_that_ran_and_keeps_the_run_settings(tmp
     assert any("height_reference='ground'" in str(w.message) for w in caught)
 
 
+def test_a_run_with_a_goal_range_runs_its_models_with_it(tmp_path):
+    """A run recorded with ``goal_range`` gives it to every env its models are run in (beside the
+    settings in ``env.json``), and its profile gives it to every env of its stages (break: drop the key
+    from ``trained_env_kwargs`` -> the model's PointNav env observes the raw ~30 m goal)."""
+    import json
+
+    import numpy as np
+
+    from sb3_divmorph.pipeline.config import ConfigError, load_profile
+    from sb3_divmorph.pipeline.envs import profile_env_kwargs
+    from sb3_divmorph.pretrained import load_pretrained
+
+    run = tmp_path / "run"
+    tiny_model(run / "teachers" / "FT", steps=64)
+    (run / "run.json").write_text(json.dumps({"configuration": {"height_reference": "world", "goal_range": 10}}))
+    model = load_pretrained(run / "teachers" / "FT")
+    assert model.env_kwargs.get("goal_range") == 10.0
+    obs, _ = model.make_env("train-001", task="PointNav").reset(seed=3)
+    assert np.linalg.norm(obs["goal"]) == pytest.approx(10, rel=1e-5)
+    assert profile_env_kwargs(load_profile("demo", overrides={"goal_range": 10})) == {"goal_range": 10.0}
+    assert profile_env_kwargs(load_profile("demo")) == {}
+    with pytest.raises(ConfigError, match="goal_range must be null or a distance"):
+        load_profile("demo", overrides={"goal_range": -1})
+
+
 def test_an_rl_zoo_run_is_filmed_and_loaded_on_the_robots_of_its_env_kwargs(tmp_path):
     """rl-zoo saves ``--env-kwargs`` in ``<env id>/args.yml``: the model's robots and settings come from there."""
     zoo = tmp_path / "logs" / "ppo" / "Unimal-FT-v0_1"

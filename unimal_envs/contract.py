@@ -54,6 +54,26 @@ Z_COLUMN = 2
 #: default) or ``"ground"`` (the terrain under the torso: the same quantity on every task's ground,
 #: flat, sloped or rugged; ``results/normalizer_drift.md``).
 HEIGHT_REFERENCES = ("world", "ground")
+#: Rows of the ``object`` observation (4 x 3) that are positions relative to the torso (the box and
+#: the goal); ``goal_range`` bounds their length as it bounds ``goal``'s.
+OBJECT_POSITION_ROWS = (0, 3)
+
+
+def check_goal_range(goal_range: float | None) -> float | None:
+    """``goal_range`` as a float, or ``None`` (raw metres, the reference's observation).
+
+    :raises ValueError: not a positive finite distance.
+    """
+    if goal_range is None:
+        return None
+    value = float(goal_range)
+    if not (np.isfinite(value) and value > 0):
+        raise ValueError(
+            f"goal_range is the distance (m) beyond which goal and object positions are observed at that distance; it must be > 0, got {goal_range}"
+        )
+    return value
+
+
 XVELP = slice(3, 6)
 XVELR = slice(6, 9)
 XQUAT = slice(9, 13)

@@ -59,6 +59,12 @@ def _check_display() -> None:
         )
 
 
+def _bounded(vectors: np.ndarray, limit: float) -> np.ndarray:
+    """Each row of ``vectors`` (n, 3) longer than ``limit``, scaled to length ``limit`` (``goal_range``)."""
+    length = np.linalg.norm(vectors, axis=1, keepdims=True)
+    return (vectors * np.minimum(1.0, limit / np.maximum(length, 1e-9))).astype(np.float32)
+
+
 def compile_world(spec: mujoco.MjSpec, name: str) -> mujoco.MjModel:
     """Compile a world spec; a failure names the morphology (:class:`MorphologyError`)."""
     try:
@@ -147,6 +153,12 @@ class UnimalEnv(gym.Env):
         under the torso, ``arena.ground_height(x, y)``, subtracted from every real token's z): on an
         incline, a terrain or in a bowl the same posture then gives the same observation, so one set
         of normalisation statistics fits every task (``results/normalizer_drift.md``).
+    :param goal_range: ``None`` (default, the reference's observation): ``goal`` and the position rows
+        of ``object`` in raw metres. A distance R: each of those vectors longer than R is observed at
+        length R in its own direction (nearer ones unchanged), so a far goal reads as "that way, far".
+        PointNav's goals lie up to ~60 m away, Patrol's (the only training task with a goal) within
+        ~10 m: with R = 10 a policy trained on Patrol sees PointNav's goals in the range it knows.
+        Rewards and ``info`` are unchanged.
     """
 
     metadata = {"render_modes": ["rgb_array", "human"], "render_fps": round(1.0 / CONTROL_DT)}
@@ -164,6 +176,7 @@ class UnimalEnv(gym.Env):
         height: int = 480,
         world_cache_size: int = 16,
         height_reference: str = "world",
+        goal_range: float | None = None,
     ):
         if height_reference not in C.HEIGHT_REFERENCES:
             raise ValueError(
@@ -171,6 +184,7 @@ class UnimalEnv(gym.Env):
                 f"'proprioceptive' are measured from), got {height_reference!r}"
             )
         self.height_reference = height_reference
+        self.goal_range = C.check_goal_range(goal_range)
         if not float(reset_noise_scale) >= 0:  # (NaN included)
             raise ValueError(f"reset_noise_scale is the half-width of the uniform reset noise and must be >= 0, got {reset_noise_scale}")
         if int(world_cache_size) < 1:
@@ -364,6 +378,11 @@ class UnimalEnv(gym.Env):
             "task_index": self._task_index.copy(),
         }
         obs.update(self.task.observations(robot))
+        if self.goal_range is not None:
+            obs["goal"] = _bounded(obs["goal"][None], self.goal_range)[0]
+            rows = obs["object"].reshape(4, 3)
+            rows[list(C.OBJECT_POSITION_ROWS)] = _bounded(rows[list(C.OBJECT_POSITION_ROWS)], self.goal_range)
+            obs["object"] = rows.reshape(-1)
         return obs
 
     def _checked_action(self, action: np.ndarray) -> np.ndarray:

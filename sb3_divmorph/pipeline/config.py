@@ -333,6 +333,11 @@ class Profile:
     #: ``ground`` (above the ground under the torso: the same statistics on every task, the better
     #: input for a multi-task student, ``results/normalizer_drift.md``); single env backend only
     height_reference: str = "world"
+    #: ``null`` (raw metres, the reference's) or a distance in metres beyond which the ``goal`` and
+    #: ``object`` position inputs are observed at that distance in their own direction
+    #: (``gym.make(..., goal_range=...)``), in every env of the run: PointNav's goals lie up to ~60 m
+    #: away, Patrol's within ~10 m, so 10 keeps a novel goal in the range the teachers saw
+    goal_range: float | None = None
     #: the HyperDistill baseline; the pipeline runs it only when the profile has this section
     hyperdistill: HyperDistillConfig | None = None
     #: GRL's evolution settings (the ``grl`` transfer arm); defaults apply when absent
@@ -397,6 +402,8 @@ class Profile:
             raise ConfigError(
                 f"profile {name!r}: height_reference must be one of {list(HEIGHT_REFERENCES)}, got {profile.height_reference!r}"
             )
+        if profile.goal_range is not None and not profile.goal_range > 0:
+            raise ConfigError(f"profile {name!r}: goal_range must be null or a distance > 0 (m), got {profile.goal_range!r}")
         for section in ("teachers", "distill", "transfer"):
             cfg = getattr(profile, section)
             if cfg.env_backend not in ENV_BACKENDS or cfg.worlds_per_robot < 1 or cfg.terrain_variants < 1:

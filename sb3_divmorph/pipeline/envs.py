@@ -75,9 +75,12 @@ def batched_env(
 
 
 def profile_env_kwargs(profile: Profile) -> dict[str, Any]:
-    """The env arguments every env of a run takes from its profile (``height_reference``); empty at
-    the defaults, so envs and backends that predate them are made exactly as before."""
-    return {} if profile.height_reference == "world" else {"height_reference": profile.height_reference}
+    """The env arguments every env of a run takes from its profile (``height_reference``,
+    ``goal_range``); empty at the defaults, so envs and backends that predate them are made exactly as before."""
+    kwargs: dict[str, Any] = {} if profile.height_reference == "world" else {"height_reference": profile.height_reference}
+    if profile.goal_range is not None:
+        kwargs["goal_range"] = float(profile.goal_range)
+    return kwargs
 
 
 def task_env_name(task: str) -> str:

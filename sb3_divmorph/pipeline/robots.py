@@ -118,8 +118,12 @@ def trained_env_kwargs(folder: str | Path) -> dict[str, Any]:
     record = _nearest_record(folder, "run.json")
     if record is None:
         return {}
-    height = json.loads(record.read_text()).get("configuration", {}).get("height_reference", "world")
-    return {} if height == "world" else {"height_reference": height}
+    configuration = json.loads(record.read_text()).get("configuration", {})
+    height = configuration.get("height_reference", "world")
+    kwargs: dict[str, Any] = {} if height == "world" else {"height_reference": height}
+    if configuration.get("goal_range") is not None:
+        kwargs["goal_range"] = float(configuration["goal_range"])
+    return kwargs
 
 
 def trained_instruction(folder: str | Path, task: str | None) -> str | None:

@@ -30,6 +30,12 @@ DEFAULT_TERRAIN_VARIANTS = 64
 MEMORY_SHARE = 0.8
 
 
+def _bounded(vectors: torch.Tensor, limit: float) -> torch.Tensor:
+    """Each 3-vector (last axis) longer than ``limit``, scaled to length ``limit`` (``goal_range``)."""
+    length = torch.linalg.vector_norm(vectors, dim=-1, keepdim=True)
+    return vectors * torch.clamp(limit / length.clamp_min(1e-9), max=1.0)
+
+
 class _TaskBlock:
     """The worlds of one task: one :class:`RobotWorlds` per robot, ``worlds`` each, and the
     task's batched twin over all of them (rows ordered robot by robot)."""
@@ -71,6 +77,7 @@ class _TaskBlock:
         self.real_slots = 1.0 - self.static["act_padding_mask"]
         # height_reference "ground": every real token's z is measured from the ground under the torso, as in the single env
         self.ground_reference = env.height_reference == "ground"
+        self.goal_range = env.goal_range
         self.real_tokens = self.static["obs_padding_mask"] < 0.5
         self.fall_height = per_robot([[g.fall_height] for g in self.groups])[:, 0].float()
         self.names = [m.name for m in morphologies for _ in range(worlds)]
@@ -99,6 +106,11 @@ class _TaskBlock:
             "object": torch.zeros(self.n, C.OBJECT_DIM, device=self.device),
         }
         obs.update(self.task.observations(r))
+        if self.goal_range is not None:
+            obs["goal"] = _bounded(obs["goal"], self.goal_range)
+            rows = obs["object"].view(self.n, 4, 3).clone()
+            rows[:, list(C.OBJECT_POSITION_ROWS)] = _bounded(rows[:, list(C.OBJECT_POSITION_ROWS)], self.goal_range)
+            obs["object"] = rows.view(self.n, -1)
         return obs
 
     def reset(self, mask: torch.Tensor, noise: float) -> None:
@@ -192,6 +204,8 @@ class BatchedUnimalEnv(VecEnv):
         super().__init__(n, C.observation_space(), C.action_space())
         #: what the height column of ``proprioceptive`` is measured from (``world`` or ``ground``, as the single env's)
         self.height_reference = blocks[0].env.height_reference
+        #: ``None`` or the length beyond which goal and object positions are observed at that length (as the single env's)
+        self.goal_range = blocks[0].env.goal_range
         self.morphology_names = [name for b in blocks for name in b.names]
         self.task_names = [b.task_name for b in blocks for _ in range(b.n)]
         self.steps = torch.zeros(n, dtype=torch.long, device=self.torch_device)
@@ -403,6 +417,7 @@ def make_batched_env(
     instruction: str | None = None,
     text_encoder: str = DEFAULT_ENCODER,
     height_reference: str = "world",
+    goal_range: float | None = None,
 ) -> BatchedUnimalEnv:
     """A UNIMAL task on MuJoCo Warp: ``len(morphologies) x worlds_per_robot`` worlds (see
     :class:`BatchedUnimalEnv`).
@@ -428,6 +443,8 @@ def make_batched_env(
     :param height_reference: what the height column of ``proprioceptive`` is measured from, as for
         :class:`~unimal_envs.env.UnimalEnv`: ``"world"`` (z = 0) or ``"ground"`` (the ground under
         the torso: the incline's plane, the terrain variant's height field; flat arenas: 0).
+    :param goal_range: as for :class:`~unimal_envs.env.UnimalEnv`: ``None`` (raw metres) or the
+        length beyond which ``goal`` and ``object``'s positions are observed at that length.
     :raises ValueError: unknown task, a device that does not exist, fewer than one world, or more
         worlds than the device's free memory holds (estimated before anything is allocated).
     :raises MorphologyError: a robot whose world MuJoCo Warp cannot simulate (named, with the feature).
@@ -452,6 +469,7 @@ def make_batched_env(
             ctrl_cost_weight=ctrl_cost_weight,
             reset_noise_scale=reset_noise_scale,
             height_reference=height_reference,
+            goal_range=goal_range,
         )
         for name in names
     ]
