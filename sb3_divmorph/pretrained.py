@@ -327,6 +327,22 @@ def robot_means(returns: Any, model: str, task: str, split: str = "train", seed:
     return mine.groupby("morphology")["return"].mean().sort_values(ascending=False)
 
 
+def check_archive(model: Path) -> None:
+    """Refuse, by name, a model file that is not a whole SB3 archive (cut off by a copy, or another file).
+
+    :raises PretrainedError: not a readable zip, or a zip without SB3's ``data`` entry.
+    """
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(model) as archive:
+            names = archive.namelist()
+    except (zipfile.BadZipFile, OSError) as error:
+        raise PretrainedError(f"{model}: truncated or not a model archive ({error}); save or copy the model again") from None
+    if "data" not in names:
+        raise PretrainedError(f"{model}: truncated or not a model archive (a zip without Stable-Baselines3's 'data' entry)")
+
+
 def load_pretrained(source: str | Path, device: str = "cpu", algo: str | None = None) -> Pretrained:
     """Load a trained model with its statistics, robots and env settings (see the module docstring).
 
@@ -334,7 +350,7 @@ def load_pretrained(source: str | Path, device: str = "cpu", algo: str | None = 
         or a ``.zip``.
     :param device: where the network runs.
     :param algo: ``ppo`` or ``a2c`` (default: from the rl-zoo folder, else ppo).
-    :raises PretrainedError: see :func:`find_model`.
+    :raises PretrainedError: see :func:`find_model`; also a truncated or corrupt model file.
     """
     from stable_baselines3 import A2C, PPO
 
@@ -346,6 +362,7 @@ def load_pretrained(source: str | Path, device: str = "cpu", algo: str | None = 
     if name not in ALGOS:
         raise PretrainedError(f"unknown algorithm {name!r}; choose from {list(ALGOS)}")
     algorithm: type[PPO] | type[A2C] = PPO if name == "ppo" else A2C
+    check_archive(saved.model)
     model = algorithm.load(saved.model, device=device)
     normalizer = load_normalizer(saved.normalizer) if saved.normalizer is not None else None
     return Pretrained(saved, model, normalizer)

@@ -34,6 +34,7 @@ from sb3_divmorph.pretrained import (  # noqa: E402, F401 -- re-exported (find_m
     PretrainedError,
     SavedModel,
     best_robots,
+    check_archive,
     find_model,
 )
 
@@ -94,13 +95,14 @@ def record(args: argparse.Namespace) -> Path:
     from sb3_divmorph.algos.distillation import check_spaces, load_normalizer
     from sb3_divmorph.pipeline.curves import episode_seed
     from unimal_envs.contract import TASK_NAMES
-    from unimal_envs.rendering import episode_frames, write_video
+    from unimal_envs.rendering import GIF_FPS, episode_frames, frames_kept, write_video
 
     if args.episodes < 1 or args.steps < 1:
         raise RecordError(f"--episodes and --steps must be at least 1, got {args.episodes} and {args.steps}")
     if args.out and Path(args.out).suffix.lower() not in (".mp4", ".gif"):
         raise RecordError(f"--out {args.out}: the video's file name must end in .mp4 or .gif")
     saved = find_model(args.source)
+    check_archive(saved.model)
     if args.task is not None:
         if args.task not in TASK_NAMES:
             raise RecordError(f"unknown task {args.task!r}; choose from {list(TASK_NAMES)}")
@@ -139,7 +141,7 @@ def record(args: argparse.Namespace) -> Path:
     if unknown:
         env.close()
         raise RecordError(f"robot(s) {unknown} not among the robots recorded from (e.g. {robots[:3]})")
-    chosen = args.robot or robots
+    chosen = args.robot or [default_robot(saved, env_id, robots, args.morphologies is None)]
 
     algo = A2C if (args.algo or saved.algo) == "a2c" else PPO
     model = algo.load(saved.model, device="cpu")
@@ -172,8 +174,36 @@ def record(args: argparse.Namespace) -> Path:
         write_video(frames(), out, fps=env.metadata.get("render_fps", 50))
     finally:
         env.close()
-    print(f"[record] {count} frames of {env_id} -> {out}")
+    fps = env.metadata.get("render_fps", 50)
+    kept = frames_kept(count, out, fps)
+    held = f"{kept} frames" if kept == count else f"{kept} frames (of {count} simulated: a GIF plays {GIF_FPS} per second, still real time)"
+    print(f"[record] {held} of {env_id} -> {out}")
     return out
+
+
+def default_robot(saved: SavedModel, env_id: str, robots: list[str], own_robots: bool) -> str:
+    """The robot filmed when none is asked for: among the model's own robots, the one it does best on
+    by its run's evaluation; otherwise the first, said loudly (an unchosen robot may simply fall)."""
+    if own_robots:
+        try:
+            (best, mean), *_ = best_robots(saved, env_id, n=1)
+        except PretrainedError as error:
+            reason = str(error)
+        else:
+            if best in robots:
+                print(
+                    f"[record] no --robot: filming {best}, the robot {saved.model.parent} does best on {env_id} by its run's evaluation (mean return {mean:.1f})"
+                )
+                return best
+            reason = f"its best robot {best} is not among the robots recorded from"
+    else:
+        reason = "--morphologies names other robots than the model's evaluation"
+    print(
+        f"[record] no --robot: filming the first robot, {robots[0]}, which need not be one the model does well on ({reason}); "
+        "pass --robot NAME or --robot best",
+        file=sys.stderr,
+    )
+    return robots[0]
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -368,9 +368,41 @@ def test_record_best_films_the_training_robot_the_run_evaluated_best(tmp_path, c
     from sb3_divmorph.pretrained import load_pretrained
 
     assert [robot for robot, _ in load_pretrained(teacher).best_robots(n=2)] == ["train-002", "train-003"]
+    # with no --robot the film shows the same robot: a newcomer's first film is not of a robot that falls
+    gif = tmp_path / "default.gif"
+    record(parser.parse_args([str(teacher), "--steps", "12", "--width", "32", "--height", "32", "--no-progress", "--out", str(gif)]))
+    captured = capsys.readouterr()
+    assert "no --robot: filming train-002" in captured.out and "episode 0: train-002" in captured.out
+    # and it says how many frames the file holds (a GIF keeps one in five), not how many were simulated
+    import imageio.v2 as imageio
+
+    held = len(imageio.mimread(gif))
+    assert held < 12 and f"[record] {held} frames (of " in captured.out
     (run / "evaluate" / "returns.csv").unlink()
     with pytest.raises(RecordError, match="has no evaluation"):
         record(parser.parse_args([str(teacher), "--robot", "best", "--no-progress"]))
+    record(parser.parse_args([str(teacher), "--steps", "2", "--width", "32", "--height", "32", "--no-progress"]))
+    captured = capsys.readouterr()
+    assert "filming the first robot, train-001, which need not be one the model does well on" in captured.err
+
+
+def test_a_truncated_or_foreign_model_file_is_refused_by_name(tmp_path, capsys):
+    """A model cut off by a copy (or another file named model.zip) is refused naming the file, by
+    ``load_pretrained`` and by ``divmorph record`` -- before record asks which task (break: drop
+    ``check_archive`` -> SB3's raw "wasn't a zip-file", and record first asks for --task)."""
+    from divmorph.cli import main as cli
+    from sb3_divmorph.pretrained import PretrainedError, load_pretrained
+
+    student = tmp_path / "run" / "student"
+    tiny_model(student)
+    whole = (student / "model.zip").read_bytes()
+    for name, content in {"truncated": whole[: len(whole) // 2], "foreign": b"not a model"}.items():
+        (student / "model.zip").write_bytes(content)
+        with pytest.raises(PretrainedError, match="truncated or not a model archive"):
+            load_pretrained(student)
+        assert cli(["record", str(student), "--no-progress"]) == 2, name
+        err = capsys.readouterr().err
+        assert f"{student / 'model.zip'}: truncated or not a model archive" in err and "--task" not in err, name
 
 
 def test_commands_that_read_a_run_name_a_missing_folder_and_transfer_help_lists_the_arms(tmp_path, capsys):

@@ -14,6 +14,19 @@ import numpy as np
 GIF_FPS = 10
 
 
+def frames_kept(frames: int, path: str | Path, fps: int = 50) -> int:
+    """How many of ``frames`` rendered frames :func:`write_video` puts in ``path`` (a GIF keeps every
+    ``fps / GIF_FPS``-th)."""
+    if Path(path).suffix.lower() != ".gif":
+        return frames
+    stride = _gif_stride(fps)
+    return (frames + stride - 1) // stride
+
+
+def _gif_stride(fps: int) -> int:
+    return max(1, round(fps / GIF_FPS))
+
+
 def write_video(frames: Iterable[np.ndarray], path: str | Path, fps: int = 50) -> Path:
     """Encode RGB frames (H, W, 3, uint8) as an H.264 MP4 with imageio/ffmpeg, or as an animated
     GIF when ``path`` ends in ``.gif`` (every ``fps // GIF_FPS``-th frame, still real time: small
@@ -33,7 +46,7 @@ def write_video(frames: Iterable[np.ndarray], path: str | Path, fps: int = 50) -
     path.parent.mkdir(parents=True, exist_ok=True)
     partial = path.with_name(f".{path.stem}.partial{path.suffix}")
     if path.suffix.lower() == ".gif":
-        stride = max(1, round(fps / GIF_FPS))
+        stride = _gif_stride(fps)
         writer = imageio.get_writer(partial, format="GIF", mode="I", duration=1000 * stride / fps, loop=0)
         frames = (frame for i, frame in enumerate(frames) if i % stride == 0)
     else:
