@@ -77,6 +77,7 @@ def test_every_example_and_python_block_runs(tmp_path, monkeypatch, capsys, rest
     ratio = float(re.search(r"update ratio (\S+) \(configured 0.1\)", out).group(1))
     assert 0.03 < ratio < 0.3  # the measured learngene / selected-tailor ratio is near its 0.1 target
     assert re.search(r"zero-shot: mean return -?\d", out) and re.search(r"after \d+ steps: mean return -?\d", out)
+    assert "fixed-gate transfer has not yet been seen to learn" in out  # a lower return is not mistaken for a fault
     assert (tmp_path / "run" / "escape" / "model.zip").is_file() and (tmp_path / "run" / "escape" / "vecnormalize.pkl").is_file()
     with pytest.raises(SystemExit):  # a MetaMorph teacher has no gates to fix: said so, no raw state_dict error
         run_example("transfer.py", ["run/teachers/FT", "--task", "Escape"], monkeypatch, capsys)

@@ -55,6 +55,8 @@ class MultiTaskEnv(gym.Env):
         self.task_probabilities = task_probabilities
         robots = load_morphologies(morphologies)
         self.envs = {task: UnimalEnv(task, robots, render_mode=render_mode, **env_kwargs) for task in tasks}
+        # the render modes this machine can serve, as each task's env lists them (headless: no "human")
+        self.metadata = {**self.metadata, "render_modes": list(self.envs[tasks[0]].metadata["render_modes"])}
         self.render_mode = render_mode
         self.observation_space = C.observation_space()
         self.action_space = C.action_space()
