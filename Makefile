@@ -22,8 +22,8 @@ $(STAMP): pyproject.toml setup.py
 
 install: $(STAMP)
 
-# The main job: the knowledge-diversion pipeline at its tiny "demo" budget (about 3 min on 2 idle
-# cores; 228 s measured with two training runs sharing the cores, results/pipeline_demo/summary.md).
+# The main job: the knowledge-diversion pipeline at its tiny "demo" budget (4 min 2 s on 2 idle
+# cores from a fresh clone with an empty HOME, after the install; 2026-12-05).
 demo: $(STAMP)
 	$(VENV)/bin/divmorph pipeline --profile demo --out runs/demo
 
@@ -33,9 +33,10 @@ tour: $(STAMP)
 	$(PY) -m unimal_envs.demo --out runs/tour
 
 # The whole suite (after lint and types), one pytest worker per core, each test file on one worker (its
-# module fixtures built once): 543 tests in 4 min 48 s on 2 idle cores from a fresh clone, 6.9 min
-# with the install and lint (2026-11-27); the batched backend's tests compile MuJoCo Warp's kernels
-# on a machine's first run (~2 min more, then cached in ~/.cache/warp).
+# module fixtures built once): 580 tests in 7 min 36 s of pytest on 2 cores from a fresh clone with an
+# empty HOME and robot cache (`.ci/run`), 8 min 41 s with the install from pip's cache and lint
+# (2026-12-05); the batched backend's tests compile MuJoCo Warp's kernels on a machine's first run
+# (~2 min more, then cached in ~/.cache/warp).
 test: lint
 	$(PY) -m pytest -q -n 2 --dist loadfile
 
