@@ -7,9 +7,15 @@ one copy of each file, in wheels and editable installs alike (``sb3_divmorph.zoo
 ``importlib.resources``).
 """
 
-from setuptools import find_packages, setup
+from setuptools import find_namespace_packages, find_packages, setup
 
 setup(
-    packages=[*find_packages(include=["unimal_envs*", "sb3_divmorph*", "divmorph*"]), "sb3_divmorph.zoo_configs"],
+    packages=[
+        *find_packages(include=["unimal_envs*", "sb3_divmorph*", "divmorph*"]),
+        # unimal_envs' data folders (the MJCF template, the text embeddings, the shipped robots) hold no
+        # code, but setuptools counts them as packages whose files it ships, so they are named as such
+        *find_namespace_packages(include=["unimal_envs.assets", "unimal_envs.data", "unimal_envs.data.*"]),
+        "sb3_divmorph.zoo_configs",
+    ],
     package_dir={"sb3_divmorph.zoo_configs": "zoo_configs"},
 )

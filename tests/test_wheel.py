@@ -7,6 +7,7 @@ import os
 import shutil
 import subprocess
 import sys
+import zipfile
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -56,13 +57,32 @@ def installed(tmp_path_factory) -> tuple[Path, Path]:
         ),
     )
     build = subprocess.run(
-        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(root / "dist"), str(source)],
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-v", "-w", str(root / "dist"), str(source)],
         capture_output=True,
         text=True,
         timeout=300,
     )
     assert build.returncode == 0, build.stderr[-3000:]
+    # packaging metadata that setuptools will stop accepting is an error to come: none is left
+    said = build.stdout + build.stderr
+    assert "BuildBackendWarning" not in said and "SetuptoolsDeprecationWarning" not in said, said[-3000:]
     wheel = next((root / "dist").glob("divmorph-*.whl"))
+    with zipfile.ZipFile(wheel) as archive:
+        names = set(archive.namelist())
+    shipped = {
+        "unimal_envs/assets/unimal_template.xml",
+        "unimal_envs/data/task_embeddings.npz",
+        "unimal_envs/data/unimals100_train.sha256",
+        "unimal_envs/py.typed",
+        "sb3_divmorph/py.typed",
+        "sb3_divmorph/zoo_configs/divmorph.yml",
+        "sb3_divmorph/zoo_configs/ppo.yml",
+    }
+    assert shipped <= names, shipped - names
+    for split in ("train", "novel"):  # the 200 generated robots, each with its metadata
+        assert sum(n.startswith(f"unimal_envs/data/morphologies/{split}/xml/") for n in names) == 100, split
+        assert sum(n.startswith(f"unimal_envs/data/morphologies/{split}/metadata/") for n in names) == 100, split
+    assert not any(n.startswith(("tests/", "results/", "studies/")) or "__pycache__" in n for n in names)
     site = root / "site"
     install = subprocess.run(
         [sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--target", str(site), str(wheel)],
