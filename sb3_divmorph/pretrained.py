@@ -270,7 +270,8 @@ class Pretrained:
         """Episode returns on each robot, named by the robot that ran: one env per robot, stepped
         together, ``episodes`` each (a seed gives the same episodes on every call).
 
-        :returns: ``[{"robot", "episode", "return", "length"}]`` in the order episodes finish.
+        :returns: ``[{"robot", "episode", "return", "length"}]`` in the order asked: robot by robot as
+            given, each robot's episodes in order.
         :raises PretrainedError: ``episodes`` < 1, an unknown task, or no task to tell.
         """
         from sb3_divmorph.pipeline.curves import robot_venv, rollout_returns

@@ -116,6 +116,8 @@ def test_every_example_and_python_block_runs(tmp_path, monkeypatch, capsys, rest
         if shipped and "evaluate(" in code:  # the shipped teacher walks on the robots the README names
             returns = [float(x) for x in re.findall(r"return (\d+)", done.stdout)]
             assert returns and min(returns) >= 100, done.stdout
+            asked = re.findall(r'"([a-z]+-\d{4}[-\d]*)"', code)  # the robots, in the order the block names them
+            assert re.findall(r"^(\S+): return", done.stdout, flags=re.M) == asked, done.stdout
     # ... and the quick start's numbers, checked in this process.
     namespace: dict = {"__name__": "__readme__"}
     quick_start = None
@@ -168,7 +170,7 @@ def test_the_project_is_licensed_citable_and_names_its_sources():
     import yaml
 
     licence = (REPO / "LICENSE").read_text()
-    assert licence.startswith("MIT License") and 'license = { text = "MIT" }' in (REPO / "pyproject.toml").read_text()
+    assert licence.startswith("MIT License") and 'license = "MIT"' in (REPO / "pyproject.toml").read_text()
     citation = yaml.safe_load((REPO / "CITATION.cff").read_text())
     assert citation["cff-version"] == "1.2.0" and citation["license"] == "MIT" and citation["authors"]
     assert citation["preferred-citation"]["title"] == "Knowledge Diversion for Efficient Morphology Control and Policy Transfer"

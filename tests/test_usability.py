@@ -688,6 +688,37 @@ def test_load_pretrained_names_the_robot_that_ran_and_keeps_the_run_settings(tmp
     assert any("height_reference='ground'" in str(w.message) for w in caught)
 
 
+def test_evaluation_rows_come_in_the_order_asked_not_the_order_episodes_end():
+    """Robot 0's episodes last 5 steps, robot 1's 2: robot 1 finishes first and more often, yet the
+    rows list robot 0's episodes first, each robot's in order (break: return the rows as they finish)."""
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor
+
+    from sb3_divmorph.pipeline.curves import rollout_returns
+
+    class Fixed(gym.Env):
+        observation_space = gym.spaces.Box(-1, 1, (1,))
+        action_space = gym.spaces.Box(-1, 1, (1,))
+
+        def __init__(self, length: int):
+            self.length, self.t = length, 0
+
+        def reset(self, *, seed=None, options=None):
+            self.t = 0
+            return np.zeros(1, np.float32), {}
+
+        def step(self, action):
+            self.t += 1
+            return np.zeros(1, np.float32), float(self.length), self.t >= self.length, False, {}
+
+    class Still:
+        def predict(self, obs, deterministic=True):
+            return np.zeros((len(obs), 1), np.float32), None
+
+    venv = VecMonitor(DummyVecEnv([lambda: Fixed(5), lambda: Fixed(2)]))
+    rows = rollout_returns(Still(), venv, [Path("slow.xml"), Path("fast.xml")], episodes=2)
+    assert [(r["robot"], r["episode"], r["length"]) for r in rows] == [("slow", 0, 5), ("slow", 1, 5), ("fast", 0, 2), ("fast", 1, 2)]
+
+
 def test_a_run_with_a_goal_range_runs_its_models_with_it(tmp_path):
     """A run recorded with ``goal_range`` gives it to every env its models are run in (beside the
     settings in ``env.json``), and its profile gives it to every env of its stages (break: drop the key

@@ -43,12 +43,14 @@ EVAL_COLUMNS = ["timesteps", "split", "robot", "episode", "return", "length"]
 def rollout_returns(
     model: BaseAlgorithm, venv: VecEnv, robots: list[Path], episodes: int, normalize=None, deterministic: bool = True
 ) -> list[dict[str, Any]]:
-    """Episode returns of ``model`` on ``venv`` (one env per robot, monitored).
+    """Episode returns of ``model`` on ``venv`` (one env per robot, monitored), in the order of
+    ``robots`` and, per robot, of its episodes (not the order they finish in).
 
     :param normalize: ``obs -> obs`` applied before the policy (e.g. ``VecNormalize.normalize_obs``).
     :param deterministic: the policy's mean action (the default); ``False`` samples as in training.
     """
     rows: list[dict[str, Any]] = []
+    places: list[tuple[int, int]] = []  # (robot, episode) of each row, to sort them by at the end
     finished = np.zeros(len(robots), dtype=int)
     obs = venv.reset()
     while (finished < episodes).any():
@@ -64,8 +66,9 @@ def rollout_returns(
                         "length": int(infos[i]["episode"]["l"]),
                     }
                 )
+                places.append((int(i), int(finished[i])))
                 finished[i] += 1
-    return rows
+    return [row for _, row in sorted(zip(places, rows), key=lambda pair: pair[0])]
 
 
 def episode_seed(seed: int, robot: str | Path, episode: int) -> int:
