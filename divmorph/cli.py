@@ -219,6 +219,16 @@ def _parser(overview: bool = False) -> argparse.ArgumentParser:
         from sb3_divmorph.plot import add_arguments as plot_arguments
 
         plot_arguments(p)
+    help_text = "copy a shipped run's trained models (e.g. cpu100) into the local cache, checked, for a pip install"
+    p = sub.add_parser("fetch-models", help=help_text, description=help_text)
+    p.add_argument("run", help="the shipped run (cpu100: the 100-robot run's teachers and students)")
+    p.add_argument(
+        "--source",
+        required=True,
+        help="a checkout of the divmorph repository, a .tar.gz archive of it, or the URL of such an archive",
+    )
+    p.add_argument("--cache", default=None, help="the cache folder (default $DIVMORPH_MODELS, else ~/.cache/divmorph/models)")
+    p.add_argument("--force", action="store_true", help="fetch again even if already cached")
     help_text = "start a run folder that reuses another run's finished teachers, students and GRL learngene"
     p = sub.add_parser("branch", help=help_text, description=help_text)
     if not overview:
@@ -408,6 +418,18 @@ class Terminated(KeyboardInterrupt):
     """SIGTERM, raised where Ctrl-C raises KeyboardInterrupt, so that both stop a command the same way."""
 
 
+def _fetch_models(args: argparse.Namespace) -> int:
+    from sb3_divmorph.shipped import ShippedModelsError, fetch_models
+
+    try:
+        folder = fetch_models(args.run, args.source, cache=args.cache, force=args.force)
+    except ShippedModelsError as error:
+        print(f"divmorph fetch-models: {error}", file=sys.stderr)
+        return 2
+    print(f'{args.run}: its models in {folder}; load_pretrained("results/{args.run}/teachers/FT") now finds them from any folder')
+    return 0
+
+
 def _terminate(signum: int, frame: object) -> None:
     raise Terminated
 
@@ -429,6 +451,8 @@ def main(argv: list[str] | None = None) -> int:
         return _evaluate_model_folder(args)
     if args.command == "profiles":
         return _profiles(args)
+    if args.command == "fetch-models":
+        return _fetch_models(args)
     if args.command == "branch":
         return _branch(args, argv)
     import torch as th

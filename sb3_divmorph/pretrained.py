@@ -105,9 +105,17 @@ def find_model(source: str | Path) -> SavedModel:
     """
     from unimal_envs.contract import TASK_NAMES
 
+    from sb3_divmorph.shipped import cached_path, fetch_command, shipped_run_of
+
     source = Path(source)
     if not source.exists():
-        raise PretrainedError(f"no such file or directory: {source}")
+        # a shipped run's path where there is no checkout (a pip install): its fetched copy
+        fetched = cached_path(source)
+        if fetched is None:
+            run = shipped_run_of(source)
+            hint = f"; the shipped models of {run} are not in this install: fetch them once with `{fetch_command(run)}`" if run else ""
+            raise PretrainedError(f"no such file or directory: {source}{hint}")
+        source = fetched
     if source.is_dir():
         zoo = _ZOO_RUN.match(source.name)
         if (source / "model.zip").is_file():  # divmorph pipeline layout

@@ -16,17 +16,18 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 
 
-def _run(command: list[str], cwd: Path, site: Path, timeout: int = 300) -> subprocess.CompletedProcess:
+def _run(command: list[str], cwd: Path, site: Path, timeout: int = 300, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
     # Only the installed copy on the path (not this checkout); one torch thread (small models, busy CPUs).
-    env = {
+    merged = {
         **os.environ,
+        **(env or {}),
         "PYTHONPATH": str(site),
         "MUJOCO_GL": "egl",
         "OMP_NUM_THREADS": "1",
         "HF_HUB_OFFLINE": "1",
         "TRANSFORMERS_OFFLINE": "1",
     }
-    return subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
+    return subprocess.run(command, cwd=cwd, env=merged, capture_output=True, text=True, timeout=timeout)
 
 
 @pytest.fixture(scope="module")
@@ -187,3 +188,23 @@ def test_installed_rl_zoo_trains_with_the_shipped_entries_and_record_films_it(in
 def test_the_installed_packages_declare_their_type_hints(installed):
     site, _ = installed
     assert (site / "sb3_divmorph" / "py.typed").is_file() and (site / "unimal_envs" / "py.typed").is_file()
+
+
+def test_the_readme_quick_start_runs_from_the_wheel_after_the_documented_fetch(installed, official_sets, tmp_path):
+    """A pip user: ``divmorph fetch-models cpu100 --source <checkout>`` (the README's command), then the
+    README's quick-start block, run from a folder with no ``results/``, prints a return for each robot
+    in the order the block names them (break: leave out the fetch -> "no such file or directory")."""
+    import re
+
+    site, elsewhere = installed
+    readme = (REPO / "README.md").read_text()
+    block = next(b for b in re.findall(r"```python\n(.*?)```", readme, flags=re.S) if "load_pretrained(" in b and "evaluate(" in b)
+    env = {"DIVMORPH_MODELS": str(tmp_path / "models"), "UNIMAL_DATA": str(official_sets)}
+    fetched = _run(
+        [sys.executable, str(site / "bin" / "divmorph"), "fetch-models", "cpu100", "--source", str(REPO)], elsewhere, site, env=env
+    )
+    assert fetched.returncode == 0, fetched.stderr[-3000:]
+    quick = _run([sys.executable, "-c", block], elsewhere, site, env=env)
+    assert quick.returncode == 0, quick.stderr[-3000:]
+    asked = re.findall(r'"([a-z]+-\d{4}[-\d]*)"', block)
+    assert re.findall(r"^(\S+): return \d+", quick.stdout, flags=re.M) == asked, quick.stdout
