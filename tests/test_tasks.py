@@ -239,6 +239,16 @@ def test_every_id_passes_check_env_with_the_same_spaces(train_files, env_id, mon
     env = gym.make(env_id, morphologies=train_files[:2])
     assert env.metadata["render_modes"] == ["rgb_array"]
     check_env(env.unwrapped)
+    # Stable-Baselines3's checker passes too; its only warnings are the ones docs/environments.md explains
+    import warnings
+
+    from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        sb3_check_env(env)
+    unexplained = [str(w.message) for w in caught if "unconventional shape" not in str(w.message) and "Box" not in str(w.message)]
+    assert not unexplained, unexplained
     assert env.observation_space == C.observation_space() and env.action_space == C.action_space()
 
 
