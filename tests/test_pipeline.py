@@ -601,6 +601,21 @@ def test_finetune_settings_reach_the_arms_that_start_from_trained_weights_only(f
         load_profile("tiny", profiles, overrides={"transfer.critic_warmup": -1})
     with pytest.raises(ConfigError, match=r"transfer.finetune_overrides: unknown key\(s\) \['lerning_rate'\]"):
         load_profile("tiny", profiles, overrides={"transfer.finetune_overrides": {"lerning_rate": 1e-4}})
+    # transfer.desired_kl: every arm's rate adapts to a KL per update (one step-size rule for every parameterisation)
+    from sb3_divmorph.algos.adaptive_rate import AdaptiveLearningRate
+
+    profile = load_profile("tiny", profiles, overrides={"transfer.desired_kl": 0.01})
+    adapting = {
+        arm: [
+            c.desired_kl
+            for c in transfer_run(profile, out, "Escape", arm, 0, progress_bar=False).callbacks
+            if isinstance(c, AdaptiveLearningRate)
+        ]
+        for arm in ("scratch", "divmorph", "distilled")
+    }
+    assert adapting == {"scratch": [0.01], "divmorph": [0.01], "distilled": [0.01]}
+    with pytest.raises(ConfigError, match="desired_kl"):
+        load_profile("tiny", profiles, overrides={"transfer.desired_kl": 0})
 
 
 def test_a_finished_pipeline_is_skipped_not_recomputed(finished_run):

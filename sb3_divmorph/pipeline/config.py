@@ -221,6 +221,11 @@ class TransferConfig:
     #: race evaluates; under std 0.9 PPO improves the noisy policy, which need not improve its mean
     #: (``results/finetune-known-task``, section 5). The deterministic actions at step 0 do not change
     action_std: float | None = None
+    #: ``null`` (default): every arm at its nominal rate. A KL, e.g. 0.01: every arm's learning rate
+    #: is multiplied after each PPO update so that updates move the policy by about that KL
+    #: (:class:`~sb3_divmorph.algos.adaptive_rate.AdaptiveLearningRate`, rsl_rl's ``desired_kl``
+    #: rule), so arms of different parameterisations are compared at equal policy change per update
+    desired_kl: float | None = None
 
     def arm_list(self) -> list[str]:
         """The arms to run: ``arms``, or the pre-arms default (``divmorph`` [+ ``scratch``])."""
@@ -402,6 +407,8 @@ class Profile:
             raise ConfigError(
                 f"profile {name!r}: height_reference must be one of {list(HEIGHT_REFERENCES)}, got {profile.height_reference!r}"
             )
+        if profile.transfer.desired_kl is not None and not profile.transfer.desired_kl > 0:
+            raise ConfigError(f"profile {name!r}: transfer.desired_kl must be null or a KL > 0, got {profile.transfer.desired_kl!r}")
         if profile.goal_range is not None and not profile.goal_range > 0:
             raise ConfigError(f"profile {name!r}: goal_range must be null or a distance > 0 (m), got {profile.goal_range!r}")
         for section in ("teachers", "distill", "transfer"):

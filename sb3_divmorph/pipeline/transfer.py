@@ -36,6 +36,7 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecNormalize
 
+from sb3_divmorph.algos.adaptive_rate import AdaptiveLearningRate
 from sb3_divmorph.algos.device_ppo import DevicePPO
 from sb3_divmorph.algos.finetune import (
     TRANSFER_ADAM_EPS,
@@ -442,6 +443,8 @@ def transfer_run(
     callbacks: list[BaseCallback] = []
     if source is not None and cfg.critic_warmup > 0:
         callbacks.append(CriticWarmup(cfg.critic_warmup))
+    if cfg.desired_kl is not None:
+        callbacks.append(AdaptiveLearningRate(cfg.desired_kl))
     if cfg.eval_every > 0:
         splits = {split: transfer_eval_robots(profile, split) for split in ("train", "novel")}
         callbacks.append(
