@@ -279,3 +279,23 @@ def test_rotation_lr_scale_turns_the_square_factors_that_much_slower_and_moves_t
         assert moved[0.1][name] == pytest.approx(0.1 * moved[1.0][name], rel=1e-3), name
     others = [name for name in moved[1.0] if not name.endswith("square_skew")]
     assert all(moved[0.1][n] == pytest.approx(moved[1.0][n], rel=1e-5, abs=1e-9) for n in others), "the other factors' steps changed"
+
+
+def test_rotation_rate_scales_freeze_a_freely_fine_tuned_students_rotations_only():
+    """The ``divmorph-finetuned`` arm with ``rotation_lr_scale=0`` (issue 67 (a)): every Cayley
+    generator stays exactly where it was, every other parameter moves as before (break: an empty
+    ``rotation_rate_scales`` -> the generators move)."""
+    from sb3_divmorph.algos.finetune import rotation_rate_scales
+
+    model, venv = distilled_like_student(seed=5)
+    obs = venv.reset()
+    scales = rotation_rate_scales(model.policy, 0.0)
+    assert scales and all(name.endswith("square_skew") for name, p in model.policy.named_parameters() if p in scales)
+    rates = UnitLearningRates(model.policy.optimizer, scales)
+    before = {name: p.detach().clone() for name, p in model.policy.named_parameters()}
+    after = one_ppo_like_step(model, obs)
+    rates.remove()
+    for name in before:
+        if name.endswith("square_skew"):
+            assert th.equal(after[name], before[name]), name
+    assert sum((after[n] - before[n]).abs().sum().item() for n in before if not n.endswith("square_skew")) > 0

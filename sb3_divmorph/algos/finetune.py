@@ -273,6 +273,16 @@ def critic_rate_scales(policy: nn.Module, scale: float) -> dict[nn.Parameter, th
     return {p: th.full((), float(scale)) for module in critic_modules(policy) for p in module.parameters() if p.requires_grad}
 
 
+def rotation_rate_scales(policy: nn.Module, scale: float) -> dict[nn.Parameter, th.Tensor]:
+    """``{Cayley generator: scale}`` for every orthogonal factorized layer of a policy, for
+    :class:`UnitLearningRates`: its rotations then turn at ``scale`` times the optimiser's rate (0: frozen)."""
+    return {
+        layer.square_skew: th.full((), float(scale))
+        for layer in policy.modules()
+        if isinstance(layer, FactorizedLinear) and layer.orthogonal and layer.square_skew.requires_grad
+    }
+
+
 def actor_modules(policy: nn.Module) -> list[nn.Module]:
     """The modules a DivMorph policy's actions depend on (router excluded)."""
     extractor = policy.features_extractor if policy.share_features_extractor else policy.pi_features_extractor

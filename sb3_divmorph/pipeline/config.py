@@ -207,7 +207,8 @@ class TransferConfig:
     #: update where the policy is far from its training: on PointNav one update of the cpu100
     #: student with its learngenes at the full rate moves the policy by a KL of ~60, by 0.027 with
     #: the rotations frozen (MetaMorph⚗: 0.026); on FT by 0.034 and 0.020
-    #: (``results/transfer-pointnav/update-kl-by-parameter*.md``). 1.0: the rule before issue 42
+    #: (``results/transfer-pointnav/update-kl-by-parameter*.md``). 1.0: the rule before issue 42.
+    #: It also applies to ``divmorph-finetuned`` (every Cayley generator at this multiple of its rate)
     rotation_lr_scale: float = 1.0
     #: where the task gates of the arms that start from a DivMorph student come from (fixed in the
     #: DivMorph-way arms, the start of ``divmorph-finetuned``'s): ``instruction`` (the novel task's own

@@ -45,6 +45,7 @@ from sb3_divmorph.algos.finetune import (
     UnitSelection,
     critic_rate_scales,
     prepare_transfer,
+    rotation_rate_scales,
     set_adam_eps,
 )
 from sb3_divmorph.pipeline.arms import ARMS
@@ -519,9 +520,13 @@ def transfer_run(
             # one optimiser rule for every arm (set again whenever the run is loaded)
             if cfg.adam_eps is not None:
                 set_adam_eps(model.policy.optimizer, cfg.adam_eps)
-            if source is not None and cfg.critic_lr_scale != 1:
-                # the fine-tuned actor's rate for the actor, a multiple of it for the critic (the hooks live on the optimiser)
-                installed["critic"] = UnitLearningRates(model.policy.optimizer, critic_rate_scales(model.policy, cfg.critic_lr_scale))
+            scales = critic_rate_scales(model.policy, cfg.critic_lr_scale) if source is not None and cfg.critic_lr_scale != 1 else {}
+            if spec.gated and cfg.rotation_lr_scale != 1:
+                # a DivMorph student fine-tuned freely: its Cayley generators at rotation_lr_scale of the rate
+                scales.update(rotation_rate_scales(model.policy, cfg.rotation_lr_scale))
+            if scales:
+                # the fine-tuned actor's rate for the actor, multiples of it for the critic and the rotations (hooks on the optimiser)
+                installed["critic"] = UnitLearningRates(model.policy.optimizer, scales)
 
     _check_source(folder, _source_record(out, arm, seed, source, gated))
     return TrainingRun(
