@@ -299,3 +299,36 @@ def test_rotation_rate_scales_freeze_a_freely_fine_tuned_students_rotations_only
         if name.endswith("square_skew"):
             assert th.equal(after[name], before[name]), name
     assert sum((after[n] - before[n]).abs().sum().item() for n in before if not n.endswith("square_skew")) > 0
+
+
+def test_the_singular_values_recipe_trains_the_active_units_singular_values_and_nothing_else_of_the_actor():
+    """``transfer.recipe: singular-values`` (FINE's rule, issue 67 (c)): after an update only the
+    singular values of learngenes and selected tailors have moved in the actor (and the critic);
+    tall factors, rotations, embeddings and unselected tailors stay exactly (break: ignore the recipe
+    -> the tall factors move)."""
+    model, venv = distilled_like_student(seed=6)
+    obs = venv.reset()
+    gates = model.policy.get_gates(obs)
+    selection = UnitSelection.from_gates(gates.morphology.numpy(), gates.task.numpy())
+    prepare_transfer(model.policy, selection, learngene_scale=0.1, recipe="singular-values")
+    layers = diverted_actor_layers(model.policy)
+    before = {name: p.detach().clone() for name, p in model.policy.named_parameters()}
+    s_before = [layer.singular_values.detach().clone() for layer in layers]
+    after = one_ppo_like_step(model, obs)
+    actor = {id(p) for module in actor_modules(model.policy) for p in module.parameters()}
+    names = {name: p for name, p in model.policy.named_parameters()}
+    critic = {id(p) for module in critic_modules(model.policy) for p in module.parameters()}
+    for name, p in names.items():
+        if id(p) in actor and not name.endswith("singular_values") and id(p) not in critic:
+            assert th.equal(after[name], before[name]), name
+    moved_active = 0.0
+    for layer, old in zip(layers, s_before, strict=True):
+        active = th.ones(layer.rank, dtype=th.bool)
+        active[layer.n_learngenes :] = th.as_tensor(selection.tailors)
+        delta = (layer.singular_values.detach() - old).abs()
+        assert th.all(delta[~active] == 0)  # unselected tailors stay
+        moved_active += float(delta[active].sum())
+    assert moved_active > 0
+    assert any(not th.equal(after[n], before[n]) for n, p in names.items() if id(p) in critic)
+    with pytest.raises(ValueError, match="recipe must be one of"):
+        prepare_transfer(model.policy, selection, recipe="everything")

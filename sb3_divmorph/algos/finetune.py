@@ -301,6 +301,12 @@ def unit_groups(layer: FactorizedLinear, unit: th.Tensor) -> dict[str, dict[nn.P
     }
 
 
+#: The DivMorph-way transfer recipes (``transfer.recipe``): which parameters train under the fixed gates.
+#: ``fixed-gates`` (the paper's): selected tailors 1x, learngenes and the rest of the actor
+#: ``learngene_scale``; ``singular-values`` (FINE's rule): only the singular values of the active units
+#: (learngenes and selected tailors) at the full rate, every other actor parameter frozen.
+RECIPES = ("fixed-gates", "singular-values")
+
 #: Adam's ``eps`` during transfer: far below a distilled student's smallest useful gradients.
 TRANSFER_ADAM_EPS = 1e-10
 
@@ -334,6 +340,7 @@ def prepare_transfer(
     undiverted_scale: float | None = 1.0,
     critic_scale: float = 1.0,
     rotation_scale: float = 1.0,
+    recipe: str = "fixed-gates",
 ) -> UnitLearningRates:
     """Set a DivMorph policy up for DivMorph transfer, in place.
 
@@ -362,6 +369,9 @@ def prepare_transfer(
         ``None``: ``learngene_scale`` (every unit a learngene, the behaviour before this option).
     :param critic_scale: learning-rate scale of the critic (:func:`critic_rate_scales`).
     :param rotation_scale: learning-rate scale of every Cayley generator relative to its units'.
+    :param recipe: one of :data:`RECIPES`; ``singular-values`` then trains, in the actor, only the
+        singular values of the units the gates keep active (learngenes and selected tailors) at the
+        full rate (the scales above apply to ``fixed-gates``).
     :return: the installed :class:`UnitLearningRates` (keep it, or call ``remove``); its
         :meth:`~UnitLearningRates.measured_ratio` is the learngene / selected-tailor update ratio
         (units of undiverted parts are measured apart, as the group ``undiverted``).
@@ -376,6 +386,8 @@ def prepare_transfer(
         raise ValueError(f"undiverted_scale must be in [0, 1] (or None), got {undiverted_scale}")
     if not 0 <= rotation_scale <= 1:
         raise ValueError(f"rotation_scale must be in [0, 1], got {rotation_scale}")
+    if recipe not in RECIPES:
+        raise ValueError(f"recipe must be one of {list(RECIPES)}, got {recipe!r}")
     freeze([policy.router])
     optimizer = policy.optimizer
     scales: dict[nn.Parameter, th.Tensor] = {}
@@ -410,7 +422,24 @@ def prepare_transfer(
                 scales[p] = th.full((), float(learngene_scale))
     if isinstance(getattr(policy, "log_std", None), nn.Parameter):
         scales[policy.log_std] = th.full((), float(learngene_scale))
+    if recipe == "singular-values":
+        scales = singular_value_scales(policy, scales)
     scales.update(critic_rate_scales(policy, critic_scale))
     if adam_eps is not None:
         set_adam_eps(optimizer, adam_eps)
     return UnitLearningRates(optimizer, scales, groups)
+
+
+def singular_value_scales(policy: nn.Module, scales: Mapping[nn.Parameter, th.Tensor]) -> dict[nn.Parameter, th.Tensor]:
+    """FINE's rule on top of :func:`prepare_transfer`'s scales: in the actor, the singular values of
+    every active unit (a non-zero scale) train at the full rate and every other parameter is frozen."""
+    singular = {
+        layer.singular_values for module in actor_modules(policy) for layer in module.modules() if isinstance(layer, FactorizedLinear)
+    }
+    frozen = {p: th.zeros(()) for p in scales if p not in singular}
+    frozen.update(
+        {p: th.zeros(()) for module in actor_modules(policy) for p in module.parameters() if p.requires_grad and p not in singular}
+    )
+    if isinstance(getattr(policy, "log_std", None), nn.Parameter):
+        frozen[policy.log_std] = th.zeros(())
+    return {**frozen, **{p: (scales[p] > 0).float() if p in scales else th.ones(()) for p in singular}}

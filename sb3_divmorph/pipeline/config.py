@@ -16,6 +16,7 @@ from typing import Any
 
 import yaml
 
+from sb3_divmorph.algos.finetune import RECIPES
 from sb3_divmorph.zoo import (  # noqa: F401 -- the rl-zoo entries are read in sb3_divmorph.zoo; re-exported here
     BALANCED_SAMPLER,
     PPO_HYPERPARAMETERS,
@@ -227,6 +228,11 @@ class TransferConfig:
     #: (:class:`~sb3_divmorph.algos.adaptive_rate.AdaptiveLearningRate`, rsl_rl's ``desired_kl``
     #: rule), so arms of different parameterisations are compared at equal policy change per update
     desired_kl: float | None = None
+    #: what the DivMorph-way arms train under their fixed gates
+    #: (:data:`~sb3_divmorph.algos.finetune.RECIPES`): ``fixed-gates`` (the paper's: selected tailors,
+    #: learngenes ``learngene_lr_scale`` times slower) or ``singular-values`` (FINE's: only the
+    #: singular values of the active units)
+    recipe: str = "fixed-gates"
 
     def arm_list(self) -> list[str]:
         """The arms to run: ``arms``, or the pre-arms default (``divmorph`` [+ ``scratch``])."""
@@ -501,6 +507,8 @@ def check_transfer(cfg: TransferConfig, where: str) -> None:
             raise ConfigError(f"{where}.adam_eps must be a number > 0 or null, got {cfg.adam_eps!r}")
     if not 0 <= cfg.rotation_lr_scale <= 1:
         raise ConfigError(f"{where}.rotation_lr_scale must be in [0, 1], got {cfg.rotation_lr_scale}")
+    if cfg.recipe not in RECIPES:
+        raise ConfigError(f"{where}.recipe must be one of {list(RECIPES)}, got {cfg.recipe!r}")
     if cfg.undiverted_lr_scale is not None and not 0 <= cfg.undiverted_lr_scale <= 1:
         raise ConfigError(f"{where}.undiverted_lr_scale must be in [0, 1] or null (= learngene_lr_scale), got {cfg.undiverted_lr_scale!r}")
 

@@ -511,6 +511,7 @@ def transfer_run(
                 undiverted_scale=cfg.undiverted_lr_scale,
                 critic_scale=cfg.critic_lr_scale if source is not None else 1.0,
                 rotation_scale=cfg.rotation_lr_scale,
+                recipe=cfg.recipe,
             )
 
         callbacks.append(UpdateRatioLogger(lambda: installed.get("rates")))
