@@ -1,0 +1,131 @@
+"""Read the goal-in-range control (``rule.md``): each arm's last evaluation against its many-draw start,
+with the goal bounded at 10 m and, beside it, the race's runs with the raw goal; the table and figure of ``README.md``.
+
+    python results/goal-range/read.py
+
+Bounded: ``runs/PointNav/<arm>/seed-<s>/eval.csv.gz`` and the starts in ``runs/baseline.json`` (5 evaluation
+seeds x 3 episodes per robot). Raw: ``../transfer-pointnav/runs-600k/`` and the starts in
+``../novel-task-gates/returns.csv.gz`` (the same robots, evaluation seeds and episodes).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+
+from sb3_divmorph.pipeline.metrics import robot_interval  # noqa: E402
+
+HERE = Path(__file__).resolve().parent
+RESULTS = HERE.parent
+#: arm -> (label, raw race folder, what it is told in the raw starts' rows, the starts' model label)
+ARMS = {
+    "divmorph": ("DivMorph arm (fixed gates, Patrol's)", "PointNav-gates-closest", "Patrol", "divmorph"),
+    "distilled": ("MetaMorph⚗ (fine-tuned)", "PointNav-distilled", "PointNav", "distilled"),
+    "closest": ("MetaMorph→ (Patrol's teacher, fine-tuned)", "PointNav-closest", "PointNav", "teacher-Patrol"),
+}
+
+
+def curves(folder: Path, arm: str) -> pd.DataFrame:
+    """Per (seed, timesteps, robot): the mean deterministic return on the training curve robots."""
+    parts = []
+    for path in sorted((folder / "transfer" / "PointNav" / arm).glob("seed-*/eval.csv.gz")) + sorted(
+        (folder / "PointNav" / arm).glob("seed-*/eval.csv.gz")
+    ):
+        frame = pd.read_csv(path)
+        frame = frame[frame.split == "train"].groupby(["timesteps", "robot"], as_index=False)["return"].mean()
+        # a run's last evaluation (the raw race's runs made one at 600,000 and one at their last step): the points
+        # are numbered, the last one last, and a point within 10k steps before the last is the same point
+        steps = sorted(frame.timesteps.unique())
+        steps = [t for t in steps if t == steps[-1] or steps[-1] - t > 10_000]
+        numbers = {t: i for i, t in enumerate(steps)}
+        frame = frame[frame.timesteps.isin(steps)]
+        frame = frame.assign(point=frame.timesteps.map(numbers))
+        parts.append(frame.assign(seed=int(path.parent.name.split("-")[1])))
+    return pd.concat(parts) if parts else pd.DataFrame(columns=["timesteps", "point", "robot", "return", "seed"])
+
+
+def raw_starts(told: str, model: str) -> pd.Series:
+    rows = pd.read_csv(RESULTS / "novel-task-gates" / "returns.csv.gz")
+    rows = rows[(rows.task == "PointNav") & (rows.model == model) & (rows.instruction_of == told)]
+    return rows.groupby("robot")["return"].mean()
+
+
+def bounded_starts(arm: str) -> pd.Series | None:
+    saved = json.loads((HERE / "runs" / "baseline.json").read_text())
+    return pd.DataFrame(saved[arm]).mean(axis=1) if arm in saved else None
+
+
+def gain(curve: pd.DataFrame, start: pd.Series) -> pd.Series:
+    """Per (robot, seed): each run's last evaluation minus the robot's many-draw start."""
+    last = curve[curve.point == curve.point.max()].set_index(["robot", "seed"])["return"]
+    return (last - start.reindex(last.index.get_level_values(0)).to_numpy()).dropna()
+
+
+def cell(values: np.ndarray, digits: int = 0) -> str:
+    lo, hi = robot_interval(values)
+    return f"{values.mean():+.{digits}f} [{lo:+.{digits}f}, {hi:+.{digits}f}]"
+
+
+def main() -> None:
+    lines = [
+        "| arm (PointNav, 3 seeds x 602,112 steps) | goal input | many-draw start | last evaluation | last against the start [95% CI] | reading |",
+        "|---|---|---:|---:|---|---|",
+    ]
+    figure, axes = plt.subplots(1, len(ARMS), figsize=(4.2 * len(ARMS), 3.6), sharey=True)
+    per_robot_gain = {}
+    for ax, (arm, (label, raw_folder, told, model)) in zip(axes, ARMS.items(), strict=True):
+        for goal, folder, start in (
+            ("raw", RESULTS / "transfer-pointnav" / "runs-600k" / raw_folder, raw_starts(told, model)),
+            ("goal_range 10", HERE / "runs", bounded_starts(arm)),
+        ):
+            curve = curves(folder, arm)
+            if curve.empty or start is None:
+                lines.append(f"| {label} | {goal} | – | – | not run | – |")
+                continue
+            change = gain(curve, start)
+            per_robot_gain[(arm, goal)] = change.groupby(level=0).mean()
+            lo, hi = robot_interval(change.to_numpy())
+            reading = "learns" if lo > 0 else "loses" if hi < 0 else "neither, within noise"
+            last = curve[curve.point == curve.point.max()]["return"].mean()
+            lines.append(f"| {label} | {goal} | {start.mean():.0f} | {last:.0f} | {cell(change.to_numpy())} | {reading} |")
+            mean = curve.groupby("point").agg(steps=("timesteps", "mean"), value=("return", "mean"))
+            steps = np.r_[0, mean.steps.to_numpy()[1:]] / 1e3
+            values = np.r_[start.mean(), mean.value.to_numpy()[1:]]
+            ax.plot(steps, values, marker="o", label=f"{goal} (start: mean of 15 episodes per robot)")
+        ax.set_title(label, fontsize=9)
+        ax.set_xlabel("PPO env steps (thousands)")
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("deterministic return, 20 training robots\n(mean of 3 seeds x 5 episodes)")
+    handles, labels = axes[0].get_legend_handles_labels()
+    figure.legend(handles, labels, loc="lower center", ncol=2, fontsize=8)
+    figure.suptitle("PointNav fine-tuning with raw and bounded (10 m) goal input", fontsize=10)
+    figure.tight_layout(rect=(0, 0.08, 1, 1))
+    figure.savefig(HERE / "pointnav.png", dpi=120)
+    extra = []
+    for arm in ARMS:
+        if (arm, "raw") in per_robot_gain and (arm, "goal_range 10") in per_robot_gain:
+            diff = (per_robot_gain[(arm, "goal_range 10")] - per_robot_gain[(arm, "raw")]).dropna().to_numpy()
+            extra.append(f"- {ARMS[arm][0]}: gain with the bounded goal minus gain with the raw one, per robot: {cell(diff)}")
+    if ("divmorph", "goal_range 10") in per_robot_gain and ("distilled", "goal_range 10") in per_robot_gain:
+        diff = (per_robot_gain[("divmorph", "goal_range 10")] - per_robot_gain[("distilled", "goal_range 10")]).dropna().to_numpy()
+        extra.append(f"- bounded goal: the DivMorph arm's gain minus MetaMorph⚗'s, per robot: {cell(diff)}")
+    starts = []
+    for arm, (label, _, told, model) in ARMS.items():
+        bounded = bounded_starts(arm)
+        if bounded is not None:
+            diff = (bounded - raw_starts(told, model).reindex(bounded.index)).dropna().to_numpy()
+            starts.append(f"- {label}: many-draw start with the bounded goal minus with the raw one, per robot: {cell(diff)}")
+    text = "\n".join(lines + ["", *extra, *starts])
+    (HERE / "reading.md").write_text(text + "\n")
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
