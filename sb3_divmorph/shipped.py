@@ -52,23 +52,26 @@ def fetch_command(run: str) -> str:
     return f"divmorph fetch-models {run} --source <a checkout of the divmorph repository, or an archive of one>"
 
 
-def cached_path(source: str | Path, cache: str | Path | None = None) -> Path | None:
-    """The fetched copy of a shipped path (``results/cpu100/teachers/FT`` or ``cpu100/teachers/FT``),
-    or ``None`` when ``source`` names no shipped run or that run is not fetched."""
+def _inside_run(source: str | Path) -> tuple[str, ...] | None:
+    """``("cpu100", "teachers", "FT")`` for ``results/cpu100/teachers/FT`` or ``cpu100/teachers/FT``;
+    ``None`` when the path names no shipped run."""
     parts = PurePosixPath(Path(source).as_posix()).parts
-    if parts[:1] == ("results",):
-        parts = parts[1:]
-    if not parts or parts[0] not in shipped_runs():
-        return None
-    folder = models_cache(cache).joinpath(*parts)
-    return folder if folder.exists() else None
+    parts = parts[1:] if parts[:1] == ("results",) else parts
+    return parts if parts and parts[0] in shipped_runs() else None
 
 
 def shipped_run_of(source: str | Path) -> str | None:
     """The shipped run a path names (``results/cpu100/...`` -> ``cpu100``), else ``None``."""
-    parts = PurePosixPath(Path(source).as_posix()).parts
-    parts = parts[1:] if parts[:1] == ("results",) else parts
-    return parts[0] if parts and parts[0] in shipped_runs() else None
+    parts = _inside_run(source)
+    return parts[0] if parts else None
+
+
+def cached_path(source: str | Path, cache: str | Path | None = None) -> Path | None:
+    """The fetched copy of a shipped path (``results/cpu100/teachers/FT`` or ``cpu100/teachers/FT``),
+    or ``None`` when ``source`` names no shipped run or that run is not fetched."""
+    parts = _inside_run(source)
+    folder = models_cache(cache).joinpath(*parts) if parts else None
+    return folder if folder is not None and folder.exists() else None
 
 
 def fetch_models(run: str, source: str | Path, cache: str | Path | None = None, force: bool = False) -> Path:
@@ -90,7 +93,7 @@ def fetch_models(run: str, source: str | Path, cache: str | Path | None = None, 
     target.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{run}-", dir=target.parent))
     try:
-        with _opened(source) as read:
+        with _SourceFiles(source) as read:
             for relative, digest in files.items():
                 content = read(f"results/{run}/{relative}")
                 if content is None:
@@ -112,7 +115,7 @@ def fetch_models(run: str, source: str | Path, cache: str | Path | None = None, 
     return target
 
 
-class _opened:
+class _SourceFiles:
     """``path inside the repository -> bytes or None`` for a checkout, an archive or a URL."""
 
     def __init__(self, source: str | Path):
