@@ -3,14 +3,13 @@ with the goal bounded at 10 m and, beside it, the race's runs with the raw goal;
 
     python results/goal-range/read.py
 
-Bounded: ``runs/PointNav/<arm>/seed-<s>/eval.csv.gz`` and the starts in ``runs/baseline.json`` (5 evaluation
-seeds x 3 episodes per robot). Raw: ``../transfer-pointnav/runs-600k/`` and the starts in
-``../novel-task-gates/returns.csv.gz`` (the same robots, evaluation seeds and episodes).
+Bounded: ``curves.csv.gz`` and ``starts.csv`` (``collect.py`` gathers them from the runs). Raw:
+``../transfer-pointnav/runs-600k/`` and the starts in ``../novel-task-gates/returns.csv.gz`` (the same
+robots, evaluation seeds and episodes).
 """
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import matplotlib
@@ -20,6 +19,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
+from sb3_divmorph.pipeline.figures import save_png  # noqa: E402
 from sb3_divmorph.pipeline.metrics import robot_interval  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
@@ -32,23 +32,32 @@ ARMS = {
 }
 
 
-def curves(folder: Path, arm: str) -> pd.DataFrame:
-    """Per (seed, timesteps, robot): the mean deterministic return on the training curve robots."""
+def numbered(frame: pd.DataFrame) -> pd.DataFrame:
+    """One run's training-robot curve with its evaluations numbered, the last one last. The raw race's runs
+    evaluated at 600,000 and again at their last step: a point within 10k steps before the last is that point."""
+    steps = sorted(frame.timesteps.unique())
+    steps = [t for t in steps if t == steps[-1] or steps[-1] - t > 10_000]
+    frame = frame[frame.timesteps.isin(steps)]
+    return frame.assign(point=frame.timesteps.map({t: i for i, t in enumerate(steps)}))
+
+
+def raw_curves(folder: Path, arm: str) -> pd.DataFrame:
+    """Per (seed, point, robot): the mean deterministic return on the training curve robots, raw goal."""
     parts = []
-    for path in sorted((folder / "transfer" / "PointNav" / arm).glob("seed-*/eval.csv.gz")) + sorted(
-        (folder / "PointNav" / arm).glob("seed-*/eval.csv.gz")
-    ):
+    for path in sorted((folder / "transfer" / "PointNav" / arm).glob("seed-*/eval.csv.gz")):
         frame = pd.read_csv(path)
         frame = frame[frame.split == "train"].groupby(["timesteps", "robot"], as_index=False)["return"].mean()
-        # a run's last evaluation (the raw race's runs made one at 600,000 and one at their last step): the points
-        # are numbered, the last one last, and a point within 10k steps before the last is the same point
-        steps = sorted(frame.timesteps.unique())
-        steps = [t for t in steps if t == steps[-1] or steps[-1] - t > 10_000]
-        numbers = {t: i for i, t in enumerate(steps)}
-        frame = frame[frame.timesteps.isin(steps)]
-        frame = frame.assign(point=frame.timesteps.map(numbers))
-        parts.append(frame.assign(seed=int(path.parent.name.split("-")[1])))
+        parts.append(numbered(frame).assign(seed=int(path.parent.name.split("-")[1])))
     return pd.concat(parts) if parts else pd.DataFrame(columns=["timesteps", "point", "robot", "return", "seed"])
+
+
+def bounded_curves(arm: str) -> pd.DataFrame:
+    """The same with the goal bounded (``curves.csv.gz``); only an arm whose three seeds finished."""
+    table = pd.read_csv(HERE / "curves.csv.gz")
+    table = table[(table.arm == arm) & (table.split == "train")]
+    if table.seed.nunique() < 3:
+        return pd.DataFrame(columns=["timesteps", "point", "robot", "return", "seed"])
+    return pd.concat(numbered(run).assign(seed=seed) for seed, run in table.groupby("seed"))
 
 
 def raw_starts(told: str, model: str) -> pd.Series:
@@ -58,8 +67,8 @@ def raw_starts(told: str, model: str) -> pd.Series:
 
 
 def bounded_starts(arm: str) -> pd.Series | None:
-    saved = json.loads((HERE / "runs" / "baseline.json").read_text())
-    return pd.DataFrame(saved[arm]).mean(axis=1) if arm in saved else None
+    starts = pd.read_csv(HERE / "starts.csv", index_col="robot")
+    return starts[arm] if arm in starts else None
 
 
 def gain(curve: pd.DataFrame, start: pd.Series) -> pd.Series:
@@ -81,11 +90,10 @@ def main() -> None:
     figure, axes = plt.subplots(1, len(ARMS), figsize=(4.2 * len(ARMS), 3.6), sharey=True)
     per_robot_gain = {}
     for ax, (arm, (label, raw_folder, told, model)) in zip(axes, ARMS.items(), strict=True):
-        for goal, folder, start in (
-            ("raw", RESULTS / "transfer-pointnav" / "runs-600k" / raw_folder, raw_starts(told, model)),
-            ("goal_range 10", HERE / "runs", bounded_starts(arm)),
+        for goal, curve, start in (
+            ("raw", raw_curves(RESULTS / "transfer-pointnav" / "runs-600k" / raw_folder, arm), raw_starts(told, model)),
+            ("goal_range 10", bounded_curves(arm), bounded_starts(arm)),
         ):
-            curve = curves(folder, arm)
             if curve.empty or start is None:
                 lines.append(f"| {label} | {goal} | – | – | not run | – |")
                 continue
@@ -107,7 +115,7 @@ def main() -> None:
     figure.legend(handles, labels, loc="lower center", ncol=2, fontsize=8)
     figure.suptitle("PointNav fine-tuning with raw and bounded (10 m) goal input", fontsize=10)
     figure.tight_layout(rect=(0, 0.08, 1, 1))
-    figure.savefig(HERE / "pointnav.png", dpi=120)
+    save_png(figure, HERE / "pointnav.png")
     extra = []
     for arm in ARMS:
         if (arm, "raw") in per_robot_gain and (arm, "goal_range 10") in per_robot_gain:
