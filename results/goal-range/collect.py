@@ -1,7 +1,7 @@
 """Gather the finished runs of the study's run folder (``runs/goal-range-pointnav``, not tracked) into the
 small tables ``read.py`` reads: ``curves.csv.gz`` (each run's mean deterministic return per robot at each
-evaluation, training and held-out robots), ``training.csv.gz`` (each PPO update's stochastic training return,
-KL, clip fraction and explained variance) and ``starts.csv`` (each arm's many-draw start per robot, with the
+evaluation, training and held-out robots), ``training.csv.gz`` (each PPO update's stochastic training return
+and approximate KL) and ``starts.csv`` (each arm's many-draw start per robot, with the
 goal bounded: the mean over 5 evaluation seeds x 3 episodes).
 
     python results/goal-range/collect.py --from runs/goal-range-pointnav
@@ -16,13 +16,7 @@ from pathlib import Path
 import pandas as pd
 
 HERE = Path(__file__).resolve().parent
-LOGGED = {
-    "time/total_timesteps": "timesteps",
-    "rollout/ep_rew_mean": "training_return",
-    "train/approx_kl": "approx_kl",
-    "train/clip_fraction": "clip_fraction",
-    "train/explained_variance": "explained_variance",
-}
+LOGGED = {"time/total_timesteps": "timesteps", "rollout/ep_rew_mean": "training_return", "train/approx_kl": "approx_kl"}
 
 
 def main() -> None:
