@@ -58,8 +58,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--robot",
         action="append",
-        help="robot name in that set (repeatable; default: the first ones, one per episode); "
-        "'best': the training robot the model does best on by its run's evaluation",
+        help="robot name in that set (repeatable, one per episode in turn; default: the robot the model does best on by "
+        "its run's evaluation, else the first, said on stderr); 'best': that robot, or an error where there is no evaluation",
     )
     parser.add_argument("--episodes", type=int, default=1, help="episodes to record, one after the other (default: 1)")
     parser.add_argument("--steps", type=int, default=1000, help="longest episode, in steps of 0.02 s (default: 1000)")
@@ -170,11 +170,11 @@ def record(args: argparse.Namespace) -> Path:
                 yield frame
             print(f"[record] episode {episode}: {robot}, {outcome['steps']} steps, return {outcome['return']:.1f}")
 
+    fps = env.metadata.get("render_fps", 50)
     try:
-        write_video(frames(), out, fps=env.metadata.get("render_fps", 50))
+        write_video(frames(), out, fps=fps)
     finally:
         env.close()
-    fps = env.metadata.get("render_fps", 50)
     kept = frames_kept(count, out, fps)
     held = f"{kept} frames" if kept == count else f"{kept} frames (of {count} simulated: a GIF plays {GIF_FPS} per second, still real time)"
     print(f"[record] {held} of {env_id} -> {out}")
