@@ -33,9 +33,9 @@ tour: $(STAMP)
 	$(PY) -m unimal_envs.demo --out runs/tour
 
 # The whole suite (after lint and types), one pytest worker per core, each test file on one worker (its
-# module fixtures built once): 580 tests in 7 min 36 s of pytest on 2 cores from a fresh clone with an
-# empty HOME and robot cache (`.ci/run`), 8 min 41 s with the install from pip's cache and lint
-# (2026-12-05); the batched backend's tests compile MuJoCo Warp's kernels on a machine's first run
+# module fixtures built once): 594 tests in 6 min 57 s of pytest on 2 idle cores from a fresh clone with
+# an empty HOME and robot cache (`.ci/run`), 9 min 22 s with a fresh .venv (pip's cache) and lint
+# (2026-12-06); the batched backend's tests compile MuJoCo Warp's kernels on a machine's first run
 # (~2 min more, then cached in ~/.cache/warp).
 test: lint
 	$(PY) -m pytest -q -n 2 --dist loadfile
