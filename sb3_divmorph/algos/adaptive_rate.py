@@ -2,7 +2,7 @@
 
 Two policies fine-tuned at one nominal rate can move very differently: a step of Adam on a Cayley
 generator or a tall factor changes a DivMorph student's function several times more than the same
-step on a dense weight (``results/transfer-pointnav/update-kl-by-parameter.md``). Comparing transfer
+step on a dense weight, because it turns or stretches whole singular directions. Comparing transfer
 recipes at equal *effect* means giving each the step size that moves its policy by a set amount.
 
 :class:`AdaptiveLearningRate` does what rsl_rl's ``desired_kl`` does, once per update instead of once
