@@ -10,7 +10,7 @@ export MUJOCO_GL ?= egl
 export HF_HUB_OFFLINE ?= 1
 export TRANSFORMERS_OFFLINE ?= 1
 
-.PHONY: demo tour test lint install benchmarks clean
+.PHONY: demo tour test test-results lint install benchmarks clean
 
 $(STAMP): pyproject.toml setup.py
 	$(PYTHON) -m venv $(VENV)
@@ -38,7 +38,12 @@ tour: $(STAMP)
 # (2026-12-06); the batched backend's tests compile MuJoCo Warp's kernels on a machine's first run
 # (~2 min more, then cached in ~/.cache/warp).
 test: lint
-	$(PY) -m pytest -q -n 2 --dist loadfile
+	$(PY) -m pytest -q -n 2 --dist loadfile -m "not shipped_results"
+
+# The tests of the shipped runs under results/ (their models load and walk, their tables quote their
+# data, the wheel fetches them): apart from the library's suite, which brings its own data.
+test-results: $(STAMP)
+	$(PY) -m pytest -q -n 2 --dist loadfile -m shipped_results
 
 # Lint and types (part of `make test`): ruff's rules and formatting over the repository, mypy over the packages
 # (both configured in pyproject.toml; mypy's list of modules not yet typed only ever shrinks). About 20 s.

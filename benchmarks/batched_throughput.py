@@ -406,7 +406,7 @@ def main(argv: list[str] | None = None) -> None:
                         )
 
         files = ppo_files
-        from sb3_divmorph.pipeline.envs import make_vec_env
+        from divmorph.pipeline.envs import make_vec_env
 
         for preset in args.ppo_presets:
             single_envs = args.ppo_single_envs

@@ -45,8 +45,8 @@ def policy_kwargs(config: str, profile_name: str | None) -> dict:
     """The student of ``config``: at the paper width, or as the pipeline distils it for a profile."""
     if profile_name is None:
         return dict(preset="paper", diversion=config)
-    from sb3_divmorph.pipeline.config import load_profile
-    from sb3_divmorph.pipeline.distill import STUDENTS
+    from divmorph.pipeline.config import load_profile
+    from divmorph.pipeline.distill import STUDENTS
 
     return STUDENTS["divmorph" if config == "default" else config].policy_kwargs(load_profile(profile_name))
 

@@ -33,11 +33,11 @@ from stable_baselines3 import PPO
 
 import sb3_divmorph  # noqa: F401  (policy aliases)
 import unimal_envs  # noqa: F401
-from sb3_divmorph.pipeline.grl import inherited_normalizer
-from sb3_divmorph.pipeline.provenance import recorded_profile
-from sb3_divmorph.pipeline.envs import make_vec_env
-from sb3_divmorph.pipeline.robots import profile_robots
-from sb3_divmorph.pipeline.training import stage_model
+from divmorph.pipeline.grl import inherited_normalizer
+from divmorph.pipeline.provenance import recorded_profile
+from divmorph.pipeline.envs import make_vec_env
+from divmorph.pipeline.robots import profile_robots
+from divmorph.pipeline.training import stage_model
 
 
 def visited_states(run: Path, folder: str, task: str, robots, steps: int, device: str):

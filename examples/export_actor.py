@@ -25,7 +25,7 @@ from sb3_divmorph.algos.distillation import load_normalizer
 from sb3_divmorph.deploy.compact import CompactActor, actor_parameter_count, export_torchscript
 from sb3_divmorph.deploy.deployment import export_onnx
 from sb3_divmorph.deploy.onnx_actor import OnnxActor
-from sb3_divmorph.pipeline.robots import trained_robot_set, trained_robots
+from divmorph.pipeline.robots import trained_robot_set, trained_robots
 from unimal_envs.contract import TASK_NAMES
 from unimal_envs.morphology.loader import morphology_files
 from unimal_envs.tasks import TASKS

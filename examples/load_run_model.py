@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch as th
 
-from sb3_divmorph.pretrained import PretrainedError, load_pretrained
+from divmorph.pretrained import PretrainedError, load_pretrained
 from unimal_envs.contract import TASK_NAMES
 
 

@@ -39,7 +39,7 @@ import sb3_divmorph  # noqa: F401  (policy aliases)
 import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
 from sb3_divmorph.algos.finetune import UnitSelection, prepare_transfer
 from sb3_divmorph.policies import DivMorphPolicy
-from sb3_divmorph.pretrained import Pretrained, PretrainedError, load_pretrained
+from divmorph.pretrained import Pretrained, PretrainedError, load_pretrained
 from sb3_divmorph.zoo import zoo_hyperparams
 from unimal_envs.contract import NOVEL_TASKS
 

@@ -7,11 +7,6 @@ and ``"HyperDistillPolicy"`` as PPO and A2C policy aliases, so ``PPO("DivMorphPo
 MuJoCo Warp env (``sb3_divmorph.algos.device_ppo``).
 """
 
-import importlib
-import importlib.abc
-import importlib.util
-import sys
-
 from stable_baselines3 import A2C, PPO
 
 from sb3_divmorph.algos.device_ppo import DevicePPO
@@ -24,6 +19,7 @@ from sb3_divmorph.nn.layers import DenseLinear, Factorization, FactorizedLinear,
 from sb3_divmorph.nn.transformer import MultiHeadSelfAttention, TransformerEncoder, TransformerEncoderLayer
 from sb3_divmorph.policies.hyperdistill import HYPERDISTILL_PRESETS, HyperDistillPolicy
 from sb3_divmorph.policies.modumorph import MODUMORPH_PRESETS, ModuMorphPolicy
+from sb3_divmorph.saved_model import NormalizedModel, load_model
 from sb3_divmorph.policies.morphology_transformer import (
     DIVMORPH_PRESETS,
     PRESETS,
@@ -67,38 +63,6 @@ def _register_off_policy_guards() -> None:
 
 _register_off_policy_guards()
 
-#: Module paths from before the package was organised by concept (issue 45) -> where the code is now.
-#: Saved models name their policy class by module (``sb3_divmorph.hyperdistill.HyperDistillPolicy``),
-#: and scripts import the old paths: both keep working, without a module left behind for each.
-MOVED_MODULES = {
-    **{
-        f"sb3_divmorph.{name}": f"sb3_divmorph.nn.{name}"
-        for name in ("layers", "gates", "transformer", "decoders", "extractors", "distributions")
-    },
-    **{f"sb3_divmorph.{name}": f"sb3_divmorph.policies.{name}" for name in ("modumorph", "hyperdistill", "learngene")},
-    **{f"sb3_divmorph.{name}": f"sb3_divmorph.algos.{name}" for name in ("device_ppo", "distillation", "finetune", "recipe")},
-    **{f"sb3_divmorph.{name}": f"sb3_divmorph.deploy.{name}" for name in ("compact", "deployment", "onnx_actor")},
-}
-
-
-class _MovedModuleFinder(importlib.abc.MetaPathFinder, importlib.abc.Loader):
-    """Resolves an old module path (:data:`MOVED_MODULES`) to the module that lives there now."""
-
-    def find_spec(self, fullname, path=None, target=None):
-        if fullname not in MOVED_MODULES:
-            return None
-        return importlib.util.spec_from_loader(fullname, self)
-
-    def create_module(self, spec):
-        # the module object itself: the import system files it under the old name as well
-        return importlib.import_module(MOVED_MODULES[spec.name])
-
-    def exec_module(self, module):
-        pass  # already executed under its new name
-
-
-sys.meta_path.append(_MovedModuleFinder())
-
 __all__ = [
     "DIVMORPH_PRESETS",
     "PRESETS",
@@ -122,7 +86,9 @@ __all__ = [
     "MorphologyTransformerExtractor",
     "MorphologyTransformerPolicy",
     "MultiHeadSelfAttention",
+    "NormalizedModel",
     "TopKSoftGate",
     "TransformerEncoder",
     "TransformerEncoderLayer",
+    "load_model",
 ]

@@ -92,7 +92,7 @@ race() {
     # the seeds' workers would otherwise race to create the same branch
     (
         flock 9 || exit 1
-        [ -f "$out/run.json" ] || "$PY" -c "import sys; from pathlib import Path; from sb3_divmorph.pipeline.branch import branch; \
+        [ -f "$out/run.json" ] || "$PY" -c "import sys; from pathlib import Path; from divmorph.pipeline.branch import branch; \
 branch(Path(sys.argv[1]), Path(sys.argv[2]), ('teachers', 'distill'), command='python studies/finetune_known_task.py')" \
             "$WORK/ablate-$1" "$out"
     ) 9> "$WORK/race600/.branch-lock" || return

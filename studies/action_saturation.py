@@ -27,8 +27,8 @@ from pathlib import Path
 import numpy as np
 import torch as th
 
-from sb3_divmorph.pipeline.curves import robot_venv
-from sb3_divmorph.pretrained import Pretrained, load_pretrained
+from divmorph.pipeline.curves import robot_venv
+from divmorph.pretrained import Pretrained, load_pretrained
 
 #: The models compared, by their folder in a run.
 MODELS = {

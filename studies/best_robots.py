@@ -17,8 +17,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from sb3_divmorph.pipeline.files import log_file
-from sb3_divmorph.pretrained import robot_means
+from divmorph.pipeline.files import log_file
+from divmorph.pretrained import robot_means
 
 TRAINING_TASKS = ("FT", "VT", "Incline", "Obstacle", "Patrol")
 

@@ -11,7 +11,7 @@ is known in advance -- on the training task FT, whose skill the students already
 fall of the return during fine-tuning is damage, not exploration -- never on the novel tasks.
 
 For each variant it branches the source run (``divmorph branch``: its students, read-only) into
-``<out>/<variant>/`` and runs the race's own transfer runs (:func:`sb3_divmorph.pipeline.transfer.transfer_run`,
+``<out>/<variant>/`` and runs the race's own transfer runs (:func:`divmorph.pipeline.transfer.transfer_run`,
 ``calibration=True``) of the ``divmorph`` and ``distilled`` arms on FT, with the race's settings
 (fine-tuning at lin_1e-4, frozen inherited observation statistics, Adam eps 1e-10), 3 seeds,
 evaluated every ``--eval-every`` steps on the training robots (3 deterministic episodes each).
@@ -31,11 +31,11 @@ import numpy as np
 import pandas as pd
 import torch as th
 
-from sb3_divmorph.pipeline.branch import branch
-from sb3_divmorph.pipeline.folders import transfer_folder
-from sb3_divmorph.pipeline.provenance import recorded_profile
-from sb3_divmorph.pipeline.files import log_file, read_progress
-from sb3_divmorph.pipeline.transfer import transfer_run
+from divmorph.pipeline.branch import branch
+from divmorph.pipeline.folders import transfer_folder
+from divmorph.pipeline.provenance import recorded_profile
+from divmorph.pipeline.files import log_file, read_progress
+from divmorph.pipeline.transfer import transfer_run
 
 ARMS = ("divmorph", "distilled")
 

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from sb3_divmorph.pipeline.files import log_file, read_done
+from divmorph.pipeline.files import log_file, read_done
 
 
 def paired_share(student: np.ndarray, teacher: np.ndarray, draws: int = 2000, seed: int = 0) -> tuple[float, float, float]:

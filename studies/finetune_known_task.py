@@ -38,12 +38,12 @@ import pandas as pd
 import torch as th
 import yaml
 
-from sb3_divmorph.pipeline.branch import branch
-from sb3_divmorph.pipeline.folders import transfer_folder
-from sb3_divmorph.pipeline.metrics import robot_interval
-from sb3_divmorph.pipeline.provenance import recorded_profile
-from sb3_divmorph.pipeline.files import is_done, log_file, read_progress
-from sb3_divmorph.pipeline.transfer import transfer_run
+from divmorph.pipeline.branch import branch
+from divmorph.pipeline.folders import transfer_folder
+from divmorph.pipeline.metrics import robot_interval
+from divmorph.pipeline.provenance import recorded_profile
+from divmorph.pipeline.files import is_done, log_file, read_progress
+from divmorph.pipeline.transfer import transfer_run
 
 ARMS = {
     "closest": "teacher (MetaMorph->)",
@@ -89,9 +89,9 @@ def evaluate_baselines(args: argparse.Namespace, profile) -> dict[str, dict[str,
     under ``--baseline-seeds`` evaluation seeds (kept in ``<out>/baseline.json``; the missing ones added)."""
     import json
 
-    from sb3_divmorph.pipeline.envs import profile_env_kwargs
-    from sb3_divmorph.pipeline.robots import transfer_eval_robots
-    from sb3_divmorph.pretrained import load_pretrained
+    from divmorph.pipeline.envs import profile_env_kwargs
+    from divmorph.pipeline.robots import transfer_eval_robots
+    from divmorph.pretrained import load_pretrained
 
     path = args.out / BASELINE
     found = json.loads(path.read_text()) if path.is_file() else {}

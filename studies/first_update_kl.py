@@ -26,12 +26,12 @@ from stable_baselines3.common.vec_env import VecNormalize
 import sb3_divmorph  # noqa: F401
 import unimal_envs  # noqa: F401
 from sb3_divmorph.algos.finetune import prepare_transfer, set_adam_eps
-from sb3_divmorph.pipeline.grl import inherited_normalizer
-from sb3_divmorph.pipeline.provenance import recorded_profile
-from sb3_divmorph.pipeline.envs import make_vec_env
-from sb3_divmorph.pipeline.robots import profile_robots
-from sb3_divmorph.pipeline.training import stage_model
-from sb3_divmorph.pipeline.transfer import gate_selection, robot_observations
+from divmorph.pipeline.grl import inherited_normalizer
+from divmorph.pipeline.provenance import recorded_profile
+from divmorph.pipeline.envs import make_vec_env
+from divmorph.pipeline.robots import profile_robots
+from divmorph.pipeline.training import stage_model
+from divmorph.pipeline.transfer import gate_selection, robot_observations
 
 ACTOR = {
     "token embedding weight": "features_extractor.embedding.linear.weight",

@@ -18,8 +18,8 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from sb3_divmorph.pipeline.figures import save_png  # noqa: E402
-from sb3_divmorph.pipeline.files import read_csv_rows  # noqa: E402
+from divmorph.pipeline.figures import save_png  # noqa: E402
+from divmorph.pipeline.files import read_csv_rows  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "results"

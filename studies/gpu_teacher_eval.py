@@ -1,7 +1,7 @@
 """Evaluate a teacher checkpoint brought back from the GPU machine the way the cpu100 run's evaluation
 stage rolls out its teachers, and compare it with that run's FT teacher robot by robot.
 
-Both sides go through the same code: :func:`~sb3_divmorph.pipeline.curves.evaluate_model` with single
+Both sides go through the same code: :func:`~divmorph.pipeline.curves.evaluate_model` with single
 C envs, deterministic actions, ``--episodes`` episodes per robot of at most 1,000 steps, seed 0 (the
 profile's seed), on the 100 official training robots and the 100 novel robots. The cpu100 side is read
 from ``results/cpu100/evaluate/returns.csv(.gz)`` (rows ``teacher`` / ``teacher-untrained``), which
@@ -25,11 +25,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from sb3_divmorph.pipeline.config import load_profile
-from sb3_divmorph.pipeline.curves import evaluate_model
-from sb3_divmorph.pipeline.metrics import robot_interval
-from sb3_divmorph.pipeline.files import read_csv_rows
-from sb3_divmorph.pipeline.robots import profile_robots
+from divmorph.pipeline.config import load_profile
+from divmorph.pipeline.curves import evaluate_model
+from divmorph.pipeline.metrics import robot_interval
+from divmorph.pipeline.files import read_csv_rows
+from divmorph.pipeline.robots import profile_robots
 
 ROOT = Path(__file__).resolve().parents[1]
 COLUMNS = ["model", "task", "split", "morphology", "episode", "return", "length"]

@@ -34,7 +34,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from sb3_divmorph.pipeline.metrics import robot_interval
+from divmorph.pipeline.metrics import robot_interval
 
 #: The variants: ``--set`` overrides of the ``cpu100`` teachers' policy_kwargs (width 32, one layer).
 VARIANTS: dict[str, dict[str, object]] = {

@@ -33,9 +33,9 @@ from stable_baselines3 import PPO
 import sb3_divmorph  # noqa: F401
 import unimal_envs  # noqa: F401
 from sb3_divmorph.algos.distillation import load_normalizer
-from sb3_divmorph.pipeline.provenance import recorded_profile
-from sb3_divmorph.pipeline.robots import profile_robots
-from sb3_divmorph.pipeline.training import stage_model
+from divmorph.pipeline.provenance import recorded_profile
+from divmorph.pipeline.robots import profile_robots
+from divmorph.pipeline.training import stage_model
 
 TASKS = ("FT", "VT", "Incline", "Obstacle", "Patrol")
 KEY = "proprioceptive"

@@ -23,11 +23,11 @@ import numpy as np
 import torch
 from stable_baselines3 import PPO
 
-from sb3_divmorph.pipeline.curves import robot_venv
-from sb3_divmorph.pipeline.provenance import recorded_profile
-from sb3_divmorph.pipeline.envs import task_env_name
-from sb3_divmorph.pipeline.robots import trained_env_kwargs, transfer_eval_robots
-from sb3_divmorph.pipeline.training import stage_model, stage_normalizer
+from divmorph.pipeline.curves import robot_venv
+from divmorph.pipeline.provenance import recorded_profile
+from divmorph.pipeline.envs import task_env_name
+from divmorph.pipeline.robots import trained_env_kwargs, transfer_eval_robots
+from divmorph.pipeline.training import stage_model, stage_normalizer
 
 #: |z| beyond which a normalised input counts as far out (VecNormalize clips at 10).
 FAR = 5.0

@@ -8,7 +8,7 @@ it never caught up. This study asks whether the start is a matter of which tailo
 it evaluates the student on each novel task with the env's instruction replaced by each training
 task's (the gates and every other reader of the task embedding then see that task), beside its own
 instruction, the dense student and the ``closest`` teacher (MetaMorph→'s start), all through the
-same :meth:`~sb3_divmorph.pretrained.SavedModel.evaluate` on the race's curve robots (training
+same :meth:`~divmorph.pretrained.SavedModel.evaluate` on the race's curve robots (training
 split), several evaluation seeds x 3 deterministic episodes per robot.
 
 Rows go to ``<out>/returns.csv.gz`` (one per episode; conditions already there are skipped, so the
@@ -33,13 +33,13 @@ from pathlib import Path
 import pandas as pd
 import torch as th
 
-from sb3_divmorph.pipeline.folders import student_folder, teacher_folder
-from sb3_divmorph.pipeline.metrics import robot_interval
-from sb3_divmorph.pipeline.config import Profile
-from sb3_divmorph.pipeline.provenance import recorded_profile
-from sb3_divmorph.pipeline.robots import transfer_eval_robots
-from sb3_divmorph.pipeline.transfer import closest_task
-from sb3_divmorph.pretrained import load_pretrained
+from divmorph.pipeline.folders import student_folder, teacher_folder
+from divmorph.pipeline.metrics import robot_interval
+from divmorph.pipeline.config import Profile
+from divmorph.pipeline.provenance import recorded_profile
+from divmorph.pipeline.robots import transfer_eval_robots
+from divmorph.pipeline.transfer import closest_task
+from divmorph.pretrained import load_pretrained
 from unimal_envs.instructions import INSTRUCTIONS
 
 ROWS = "returns.csv.gz"

@@ -6,7 +6,7 @@ In a race where scratch learns little within the budget, the speed-up of an arm 
 lower bound (``>= budget / the arm's steps``). The control trains scratch (MetaMorph from random
 weights) longer on the same tasks, robots and evaluation (``transfer.eval_robots``, deterministic
 episodes) and measures, against the level the race fixed for each task and split
-(:func:`sb3_divmorph.pipeline.metrics.level_for`; it is not recomputed with the control in it), the
+(:func:`divmorph.pipeline.metrics.level_for`; it is not recomputed with the control in it), the
 steps scratch needs to hold it: each arm's speed-up is then the control's steps / the arm's steps
 (from the race's ``transfer/<task>/metrics.csv``), still a lower bound where the control never holds
 the level. It also gives, for each arm, the steps from which the control holds that arm's final
@@ -26,11 +26,11 @@ from pathlib import Path
 
 import numpy as np
 
-from sb3_divmorph.pipeline.curves import seed_robot_curves
-from sb3_divmorph.pipeline.metrics import bootstrap_curves, interval, stack_seeds, steps_to_hold
-from sb3_divmorph.pipeline.metrics import speedup as metrics_speedup
-from sb3_divmorph.pipeline.figures import save_png
-from sb3_divmorph.pipeline.files import read_csv_rows
+from divmorph.pipeline.curves import seed_robot_curves
+from divmorph.pipeline.metrics import bootstrap_curves, interval, stack_seeds, steps_to_hold
+from divmorph.pipeline.metrics import speedup as metrics_speedup
+from divmorph.pipeline.figures import save_png
+from divmorph.pipeline.files import read_csv_rows
 
 SPLITS = ("train", "novel")
 #: the race's arms drawn beside the control (every arm of the race)

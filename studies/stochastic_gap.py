@@ -8,7 +8,7 @@ the evaluations roll out its mean action. When the two differ a lot -- the paper
 logged 117 while its deterministic evaluation returned 965 -- either the action noise itself costs
 the return, or the training env's episodes differ from the evaluation env's. This script separates
 the two: it rolls out each model both ways in the *same* single-robot C envs (the evaluation's
-:func:`~sb3_divmorph.pipeline.curves.evaluate_model`, seed 0, the same robots and episodes), so a gap
+:func:`~divmorph.pipeline.curves.evaluate_model`, seed 0, the same robots and episodes), so a gap
 that remains here is the noise's, not the env's.
 """
 
@@ -22,10 +22,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from sb3_divmorph.pipeline.config import load_profile
-from sb3_divmorph.pipeline.curves import evaluate_model
-from sb3_divmorph.pipeline.metrics import robot_interval
-from sb3_divmorph.pipeline.robots import transfer_eval_robots
+from divmorph.pipeline.config import load_profile
+from divmorph.pipeline.curves import evaluate_model
+from divmorph.pipeline.metrics import robot_interval
+from divmorph.pipeline.robots import transfer_eval_robots
 
 
 def robot_means(rows: list[dict]) -> np.ndarray:

@@ -4,7 +4,7 @@ Each ``--runs`` folder is a ``divmorph teachers --task TASK`` run (one teacher; 
 test -- learning rate, width, budget -- set with ``--set`` on its command line and recorded in its
 ``run.json``). For each run this script rolls out, deterministically and ``--episodes`` times on
 every one of the run's *training* robots, the trained teacher and the same policy before training
-(the run's initial weights and fresh normaliser: :func:`~sb3_divmorph.pipeline.evaluate.evaluate_untrained_teacher`),
+(the run's initial weights and fresh normaliser: :func:`~divmorph.pipeline.evaluate.evaluate_untrained_teacher`),
 and reads the run's training curve and wall time. Novel robots are never rolled out: settings are
 chosen without looking at them.
 
@@ -34,14 +34,14 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 import torch as th  # noqa: E402
 
-from sb3_divmorph.pipeline.curves import evaluate_model  # noqa: E402
-from sb3_divmorph.pipeline.evaluate import evaluate_untrained_teacher  # noqa: E402
-from sb3_divmorph.pipeline.folders import teacher_folder  # noqa: E402
-from sb3_divmorph.pipeline.metrics import robot_interval  # noqa: E402
-from sb3_divmorph.pipeline.provenance import RECORD, recorded_profile  # noqa: E402
-from sb3_divmorph.pipeline.envs import profile_env_kwargs  # noqa: E402
-from sb3_divmorph.pipeline.files import is_done, read_progress  # noqa: E402
-from sb3_divmorph.pipeline.robots import profile_robots  # noqa: E402
+from divmorph.pipeline.curves import evaluate_model  # noqa: E402
+from divmorph.pipeline.evaluate import evaluate_untrained_teacher  # noqa: E402
+from divmorph.pipeline.folders import teacher_folder  # noqa: E402
+from divmorph.pipeline.metrics import robot_interval  # noqa: E402
+from divmorph.pipeline.provenance import RECORD, recorded_profile  # noqa: E402
+from divmorph.pipeline.envs import profile_env_kwargs  # noqa: E402
+from divmorph.pipeline.files import is_done, read_progress  # noqa: E402
+from divmorph.pipeline.robots import profile_robots  # noqa: E402
 
 #: Returns a reader of the table asks about: "walks at all" and "walks well" on FT.
 THRESHOLDS = (500, 1000)

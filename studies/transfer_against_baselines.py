@@ -20,7 +20,7 @@ starting model to draw from) reads it against its own step-0 points instead.
 ``--reference LABEL`` adds the two readings of the paper's claim (``results/transfer-pointnav/race-600k-rule.md``):
 against direct fine-tuning (the abstract's 3x), the steps each variant needs to reach and hold the
 reference's final return (the many-draw baseline standing for step 0; the race's own
-:func:`~sb3_divmorph.pipeline.metrics.steps_to_hold`) and the gap between their last evaluations;
+:func:`~divmorph.pipeline.metrics.steps_to_hold`) and the gap between their last evaluations;
 with ``--scratch FOLDER`` (a scratch control run, e.g. ``results/cpu100-scratch-long``) also the steps
 to reach and hold scratch's final return (the paper's Sec. 6.1 wording). With the DivMorph arm as the
 reference and the ablated students as the other variants, the same table is the rule's reading 4 (the
@@ -35,8 +35,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from sb3_divmorph.pipeline.files import is_done, log_file
-from sb3_divmorph.pipeline.metrics import robot_interval, steps_to_hold
+from divmorph.pipeline.files import is_done, log_file
+from divmorph.pipeline.metrics import robot_interval, steps_to_hold
 
 
 def curves(folder: Path, task: str, arm: str) -> pd.DataFrame:

@@ -39,11 +39,11 @@ import sb3_divmorph  # noqa: F401
 import unimal_envs  # noqa: F401
 from sb3_divmorph.algos.finetune import critic_modules, prepare_transfer, set_adam_eps
 from sb3_divmorph.nn.layers import FactorizedLinear
-from sb3_divmorph.pipeline.envs import inherited_normalizer, make_vec_env, robot_observations
-from sb3_divmorph.pipeline.provenance import recorded_profile
-from sb3_divmorph.pipeline.robots import profile_robots
-from sb3_divmorph.pipeline.training import stage_model
-from sb3_divmorph.pipeline.transfer import gate_selection
+from divmorph.pipeline.envs import inherited_normalizer, make_vec_env, robot_observations
+from divmorph.pipeline.provenance import recorded_profile
+from divmorph.pipeline.robots import profile_robots
+from divmorph.pipeline.training import stage_model
+from divmorph.pipeline.transfer import gate_selection
 from unimal_envs.instructions import INSTRUCTIONS
 
 ADAM_EPS = 1e-10  # the race's (transfer.adam_eps)

@@ -26,8 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from sb3_divmorph.pipeline.metrics import interval, robot_interval
-from sb3_divmorph.pipeline.report import read_returns, robot_means
+from divmorph.pipeline.metrics import interval, robot_interval
+from divmorph.pipeline.report import read_returns, robot_means
 
 MODELS = {
     "teacher": "teacher (MetaMorph)",

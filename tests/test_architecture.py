@@ -102,7 +102,7 @@ def test_every_module_has_a_layer_and_pipeline_modules_are_named(graph, layers):
     named = {pattern for _, patterns in layers for pattern in patterns}
     unplaced = [m for m in graph if layer_of(m, layers) is None]
     # a pipeline module must be named: the wildcard of layer 2 would otherwise hide where it stands
-    unnamed = [m for m in graph if m.startswith("sb3_divmorph.pipeline") and m not in named]
+    unnamed = [m for m in graph if m.startswith("divmorph.pipeline") and m not in named]
     stale = [p for p in named if not p.endswith(".*") and p not in graph]
     assert not unplaced, f"modules in no layer of {ARCHITECTURE.name}: {unplaced}"
     assert not unnamed, f"pipeline modules not named in the layer table of {ARCHITECTURE.name}: {unnamed}"
@@ -158,27 +158,79 @@ def test_the_check_sees_a_circle_and_an_upward_import(tmp_path):
     assert imports_of("pkg.b", modules["pkg.b"], modules) == {"pkg.a": 1}
 
 
-def test_every_shipped_model_loads_and_old_module_paths_still_import():
-    """Saved models name their policy class by the module it lived in when they were saved
-    (``sb3_divmorph.hyperdistill.HyperDistillPolicy``): after the package was organised by concept,
-    every model shipped in ``results/`` still loads, and scripts importing the old paths still work
-    (the module is the same object under both names)."""
+#: The old paths of the application's modules, kept one version with a DeprecationWarning: each
+#: forwards to the module of ``divmorph`` and holds nothing else (CHANGELOG, 0.2.0).
+DEPRECATED_PATHS = {
+    "sb3_divmorph.pipeline": "divmorph.pipeline",
+    "sb3_divmorph.pretrained": "divmorph.pretrained",
+    "sb3_divmorph.record": "divmorph.record",
+    "sb3_divmorph.plot": "divmorph.plot",
+    "sb3_divmorph.shipped": "divmorph.shipped",
+}
+
+
+def test_the_library_imports_nothing_of_the_application(graph):
+    """``sb3_divmorph`` (the SB3 extension) builds on ``unimal_envs`` alone: no module of it imports
+    ``divmorph`` (the application: command line, pipeline, run folders), by any import statement or
+    by ``importlib`` -- except the deprecated forwarding paths, which are nothing but that."""
+    library = {name: targets for name, targets in graph.items() if name.split(".")[0] == "sb3_divmorph"}
+    by_statement = [
+        f"{name} imports {target}, line {line}"
+        for name, targets in library.items()
+        for target, line in targets.items()
+        if target.split(".")[0] == "divmorph"
+    ]
+    modules = package_modules()
+    by_name = [
+        name
+        for name in library
+        if name not in DEPRECATED_PATHS and re.search(r"import_module\(\s*[\"']divmorph", modules[name].read_text())
+    ]
+    assert not by_statement and not by_name, "the library imports the application:\n" + "\n".join(by_statement + by_name)
+    for old, new in DEPRECATED_PATHS.items():
+        text = modules[old].read_text()
+        assert f'"{new}"' in text and "DeprecationWarning" in text, f"{old} should forward to {new} with a DeprecationWarning"
+
+
+def test_old_paths_of_the_application_warn_and_give_the_moved_module():
+    """A script written against 0.1 (``from sb3_divmorph.pipeline.config import ConfigError``) keeps
+    working for one version: it is warned, and it gets the very objects of ``divmorph``."""
     import importlib
     import subprocess
+    import sys
 
-    from stable_baselines3 import PPO
+    code = (
+        "import warnings\nwarnings.simplefilter('error', DeprecationWarning)\n"
+        "import divmorph.pipeline.config as new\n"
+        "try:\n    import sb3_divmorph.pipeline.config\nexcept DeprecationWarning as w:\n    print('warned:', w)\n"
+        "warnings.simplefilter('ignore', DeprecationWarning)\n"
+        "from sb3_divmorph.pipeline.config import ConfigError\n"
+        "from sb3_divmorph.pretrained import load_pretrained\n"
+        "import divmorph.pretrained\n"
+        "print(ConfigError is new.ConfigError, load_pretrained is divmorph.pretrained.load_pretrained)\n"
+    )
+    shown = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT).stdout
+    assert "warned: sb3_divmorph.pipeline moved to divmorph.pipeline" in shown, shown
+    assert shown.strip().endswith("True True"), shown
+    assert importlib.import_module("divmorph.pipeline.config")
 
-    import sb3_divmorph
+
+@pytest.mark.shipped_results
+def test_every_shipped_model_loads_from_the_library_alone():
+    """The shipped models name their policy class by its module today (``sb3_divmorph.policies.*``):
+    they load with ``PPO.load`` and nothing of the application imported."""
+    import subprocess
+    import sys
 
     tracked = subprocess.run(["git", "ls-files", "results/*model.zip"], cwd=ROOT, capture_output=True, text=True).stdout.split()
     if not tracked:
         pytest.skip("not a git checkout")
-    for path in tracked:
-        model = PPO.load(ROOT / path, device="cpu")
-        assert type(model.policy).__module__.startswith("sb3_divmorph.policies."), path
-    for old, new in sb3_divmorph.MOVED_MODULES.items():
-        assert importlib.import_module(old) is importlib.import_module(new), old
-    from sb3_divmorph.compact import CompactActor  # an old path, as a script written before would use it
-    from sb3_divmorph.deploy.compact import CompactActor as moved
-
-    assert CompactActor is moved
+    code = (
+        "import sys\nfrom stable_baselines3 import PPO\nimport sb3_divmorph\n"
+        "for path in sys.argv[1:]:\n"
+        "    model = PPO.load(path, device='cpu')\n"
+        "    assert type(model.policy).__module__.startswith('sb3_divmorph.policies.'), path\n"
+        "print(sorted(m for m in sys.modules if m.split('.')[0] == 'divmorph'))\n"
+    )
+    shown = subprocess.run([sys.executable, "-c", code, *tracked], capture_output=True, text=True, check=True, cwd=ROOT).stdout
+    assert shown.strip() == "[]", shown

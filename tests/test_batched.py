@@ -214,8 +214,8 @@ def test_the_batched_evaluation_plays_each_robots_episodes_as_the_single_env_eva
     from stable_baselines3.common.vec_env import VecNormalize
 
     import sb3_divmorph  # noqa: F401  (registers the policy aliases)
-    from sb3_divmorph.pipeline.batched_evaluation import batched_returns, make_evaluation_env
-    from sb3_divmorph.pipeline.curves import robot_venv, rollout_returns
+    from divmorph.pipeline.batched_evaluation import batched_returns, make_evaluation_env
+    from divmorph.pipeline.curves import robot_venv, rollout_returns
 
     steps, episodes = 20, 3
     train = VecNormalize(robot_venv("Unimal-FT-v0", ROBOTS, steps, 0), norm_obs_keys=["proprioceptive"], norm_reward=False)
@@ -244,7 +244,7 @@ def test_the_batched_evaluation_counts_each_world_to_its_own_first_end():
 
     from gymnasium import spaces
 
-    from sb3_divmorph.pipeline.batched_evaluation import batched_returns
+    from divmorph.pipeline.batched_evaluation import batched_returns
 
     class Worlds:  # the slice of BatchedUnimalEnv's torch interface the evaluation uses
         num_envs, worlds_per_robot, torch_device = 4, 2, torch.device("cpu")
@@ -387,7 +387,7 @@ def test_the_pipeline_trains_its_stages_on_the_batched_backend_when_the_profile_
     assert len(on_device) >= 2, "each teacher's rollouts stayed on the device (DevicePPO)"
     assert all(worlds == 2 and device == "cpu" and variants == 3 for _, worlds, device, variants in built)
     assert (out / "transfer" / "PointNav" / "divmorph" / "seed-0" / "model.zip").is_file()
-    from sb3_divmorph.pipeline.curves import read_eval
+    from divmorph.pipeline.curves import read_eval
 
     rows = read_eval(out / "transfer" / "PointNav" / "divmorph" / "seed-0" / "eval.csv")
     for step in (0, 32, 64):
@@ -400,8 +400,8 @@ def test_the_pipeline_trains_its_stages_on_the_batched_backend_when_the_profile_
     # the evaluation stage plays the run's model again in the single env rather than reuse a batched curve point
     import pandas as pd
 
-    from sb3_divmorph.pipeline.config import load_profile
-    from sb3_divmorph.pipeline.evaluate import evaluate
+    from divmorph.pipeline.config import load_profile
+    from divmorph.pipeline.evaluate import evaluate
 
     folder = evaluate(load_profile("tiny", profiles), out, models=["transfer-divmorph"], progress_bar=False, into=tmp_path / "evaluation")
     table = pd.read_csv(folder / "returns.csv")

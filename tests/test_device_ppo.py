@@ -230,11 +230,11 @@ def test_a_transfer_on_the_batched_backend_runs_on_the_device_and_makes_the_vece
     the same batched env from the same student and seed; with a learning rate of 0 no weight moves."""
     import importlib
 
-    transfer_module = importlib.import_module("sb3_divmorph.pipeline.transfer")  # the module, not the package's function
-    from sb3_divmorph.pipeline.config import load_profile
-    from sb3_divmorph.pipeline.files import mark_done
-    from sb3_divmorph.pipeline.students import STUDENTS
-    from sb3_divmorph.pipeline.transfer import transfer_run
+    transfer_module = importlib.import_module("divmorph.pipeline.transfer")  # the module, not the package's function
+    from divmorph.pipeline.config import load_profile
+    from divmorph.pipeline.files import mark_done
+    from divmorph.pipeline.students import STUDENTS
+    from divmorph.pipeline.transfer import transfer_run
 
     def profile(learning_rate: str = "lin_1e-3"):
         return load_profile(
@@ -358,11 +358,11 @@ def test_teachers_distillation_and_transfer_chain_on_the_batched_backend(tmp_pat
     there) and its transfer to a novel task (DevicePPO with the race's rules), each on the batched
     backend, each leaving a finished stage the next one reads."""
     from sb3_divmorph.algos.distillation import ImitationPPO
-    from sb3_divmorph.pipeline.config import load_profile
-    from sb3_divmorph.pipeline.distill import distill
-    from sb3_divmorph.pipeline.files import read_done
-    from sb3_divmorph.pipeline.teachers import train_teachers
-    from sb3_divmorph.pipeline.transfer import transfer
+    from divmorph.pipeline.config import load_profile
+    from divmorph.pipeline.distill import distill
+    from divmorph.pipeline.files import read_done
+    from divmorph.pipeline.teachers import train_teachers
+    from divmorph.pipeline.transfer import transfer
 
     batched_stage = {"env_backend": "batched", "worlds_per_robot": 1, "terrain_variants": 2}
     profile = load_profile(

@@ -26,8 +26,8 @@ from sb3_divmorph.algos.distillation import (
 from sb3_divmorph.algos.finetune import UnitLearningRates, UnitSelection, prepare_transfer
 from sb3_divmorph.deploy.compact import CompactActor, actor_inputs, export_torchscript
 from sb3_divmorph.nn.layers import FactorizedLinear
-from sb3_divmorph.pipeline.files import read_progress
-from sb3_divmorph.pipeline.training import AtomicCheckpointCallback, TrainingRun, latest_checkpoint
+from divmorph.pipeline.files import read_progress
+from divmorph.pipeline.training import AtomicCheckpointCallback, TrainingRun, latest_checkpoint
 from unimal_envs.contract import TASK_NAMES
 from unimal_envs.morphology.loader import morphology_files
 from unimal_envs.tasks import TASKS

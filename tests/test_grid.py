@@ -14,9 +14,9 @@ import pytest
 from test_pipeline import write_profiles
 
 from divmorph.cli import main as cli
-from sb3_divmorph.pipeline.config import ConfigError, load_profile
-from sb3_divmorph.pipeline.files import read_done
-from sb3_divmorph.pipeline.training import latest_checkpoint
+from divmorph.pipeline.config import ConfigError, load_profile
+from divmorph.pipeline.files import read_done
+from divmorph.pipeline.training import latest_checkpoint
 from unimal_envs.instructions import INSTRUCTIONS
 
 
@@ -71,7 +71,7 @@ def test_a_ray_address_that_does_not_answer_fails_fast(tmp_path, capsys):
 
 
 def test_closest_by_embedding_follows_the_instruction(tmp_path):
-    from sb3_divmorph.pipeline.transfer import closest_task
+    from divmorph.pipeline.transfer import closest_task
 
     for twin in ("Patrol", "FT"):
         out = tmp_path / f"like-{twin}"
@@ -148,7 +148,7 @@ def test_a_ray_grid_resumes_after_one_run_is_killed(tmp_path):
 
 
 def test_a_transfer_run_from_before_seeds_is_seed_0(tmp_path):
-    from sb3_divmorph.pipeline.transfer import transfer_folder
+    from divmorph.pipeline.transfer import transfer_folder
 
     legacy = tmp_path / "transfer" / "Escape" / "divmorph"
     assert transfer_folder(tmp_path, "Escape", "divmorph", 0) == legacy / "seed-0"

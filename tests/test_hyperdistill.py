@@ -265,7 +265,7 @@ def test_pipeline_trains_modumorph_teachers_distils_and_exports(tmp_path):
     from test_pipeline import write_profiles
 
     from divmorph.cli import main as cli
-    from sb3_divmorph.pipeline.config import ConfigError, load_profile
+    from divmorph.pipeline.config import ConfigError, load_profile
 
     profile = _hyperdistill_profile()
     path = tmp_path / "profiles.yml"
@@ -292,14 +292,14 @@ def test_pipeline_trains_modumorph_teachers_distils_and_exports(tmp_path):
     ours = student.normalize_with_teachers(student.obs_to_tensor(raw)[0])["proprioceptive"].numpy()
     assert np.abs(ours - teacher_stats.normalize_obs(raw)["proprioceptive"]).max() <= 1e-6
     # written per task from its teachers: no MLP for a task without a teacher
-    from sb3_divmorph.pipeline.hyperdistill import export_mlp
+    from divmorph.pipeline.hyperdistill import export_mlp
 
     with pytest.raises(ConfigError, match="no teacher for 'Escape'"):
         export_mlp(load_profile("tiny", path), out, ROBOTS[0], "Escape")
     # teachers.policy picks the run's teachers' policy; unknown names are refused, naming the choices
     profile["teachers"]["policy"] = "ModuMorphPolicy"
     path.write_text(yaml.safe_dump({"tiny": profile}))
-    from sb3_divmorph.pipeline.teachers import teacher_run
+    from divmorph.pipeline.teachers import teacher_run
 
     run = teacher_run(load_profile("tiny", path), tmp_path / "other", "FT", progress_bar=False)
     assert type(run.make_model().policy).__name__ == "ModuMorphPolicy"
@@ -368,14 +368,23 @@ def test_task_input_lets_one_student_tell_ft_from_incline(teacher):
         HyperDistillPolicy(venv.observation_space, venv.action_space, lambda _: 0.0, task_input="embedding", **STUDENT)
 
 
+@pytest.mark.shipped_results
+def test_the_shipped_small_runs_hyperdistill_reads_as_recorded():
+    """results/cpu, recorded before ``hyperdistill.task_input``, reads ``none`` and its own statistics."""
+    from divmorph.pipeline.provenance import recorded_profile
+
+    shipped_profile = recorded_profile(SHIPPED / "run.json").hyperdistill
+    assert (shipped_profile.task_input, shipped_profile.observation_statistics) == ("none", "own")
+
+
 def test_profile_key_task_input_new_runs_index_recorded_runs_none(tmp_path):
     """``hyperdistill.task_input``: ``index`` for new profiles, checked; a run recorded before the key
     (results/cpu) reads ``none``, so its student stays what it was and a new profile is a change of its
     hyperdistill stage; the shipped student has no task input and loads as before."""
     from test_pipeline import TINY
 
-    from sb3_divmorph.pipeline.config import ConfigError, load_profile
-    from sb3_divmorph.pipeline.provenance import _with_defaults, configuration, recorded_profile, stage_changes, with_current_values
+    from divmorph.pipeline.config import ConfigError, load_profile
+    from divmorph.pipeline.provenance import _with_defaults, configuration, recorded_profile, stage_changes, with_current_values
 
     profile = json.loads(json.dumps(TINY))
     profile["hyperdistill"] = {"policy_kwargs": STUDENT}
@@ -402,8 +411,6 @@ def test_profile_key_task_input_new_runs_index_recorded_runs_none(tmp_path):
         "hyperdistill.task_input: 'none' -> 'index'",
     ]
     assert "task_input" not in with_current_values(record)["hyperdistill"]  # a branch links the recorded student
-    shipped_profile = recorded_profile(SHIPPED / "run.json").hyperdistill
-    assert (shipped_profile.task_input, shipped_profile.observation_statistics) == ("none", "own")
     # a student saved before the keys existed (its saved policy_kwargs lack them) loads as it was
     # trained; results/cpu's own such student left the tree (git history), so one is made here
     legacy = PPO(HyperDistillPolicy, multitask_venv(tasks=("FT",)), policy_kwargs=STUDENT, n_steps=16, batch_size=16, device="cpu")
@@ -454,8 +461,8 @@ def test_student_on_its_teachers_statistics_sees_what_each_teacher_sees(teacher,
 
 
 def test_a_stage_killed_in_its_offline_fit_reads_its_states_back(tmp_path, monkeypatch, capsys):
-    stage = importlib.import_module("sb3_divmorph.pipeline.hyperdistill")  # the package re-exports a function of that name
-    from sb3_divmorph.pipeline.config import load_profile
+    stage = importlib.import_module("divmorph.pipeline.hyperdistill")  # the package re-exports a function of that name
+    from divmorph.pipeline.config import load_profile
 
     path = tmp_path / "profiles.yml"
     path.write_text(yaml.safe_dump({"tiny": _hyperdistill_profile()}))

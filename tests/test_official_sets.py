@@ -94,8 +94,8 @@ def test_fetch_over_http_then_use_the_set_by_name(archive, server, tmp_path, mon
     env.close()
 
     # The pipeline resolves the name and records which set and source it used.
-    from sb3_divmorph.pipeline.config import load_profile
-    from sb3_divmorph.pipeline.robots import robot_files, robot_set_record
+    from divmorph.pipeline.config import load_profile
+    from divmorph.pipeline.robots import robot_files, robot_set_record
 
     assert [f.stem for f in robot_files("unimals100-train", 3)] == [f.stem for f in files[:3]]
     profile = load_profile("demo")
@@ -232,8 +232,8 @@ def test_the_validation_split_holds_out_ten_training_robots_of_every_family(tmp_
 def test_a_run_records_a_held_out_set_that_is_not_fetched_here_instead_of_failing(tmp_path, monkeypatch):
     """A stage that only trains (a GPU job carrying the training robots) may run where the novel set
     is not fetched: the run's record says so; the training robots must be there."""
-    from sb3_divmorph.pipeline.config import load_profile
-    from sb3_divmorph.pipeline.robots import robot_set_record
+    from divmorph.pipeline.config import load_profile
+    from divmorph.pipeline.robots import robot_set_record
 
     monkeypatch.setenv("UNIMAL_DATA", str(tmp_path))
     O.fetch(OFFICIAL_TRAIN, ["train"], cache=tmp_path)

@@ -21,10 +21,10 @@ import yaml
 from stable_baselines3 import PPO
 
 from divmorph.cli import main as cli
-from sb3_divmorph.pipeline.arms import ARMS
-from sb3_divmorph.pipeline.config import ConfigError, load_profile, load_profiles, load_zoo_entry
-from sb3_divmorph.pipeline.files import read_done
-from sb3_divmorph.pipeline.training import latest_checkpoint
+from divmorph.pipeline.arms import ARMS
+from divmorph.pipeline.config import ConfigError, load_profile, load_profiles, load_zoo_entry
+from divmorph.pipeline.files import read_done
+from divmorph.pipeline.training import latest_checkpoint
 from sb3_divmorph.policies import DivMorphPolicy, MetaMorphPolicy
 from unimal_envs.morphology.loader import morphology_files
 
@@ -138,7 +138,7 @@ def test_every_stage_writes_its_outputs(finished_run):
 def test_an_untrained_teacher_is_the_teacher_runs_initial_policy(finished_run):
     from stable_baselines3 import PPO
 
-    from sb3_divmorph.pipeline.teachers import teacher_run
+    from divmorph.pipeline.teachers import teacher_run
 
     out, profiles = finished_run
     profile = load_profile("tiny", profiles)
@@ -151,8 +151,8 @@ def test_an_untrained_teacher_is_the_teacher_runs_initial_policy(finished_run):
 
 
 def test_the_evaluation_reuses_a_transfer_runs_final_evaluation_only_when_it_is_the_same(finished_run):
-    from sb3_divmorph.pipeline.evaluate import evaluate_model, final_evaluation
-    from sb3_divmorph.pipeline.robots import profile_robots
+    from divmorph.pipeline.evaluate import evaluate_model, final_evaluation
+    from divmorph.pipeline.robots import profile_robots
 
     out, profiles = finished_run
     profile = load_profile("tiny", profiles)
@@ -170,8 +170,8 @@ def test_the_evaluation_reuses_a_transfer_runs_final_evaluation_only_when_it_is_
 def test_an_evaluation_samples_actions_only_when_asked(finished_run):
     """``deterministic=False`` rolls out sampled actions (as in training): other returns from the same
     seed; the default repeats itself."""
-    from sb3_divmorph.pipeline.evaluate import evaluate_model
-    from sb3_divmorph.pipeline.robots import profile_robots
+    from divmorph.pipeline.evaluate import evaluate_model
+    from divmorph.pipeline.robots import profile_robots
 
     out, profiles = finished_run
     profile = load_profile("tiny", profiles)
@@ -235,8 +235,8 @@ def test_every_model_keeps_its_env_settings_beside_it(finished_run, tmp_path):
     model, so a model folder copied out of its run still loads onto its own robots and settings."""
     import shutil
 
-    from sb3_divmorph.pipeline.robots import profile_robots
-    from sb3_divmorph.pretrained import load_pretrained
+    from divmorph.pipeline.robots import profile_robots
+    from divmorph.pretrained import load_pretrained
 
     out, profiles = finished_run
     profile = load_profile("tiny", profiles)
@@ -271,7 +271,7 @@ def test_an_evaluation_keeps_each_transfer_seed_apart(tmp_path):
     """A transfer arm's seeds are separate jobs: one seed's complete rows never stand for the others'
     (an interrupted evaluation evaluates the missing seeds), and seeds pooled by an older file without
     the seed column are evaluated again rather than kept beside the new rows."""
-    from sb3_divmorph.pipeline.evaluate import complete_rows, job_key, write_rows
+    from divmorph.pipeline.evaluate import complete_rows, job_key, write_rows
 
     robots = [Path("a.xml"), Path("b.xml")]
     arm = tmp_path / "transfer" / "Escape" / "scratch"
@@ -311,10 +311,10 @@ def test_a_run_with_packed_logs_reads_and_reports_as_before(finished_run, tmp_pa
     import runpy
     import sys
 
-    from sb3_divmorph.pipeline.curves import read_eval
-    from sb3_divmorph.pipeline.files import read_progress
+    from divmorph.pipeline.curves import read_eval
+    from divmorph.pipeline.files import read_progress
 
-    R = importlib.import_module("sb3_divmorph.pipeline.report")
+    R = importlib.import_module("divmorph.pipeline.report")
     out, profiles = copied_run(finished_run, tmp_path)
     arm = out / "transfer" / "Escape" / "scratch" / "seed-0"
     before = (read_progress(out / "student"), read_eval(arm / "eval.csv"), R.read_returns(out / "evaluate" / "returns.csv"))
@@ -345,7 +345,7 @@ def test_packed_transfer_runs_keep_every_evaluation_and_update(finished_run, tmp
     twice (a re-pack of the same runs changes nothing in git)."""
     import pandas as pd
 
-    from sb3_divmorph.pipeline.curves import read_eval
+    from divmorph.pipeline.curves import read_eval
 
     spec = importlib.util.spec_from_file_location(
         "pack_transfer_runs", Path(__file__).resolve().parents[1] / "tools" / "pack_transfer_runs.py"
@@ -384,7 +384,7 @@ def read_returns(path: Path) -> dict[tuple[str, ...], float]:
 def test_student_overrides_size_one_student_and_name_only_known_students(finished_run, tmp_path):
     """``student.overrides: {deploy-g1k1: {d_model: 24, ff_dim: 48}}`` widens that student alone; an
     override for a student that does not exist stops the distill stage before any training."""
-    from sb3_divmorph.pipeline.distill import distill, distill_run
+    from divmorph.pipeline.distill import distill, distill_run
 
     out, profiles = copied_run(finished_run, tmp_path)
     profile = load_profile("tiny", profiles, overrides={"student.overrides": {"deploy-g1k1": {"d_model": 24, "ff_dim": 48}}})
@@ -483,7 +483,7 @@ def test_the_papers_figures_come_with_their_numbers(finished_run):
 
 
 def test_the_pareto_front_keeps_what_no_smaller_actor_beats():
-    from sb3_divmorph.pipeline.figures import pareto_front
+    from divmorph.pipeline.figures import pareto_front
 
     # (size, return): (5, 2) beats (5, 1) and (10, 1); (20, 3) buys more return for more size
     assert pareto_front([10, 5, 20, 5], [1, 2, 3, 1]) == [1, 2]
@@ -555,9 +555,9 @@ def test_ablation_students_lack_what_they_claim(finished_run):
 def test_grl_inherits_exactly_its_learngene_layers(finished_run):
     from stable_baselines3 import PPO
 
-    from sb3_divmorph.pipeline.config import load_profile
-    from sb3_divmorph.pipeline.grl import agent_folder, agent_run, read_learngene, read_plan, unit_tensors
-    from sb3_divmorph.pipeline.transfer import transfer_run
+    from divmorph.pipeline.config import load_profile
+    from divmorph.pipeline.grl import agent_folder, agent_run, read_learngene, read_plan, unit_tensors
+    from divmorph.pipeline.transfer import transfer_run
 
     out, profiles = finished_run
     profile = load_profile("tiny", profiles)
@@ -579,7 +579,7 @@ def test_grl_inherits_exactly_its_learngene_layers(finished_run):
 
 
 def test_finetune_settings_reach_the_arms_that_start_from_trained_weights_only(finished_run):
-    from sb3_divmorph.pipeline.transfer import transfer_run
+    from divmorph.pipeline.transfer import transfer_run
 
     out, profiles = finished_run
     profile = load_profile("tiny", profiles, overrides={"transfer.finetune_overrides": {"learning_rate": 1.25e-5}})
@@ -813,7 +813,7 @@ def test_missing_stages_and_bad_arguments_give_clear_errors(tmp_path, capsys):
 def test_command_line_overrides_reach_the_profile_and_are_validated(tmp_path, capsys):
     import argparse
 
-    from divmorph.cli import _overrides
+    from divmorph.cli.run_folder import profile_overrides as _overrides
 
     profiles = write_profiles(tmp_path)
     args = argparse.Namespace(
@@ -905,7 +905,7 @@ def test_a_checkpoint_for_another_observation_space_is_refused(finished_run, tmp
     from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor
 
     from sb3_divmorph.algos.distillation import SpaceMismatchError
-    from sb3_divmorph.pipeline.training import TrainingRun
+    from divmorph.pipeline.training import TrainingRun
 
     out, _ = finished_run
 
@@ -926,7 +926,7 @@ def test_a_checkpoint_for_another_observation_space_is_refused(finished_run, tmp
 
 
 def test_a_transfer_instruction_reaches_the_gates_input():
-    from sb3_divmorph.pipeline.transfer import robot_observations
+    from divmorph.pipeline.transfer import robot_observations
 
     robots = morphology_files("train")[:1]
     default = robot_observations("Unimal-Escape-v0", robots)
@@ -936,9 +936,9 @@ def test_a_transfer_instruction_reaches_the_gates_input():
 
 
 def test_closest_by_return_picks_the_best_zero_shot_teacher(finished_run):
-    from sb3_divmorph.pipeline.evaluate import evaluate_model
-    from sb3_divmorph.pipeline.robots import profile_robots
-    from sb3_divmorph.pipeline.transfer import closest_task
+    from divmorph.pipeline.evaluate import evaluate_model
+    from divmorph.pipeline.robots import profile_robots
+    from divmorph.pipeline.transfer import closest_task
 
     out, profiles = finished_run
     profile = load_profile("tiny", profiles)
@@ -987,7 +987,7 @@ def test_report_gives_robot_intervals_and_answers_the_zero_shot_claim():
     keeps half of it, and not the other way round."""
     import importlib
 
-    R = importlib.import_module("sb3_divmorph.pipeline.report")
+    R = importlib.import_module("divmorph.pipeline.report")
     profile = load_profile("demo")
     rng = np.random.default_rng(0)
     rows = []
@@ -1017,7 +1017,7 @@ def test_out_of_distribution_robots_are_a_split_of_their_own_in_the_report():
     zero-shot comparison, computed from their rows only (the novel robots' numbers do not change)."""
     import importlib
 
-    R = importlib.import_module("sb3_divmorph.pipeline.report")
+    R = importlib.import_module("divmorph.pipeline.report")
     profile = load_profile("demo", overrides={"ood_set": "novel"})
     rows = [
         {"model": model, "task": "FT", "split": split, "morphology": f"{split}{robot}", "episode": 0, "return": value + robot}
@@ -1033,7 +1033,7 @@ def test_out_of_distribution_robots_are_a_split_of_their_own_in_the_report():
     without = [row for row in rows if row["split"] != "ood"]
     assert R.zero_shot_comparison(profile, without, split="ood") == []
     assert "out-of-distribution" not in R.returns_table(without)[0][0]
-    from sb3_divmorph.pipeline.robots import profile_robots, profile_splits
+    from divmorph.pipeline.robots import profile_robots, profile_splits
 
     assert profile_splits(profile) == ("train", "novel", "ood") and profile_splits(load_profile("demo")) == ("train", "novel")
     assert profile_robots(profile, "ood")[0].parent.name in ("novel", "xml")
@@ -1047,7 +1047,7 @@ def test_student_shares_pair_the_robots_and_judge_the_90_percent_bar_by_the_inte
     robots differ ten-fold in return, so an unpaired interval would straddle the bar for the first."""
     import importlib
 
-    R = importlib.import_module("sb3_divmorph.pipeline.report")
+    R = importlib.import_module("divmorph.pipeline.report")
     profile = load_profile("demo")
     rows = []
     scales = {"teacher": [1.0] * 20, "student": [0.97] * 20, "student-distilled": [0.5] * 20, "hyperdistill": [1.0, 0.75] * 10}
@@ -1078,7 +1078,7 @@ def test_student_shares_pair_the_robots_and_judge_the_90_percent_bar_by_the_inte
 def test_report_figures_label_axes_and_give_each_task_its_own_scale(tmp_path, monkeypatch):
     import importlib
 
-    R = importlib.import_module("sb3_divmorph.pipeline.report")  # the module (the package exports a function of that name)
+    R = importlib.import_module("divmorph.pipeline.report")  # the module (the package exports a function of that name)
     figures = []
     monkeypatch.setattr(R.plt, "close", figures.append)
     groups = {("teacher", "FT", "train"): [900.0, 20.0], ("student", "FT", "train"): [800.0], ("teacher", "Patrol", "novel"): [3.0]}
@@ -1142,7 +1142,7 @@ def test_a_run_is_evaluated_and_reported_from_its_own_records(finished_run, tmp_
 
 
 def test_findings_put_the_hyperdistill_student_beside_the_others_when_it_was_evaluated():
-    from sb3_divmorph.pipeline.report import findings
+    from divmorph.pipeline.report import findings
 
     profile = load_profile("demo")
     groups = {
@@ -1226,8 +1226,8 @@ def test_with_learning_rate_zero_a_transfer_run_leaves_every_fine_tuned_arms_act
     must not change what the policy does on fixed states (with statistics that go on learning, the
     inputs drift under the frozen weights and the actions move: the issue-26 defect)."""
     from sb3_divmorph.algos.finetune import observation_statistics_frozen
-    from sb3_divmorph.pipeline.robots import profile_robots
-    from sb3_divmorph.pipeline.transfer import transfer_run
+    from divmorph.pipeline.robots import profile_robots
+    from divmorph.pipeline.transfer import transfer_run
 
     out, profiles = copied_run(finished_run, tmp_path)
     profile = load_profile("tiny", profiles, overrides={"transfer.finetune_overrides": {"learning_rate": 0.0}, "transfer.eval_every": 0})
@@ -1267,9 +1267,9 @@ def test_transfer_action_std_changes_what_a_fine_tuned_arm_samples_and_not_its_m
     with std 0.3 for the whole run (the checkpoint it saves and resumes from included), while its
     deterministic actions at step 0 are the source's; without the setting they sample with the
     source's 0.9; scratch keeps its own."""
-    from sb3_divmorph.pipeline.robots import profile_robots
-    from sb3_divmorph.pipeline.training import stage_model
-    from sb3_divmorph.pipeline.transfer import transfer_run
+    from divmorph.pipeline.robots import profile_robots
+    from divmorph.pipeline.training import stage_model
+    from divmorph.pipeline.transfer import transfer_run
 
     out, profiles = copied_run(finished_run, tmp_path)
     raw = fixed_states("Escape", profile_robots(load_profile("tiny", profiles), "train"))
@@ -1309,9 +1309,9 @@ def test_transfer_curves_roll_out_the_first_eval_robots_of_each_split(finished_r
     """``transfer.eval_robots: 1``: the evaluation curves (zero-shot, every ``eval_every`` steps, final)
     roll out only the first training and the first novel robot, every episode of each; the evaluation
     stage evaluates the run on the same robots and episodes (so it reuses the last curve point)."""
-    from sb3_divmorph.pipeline.curves import EVAL_FILE, read_eval
-    from sb3_divmorph.pipeline.robots import profile_robots
-    from sb3_divmorph.pipeline.transfer import transfer_run
+    from divmorph.pipeline.curves import EVAL_FILE, read_eval
+    from divmorph.pipeline.robots import profile_robots
+    from divmorph.pipeline.transfer import transfer_run
 
     out, profiles = copied_run(finished_run, tmp_path)
     profile = load_profile("tiny", profiles, overrides={"transfer.eval_robots": 1, "transfer.eval_episodes": 2})
@@ -1323,7 +1323,7 @@ def test_transfer_curves_roll_out_the_first_eval_robots_of_each_split(finished_r
         seen = {(row["robot"], row["episode"]) for row in rows if row["split"] == split and row["timesteps"] == 128}
         assert seen == {(profile_robots(profile, split)[0].stem, episode) for episode in (0, 1)}, split
     # the evaluation stage evaluates such a run on its curves' robots and episodes, reusing the last one
-    from sb3_divmorph.pipeline.evaluate import final_evaluation, transfer_robots_and_episodes
+    from divmorph.pipeline.evaluate import final_evaluation, transfer_robots_and_episodes
 
     for split in ("train", "novel"):
         robots, episodes = transfer_robots_and_episodes(profile, split, profile_robots(profile, split), 1)
@@ -1337,7 +1337,7 @@ def test_transfer_curves_roll_out_the_first_eval_robots_of_each_split(finished_r
 def test_transfer_curves_sample_robots_across_the_whole_set(finished_run, tmp_path):
     """The curves' robots spread from the first robot of a split to its last, not a prefix of it (robot
     files sort by family: a prefix would stand for one family only)."""
-    from sb3_divmorph.pipeline.robots import profile_robots, transfer_eval_robots
+    from divmorph.pipeline.robots import profile_robots, transfer_eval_robots
 
     _, profiles = copied_run(finished_run, tmp_path)
     profile = load_profile("tiny", profiles, overrides={"train_robots": 3, "transfer.eval_robots": 2})
@@ -1351,7 +1351,7 @@ def test_the_transfer_figures_name_the_robots_their_curves_roll_out(finished_run
     """A transfer figure says how many robots and episodes each curve point averages -- those of
     ``transfer.eval_robots``/``eval_episodes``, not the size of the split (the cpu100 figures said
     "mean of 100 robots" over curves of 20 robots x 3 episodes)."""
-    from sb3_divmorph.pipeline.figures import make_figure
+    from divmorph.pipeline.figures import make_figure
 
     out, profiles = copied_run(finished_run, tmp_path)
     profile = load_profile("tiny", profiles, overrides={"train_robots": 3, "transfer.eval_robots": 2, "transfer.eval_episodes": 2})
@@ -1366,9 +1366,9 @@ def test_every_arm_sees_its_novel_tasks_inputs_under_one_optimiser_rule(finished
     """Perturbing an input the novel task observes (Escape: height map; PointNav: goal; the box
     tasks: box and goal) changes every arm's actions at the start of its run -- MetaMorph→ from an
     FT teacher (no encoders) included -- and every arm's Adam runs with ``transfer.adam_eps``."""
-    from sb3_divmorph.pipeline.files import atomic_write_json
-    from sb3_divmorph.pipeline.robots import profile_robots
-    from sb3_divmorph.pipeline.transfer import closest_file, transfer_run
+    from divmorph.pipeline.files import atomic_write_json
+    from divmorph.pipeline.robots import profile_robots
+    from divmorph.pipeline.transfer import closest_file, transfer_run
     from unimal_envs.tasks import TASKS
 
     out, profiles = copied_run(finished_run, tmp_path)
@@ -1399,8 +1399,8 @@ def test_a_run_recorded_before_the_fair_race_rules_keeps_its_rules_and_a_branch_
     """Frozen transfer statistics, one Adam eps and full-rate ablations are new rules with new keys: a
     run recorded without them (results/cpu) is read with the values that reproduce what it did, so a
     profile with the new rules is a change of its begun transfer stage; a branch races under the new rules."""
-    from sb3_divmorph.pipeline.branch import branch
-    from sb3_divmorph.pipeline.provenance import check_and_record, recorded_profile
+    from divmorph.pipeline.branch import branch
+    from divmorph.pipeline.provenance import check_and_record, recorded_profile
 
     out, profiles = copied_run(finished_run, tmp_path)
     record = json.loads((out / "run.json").read_text())
@@ -1447,8 +1447,8 @@ def test_a_profile_measuring_heights_from_the_ground_makes_every_env_of_the_run_
     # the batched backend measures heights the same way (tests/test_batched.py): a stage on it gets the setting too
     batched = load_profile("tiny", profiles, overrides={"transfer.env_backend": "batched"})
     if importlib.util.find_spec("mujoco_warp") is not None:
-        from sb3_divmorph.pipeline.envs import make_vec_env, profile_env_kwargs
-        from sb3_divmorph.pipeline.robots import profile_robots
+        from divmorph.pipeline.envs import make_vec_env, profile_env_kwargs
+        from divmorph.pipeline.robots import profile_robots
 
         venv = make_vec_env(
             "Unimal-Incline-v0",
@@ -1472,10 +1472,10 @@ def test_task_gates_closest_tells_the_divmorph_arm_the_closest_training_task(fin
     under the other setting is refused (break: ignore the setting -> the DivMorph arm reads Escape's)."""
     import dataclasses
 
-    from sb3_divmorph.pipeline.branch import branch
-    from sb3_divmorph.pipeline.evaluate import run_instruction
-    from sb3_divmorph.pipeline.folders import transfer_folder
-    from sb3_divmorph.pipeline.transfer import closest_task, transfer_run
+    from divmorph.pipeline.branch import branch
+    from divmorph.pipeline.evaluate import run_instruction
+    from divmorph.pipeline.folders import transfer_folder
+    from divmorph.pipeline.transfer import closest_task, transfer_run
     from unimal_envs.instructions import INSTRUCTIONS, shipped_embeddings
 
     source, profiles = finished_run
@@ -1506,8 +1506,8 @@ def test_the_fully_finetuned_divmorph_arm_moves_its_gates_and_the_divmorph_arm_k
     """``divmorph-finetuned`` fine-tunes the DivMorph student like MetaMorph⚗ (every weight), so its
     router -- and with it the gates -- moves under PPO, while the DivMorph arm's stays exactly as
     distilled (break: give ``divmorph-finetuned`` ``divmorph_transfer=True`` -> its router is frozen)."""
-    from sb3_divmorph.pipeline.folders import student_folder, transfer_folder
-    from sb3_divmorph.pipeline.training import stage_model
+    from divmorph.pipeline.folders import student_folder, transfer_folder
+    from divmorph.pipeline.training import stage_model
 
     out, _ = finished_run
     distilled = PPO.load(stage_model(student_folder(out, "divmorph")), device="cpu").policy.router
@@ -1527,8 +1527,8 @@ def test_a_loaded_transfer_run_plays_with_the_instruction_it_trained_with(finish
     the recorded instruction in ``find_model`` -> the env reads Escape's)."""
     import json
 
-    from sb3_divmorph.pipeline.training import has_model
-    from sb3_divmorph.pretrained import load_pretrained
+    from divmorph.pipeline.training import has_model
+    from divmorph.pretrained import load_pretrained
     from unimal_envs.instructions import INSTRUCTIONS, shipped_embeddings
 
     out, _ = copied_run(finished_run, tmp_path)

@@ -18,13 +18,15 @@ from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_divmorph import MetaMorphPolicy
 from sb3_divmorph.algos.hyperdistill_fit import load_student
-from sb3_divmorph.pipeline.config import load_profile
-from sb3_divmorph.pipeline.evaluate import evaluate_model, evaluation_plan
-from sb3_divmorph.pipeline.robots import trained_env_kwargs
-from sb3_divmorph.pipeline.training import stage_model, stage_normalizer
+from divmorph.pipeline.config import load_profile
+from divmorph.pipeline.evaluate import evaluate_model, evaluation_plan
+from divmorph.pipeline.robots import trained_env_kwargs
+from divmorph.pipeline.training import stage_model, stage_normalizer
 from unimal_envs.instructions import shipped_embeddings
 
 RESULTS = Path(__file__).resolve().parents[1] / "results"
+#: every test here reads the shipped runs: the results suite (`make test-results`), not the library's
+pytestmark = pytest.mark.shipped_results
 RUN = RESULTS / "cpu"
 RUN100 = RESULTS / "cpu100"
 #: the 100-robot run's teachers, all shipped

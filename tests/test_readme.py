@@ -22,7 +22,7 @@ from divmorph.cli import main as cli
 REPO = Path(__file__).resolve().parents[1]
 README = (REPO / "README.md").read_text()
 #: the README and the documentation pages: every code block of either is held to the same rules
-PAGES = [README, *(p.read_text() for p in sorted((REPO / "docs").glob("*.md")))]
+PAGES = [README, *(p.read_text() for folder in ("docs", "docs/claims") for p in sorted((REPO / folder).glob("*.md")))]
 EXAMPLES = REPO / "examples"
 #: every example with the arguments the test runs it with (smaller than the defaults where it matters)
 EXAMPLE_RUNS = [
@@ -88,36 +88,21 @@ def test_every_example_and_python_block_runs(tmp_path, monkeypatch, capsys, rest
     assert (tmp_path / "exported" / "actor.onnx").is_file() and (tmp_path / "exported" / "actor.pt").is_file()
 
     # Every README and docs Python block runs on its own in a fresh interpreter, as a reader pasting
-    # only that block would run it (the ONNX and TorchScript ones run the actor exported above). A
-    # block that loads a shipped model runs from the repository's root, as a reader of the README
-    # would, with the official robots fetched (skipped where this machine has no copy of them).
+    # only that block would run it (the ONNX and TorchScript ones run the actor exported above). The
+    # blocks that load a shipped model run in the results suite (test_the_shipped_model_blocks_run).
     blocks = code_blocks("python")
     assert len(blocks) >= 5
     for index, code in enumerate(blocks):
-        shipped = '"results/' in code
-        if shipped and not (OFFICIAL_TRAIN / "xml").is_dir():
-            print(f"python block {index} skipped: it needs the official robots, not found at {OFFICIAL_TRAIN}")
+        if '"results/' in code:
             continue
-        env = None
-        if shipped:  # the official robots, fetched once into a cache of this test's own
-            from unimal_envs.morphology.official import fetch
-
-            fetch(OFFICIAL_TRAIN, ["train"], cache=tmp_path / "unimal-data")
-            env = {**os.environ, "UNIMAL_DATA": str(tmp_path / "unimal-data")}
         done = subprocess.run(
             [sys.executable, "-c", "import torch; torch.set_num_threads(1)\n" + code],
-            cwd=REPO if shipped else tmp_path,
-            env=env,
+            cwd=tmp_path,
             capture_output=True,
             text=True,
             timeout=600,
         )
         assert done.returncode == 0, f"python block {index} (README, then docs/) fails on its own:\n{code}\n{done.stderr[-2000:]}"
-        if shipped and "evaluate(" in code:  # the shipped teacher walks on the robots the README names
-            returns = [float(x) for x in re.findall(r"return (\d+)", done.stdout)]
-            assert returns and min(returns) >= 100, done.stdout
-            asked = re.findall(r'"([a-z]+-\d{4}[-\d]*)"', code)  # the robots, in the order the block names them
-            assert re.findall(r"^(\S+): return", done.stdout, flags=re.M) == asked, done.stdout
     # ... and the quick start's numbers, checked in this process.
     namespace: dict = {"__name__": "__readme__"}
     quick_start = None
@@ -130,6 +115,35 @@ def test_every_example_and_python_block_runs(tmp_path, monkeypatch, capsys, rest
     assert quick_start is not None and quick_start.num_timesteps == 2048
     assert quick_start.n_steps == 512 and quick_start.batch_size == 512 and quick_start.n_epochs == 4
     assert np.isfinite(namespace["reward"]) and namespace["means"].shape == (1, 24)  # the exported actors ran
+
+
+@pytest.mark.shipped_results
+def test_the_shipped_model_blocks_run(tmp_path):
+    """The README and docs blocks that load a shipped model run from the repository's root, as a
+    reader of the README would, with the official robots fetched into a cache of this test's own."""
+    blocks = [code for code in code_blocks("python") if '"results/' in code]
+    assert blocks, "the README shows a shipped model"
+    if not (OFFICIAL_TRAIN / "xml").is_dir():
+        pytest.skip(f"needs the official robots, not found at {OFFICIAL_TRAIN}")
+    from unimal_envs.morphology.official import fetch
+
+    fetch(OFFICIAL_TRAIN, ["train"], cache=tmp_path / "unimal-data")
+    env = {**os.environ, "UNIMAL_DATA": str(tmp_path / "unimal-data")}
+    for code in blocks:
+        done = subprocess.run(
+            [sys.executable, "-c", "import torch; torch.set_num_threads(1)\n" + code],
+            cwd=REPO,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
+        assert done.returncode == 0, f"a shipped-model block fails on its own:\n{code}\n{done.stderr[-2000:]}"
+        if "evaluate(" in code:  # the shipped teacher walks on the robots the block names, in that order
+            returns = [float(x) for x in re.findall(r"return (\d+)", done.stdout)]
+            assert returns and min(returns) >= 100, done.stdout
+            asked = re.findall(r'"([a-z]+-\d{4}[-\d]*)"', code)
+            assert re.findall(r"^(\S+): return", done.stdout, flags=re.M) == asked, done.stdout
 
 
 def _shell_commands() -> list[list[str]]:
@@ -193,11 +207,13 @@ def test_the_project_is_licensed_citable_and_names_its_sources():
         assert source in references, source
 
 
-def test_the_readmes_zero_shot_table_quotes_its_results_file():
-    """Each model's "training -> held-out" mean in the README's zero-shot table is the one
+@pytest.mark.shipped_results
+def test_the_zero_shot_page_quotes_its_results_file():
+    """Each model's "training -> held-out" mean in the zero-shot claim's table is the one
     ``results/cpu100/zero-shot.md`` (written by ``studies/zero_shot.py``) holds for that task and model."""
     results = (REPO / "results" / "cpu100" / "zero-shot.md").read_text()
-    block = README.split("<!-- cpu100-zero-shot -->")[1].split("| task | teacher")[1].split("\n\n")[0]
+    page = (REPO / "docs" / "claims" / "zero-shot.md").read_text()
+    block = page.split("| task | teacher")[1].split("\n\n")[0]
     columns = ["teacher (MetaMorph)", "DivMorph student", "dense MetaMorph⚗ student", "HyperDistill"]
     checked = 0
     for line in block.splitlines()[2:]:

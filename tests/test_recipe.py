@@ -9,7 +9,7 @@ from stable_baselines3.common.env_util import make_vec_env
 
 import unimal_envs  # noqa: F401
 from sb3_divmorph.algos.recipe import BalancedRobotSampler, CosineWarmupSchedule, balanced_probabilities
-from sb3_divmorph.pipeline.config import BALANCED_SAMPLER, ConfigError, load_zoo_entry
+from divmorph.pipeline.config import BALANCED_SAMPLER, ConfigError, load_zoo_entry
 
 
 def test_cosine_schedule_warms_up_then_decays_to_zero():

@@ -12,12 +12,12 @@ from pathlib import Path
 import pytest
 
 from divmorph.cli import main as cli
-from sb3_divmorph.pretrained import PretrainedError, load_pretrained
-from sb3_divmorph.shipped import ShippedModelsError, fetch_models, shipped_runs
+from divmorph.pretrained import PretrainedError, load_pretrained
+from divmorph.shipped import ShippedModelsError, fetch_models, shipped_runs
 
 REPO = Path(__file__).resolve().parents[1]
 RUN = REPO / "results" / "cpu100"
-pytestmark = pytest.mark.skipif(not RUN.is_dir(), reason="needs the checkout's results/cpu100")
+pytestmark = [pytest.mark.shipped_results, pytest.mark.skipif(not RUN.is_dir(), reason="needs the checkout's results/cpu100")]
 
 
 def test_the_shipped_checksums_are_those_of_the_shipped_files():

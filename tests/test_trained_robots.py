@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from sb3_divmorph.pipeline.config import ConfigError
-from sb3_divmorph.pipeline.robots import trained_robot_set, trained_robots
+from divmorph.pipeline.config import ConfigError
+from divmorph.pipeline.robots import trained_robot_set, trained_robots
 
 RUN = Path(__file__).resolve().parents[1] / "results" / "cpu"
 RUN100 = RUN.parent / "cpu100"
@@ -29,12 +29,14 @@ def test_a_model_folder_names_the_robots_of_its_run(tmp_path):
         trained_robots(run / "teachers" / "FT")
 
 
+@pytest.mark.shipped_results
 def test_the_shipped_teachers_default_to_the_official_robots(official_cache):
     robots = trained_robots(RUN100 / "teachers" / "Obstacle")
     assert len(robots) == 100 and robots[0].stem == "floor-1409-0-12-01-12-30-07"
     assert trained_robot_set(RUN / "student") == "unimals100-train"
 
 
+@pytest.mark.shipped_results
 def test_the_load_example_runs_the_shipped_teacher_on_its_robot_with_no_env_flags(official_cache, capsys):
     """The example finds the robot among the run's training robots and builds the env the run trained
     with (heights above the ground): the Obstacle teacher gets far over solid blocks (1941 when the
@@ -54,6 +56,7 @@ def test_the_load_example_runs_the_shipped_teacher_on_its_robot_with_no_env_flag
     assert ret > 300, out  # far from the -2 of a model fed unnormalised observations, on any host
 
 
+@pytest.mark.shipped_results
 def test_the_shipped_compact_actors_name_their_robot_set():
     onnx = pytest.importorskip("onnx")
     for path in sorted((RUN / "export").glob("*-FT/actor.onnx")):

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from sb3_divmorph.pipeline.metrics import (
+from divmorph.pipeline.metrics import (
     EFFICIENCY_FRACTION,
     RobotCurves,
     area_under_curve,
@@ -134,9 +134,9 @@ def test_seeds_evaluated_at_different_steps_are_compared_over_their_whole_curves
 
 def test_metrics_leave_out_a_seed_whose_run_is_still_going(tmp_path):
     """A run in progress has a shorter curve; counted, it would cut every seed's curve to its last step."""
-    from sb3_divmorph.pipeline.config import load_profile
-    from sb3_divmorph.pipeline.curves import task_metrics, write_eval
-    from sb3_divmorph.pipeline.files import mark_done
+    from divmorph.pipeline.config import load_profile
+    from divmorph.pipeline.curves import task_metrics, write_eval
+    from divmorph.pipeline.files import mark_done
 
     def write(seed: int, steps: tuple[int, ...], done: bool) -> None:
         folder = tmp_path / "transfer" / "Escape" / "scratch" / f"seed-{seed}"
@@ -160,7 +160,7 @@ def test_each_robot_and_evaluation_seed_draws_its_own_episodes():
     """On a task with random goals, the robots of one evaluation walk to different goals, two
     evaluation seeds share no goal, and the same seed gives the same goals again (with ``seed + e``
     every robot of an evaluation got the same few goals, and seed 0's episode 1 was seed 1's episode 0)."""
-    from sb3_divmorph.pipeline.curves import robot_venv
+    from divmorph.pipeline.curves import robot_venv
     from unimal_envs.morphology import morphology_files
 
     robots = morphology_files("train")[:3]

@@ -21,12 +21,12 @@ from stable_baselines3.common.vec_env import VecNormalize
 
 import unimal_envs
 from divmorph.cli import main as cli
-from sb3_divmorph.pipeline import distill, evaluate, export_all, train_teachers, transfer
-from sb3_divmorph.pipeline.config import PPO_HYPERPARAMETERS, ConfigError, Profile, load_profile, load_profiles
-from sb3_divmorph.pipeline.files import atomic_write_json, mark_done, read_done
-from sb3_divmorph.pipeline.training import TrainingRun, latest_checkpoint, save_checkpoint
+from divmorph.pipeline import distill, evaluate, export_all, train_teachers, transfer
+from divmorph.pipeline.config import PPO_HYPERPARAMETERS, ConfigError, Profile, load_profile, load_profiles
+from divmorph.pipeline.files import atomic_write_json, mark_done, read_done
+from divmorph.pipeline.training import TrainingRun, latest_checkpoint, save_checkpoint
 from sb3_divmorph.policies import DivMorphPolicy
-from sb3_divmorph.record import RecordError, find_model, record
+from divmorph.record import RecordError, find_model, record
 from unimal_envs.morphology.loader import MorphologyError, morphology_files
 
 REPO = Path(__file__).resolve().parents[1]
@@ -307,7 +307,7 @@ def test_record_films_a_pipeline_stage_on_its_own_robots_outside_its_folder(tmp_
     import imageio.v3 as iio
 
     import unimal_envs.rendering as rendering
-    from sb3_divmorph.record import add_arguments
+    from divmorph.record import add_arguments
 
     student = tmp_path / "run" / "student"
     tiny_model(student)
@@ -340,7 +340,7 @@ def test_record_best_films_the_training_robot_the_run_evaluated_best(tmp_path, c
 
     import pandas as pd
 
-    from sb3_divmorph.record import add_arguments
+    from divmorph.record import add_arguments
 
     run = tmp_path / "run"
     teacher = run / "teachers" / "FT"
@@ -365,7 +365,7 @@ def test_record_best_films_the_training_robot_the_run_evaluated_best(tmp_path, c
     record(parser.parse_args([str(teacher), "--robot", "best", "--steps", "3", "--width", "32", "--height", "32", "--no-progress"]))
     out = capsys.readouterr().out
     assert "train-002 (mean return 30.0)" in out and "episode 0: train-002" in out
-    from sb3_divmorph.pretrained import load_pretrained
+    from divmorph.pretrained import load_pretrained
 
     assert [robot for robot, _ in load_pretrained(teacher).best_robots(n=2)] == ["train-002", "train-003"]
     # with no --robot the film shows the same robot: a newcomer's first film is not of a robot that falls
@@ -391,7 +391,7 @@ def test_a_truncated_or_foreign_model_file_is_refused_by_name(tmp_path, capsys):
     ``load_pretrained`` and by ``divmorph record`` -- before record asks which task (break: drop
     ``check_archive`` -> SB3's raw "wasn't a zip-file", and record first asks for --task)."""
     from divmorph.cli import main as cli
-    from sb3_divmorph.pretrained import PretrainedError, load_pretrained
+    from divmorph.pretrained import PretrainedError, load_pretrained
 
     student = tmp_path / "run" / "student"
     tiny_model(student)
@@ -407,7 +407,7 @@ def test_a_truncated_or_foreign_model_file_is_refused_by_name(tmp_path, capsys):
 
 def test_commands_that_read_a_run_name_a_missing_folder_and_transfer_help_lists_the_arms(tmp_path, capsys):
     from divmorph.cli import main as cli
-    from sb3_divmorph.pipeline.arms import ARMS
+    from divmorph.pipeline.arms import ARMS
 
     missing = tmp_path / "no-such-run"
     for command in ("evaluate", "report", "export"):
@@ -423,7 +423,7 @@ def test_commands_that_read_a_run_name_a_missing_folder_and_transfer_help_lists_
 def test_the_command_overview_lists_every_command_without_importing_torch():
     import subprocess
 
-    from divmorph.cli import _parser
+    from divmorph.cli import build_parser
 
     # in a fresh interpreter: this test process has imported torch long ago
     code = (
@@ -432,7 +432,7 @@ def test_the_command_overview_lists_every_command_without_importing_torch():
     )
     shown = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=REPO).stdout
     assert shown.strip().endswith("[]"), "divmorph --help imported the library: " + shown.splitlines()[-1]
-    commands = next(action for action in _parser()._actions if action.dest == "command").choices
+    commands = next(action for action in build_parser()._actions if action.dest == "command").choices
     assert set(commands) >= {"pipeline", "transfer", "evaluate", "record", "plot", "branch"}
     assert all(f"    {name}" in shown for name in commands), "the overview lists every command of the full parser"
 
@@ -473,7 +473,7 @@ def test_plot_draws_rl_zoo_monitor_files_and_pipeline_logs_headless(tmp_path, ca
     image = iio.imread(out)
     assert image.ndim == 3 and image.shape[0] > 200 and image.std() > 10
     assert "2 curve(s)" in capsys.readouterr().out
-    from sb3_divmorph.plot import learning_curve
+    from divmorph.plot import learning_curve
 
     steps, returns, source = learning_curve(zoo, window=5)
     assert len(steps) == 60 - 4 and steps[-1] == 6000 and "60 episodes" in source  # every episode, cumulative steps
@@ -485,8 +485,8 @@ def test_plot_draws_rl_zoo_monitor_files_and_pipeline_logs_headless(tmp_path, ca
 
 
 def test_the_report_says_which_robots_are_novel():
-    from sb3_divmorph.pipeline.config import load_profile
-    from sb3_divmorph.pipeline.report import _robots_sentence
+    from divmorph.pipeline.config import load_profile
+    from divmorph.pipeline.report import _robots_sentence
 
     assert "novel: robots 11-20 of `unimals100-train`" in _robots_sentence(load_profile("cpu"))
     assert "novel: the first 4 of `novel`" in _robots_sentence(load_profile("demo"))
@@ -498,7 +498,10 @@ def test_a_failed_redo_puts_the_good_results_back(tmp_path, monkeypatch, capsys)
     import zipfile
 
     from divmorph.cli import main as cli
-    from sb3_divmorph import pipeline as P
+    import importlib
+
+    # the stage's module (the package's `evaluate` attribute is the stage function)
+    evaluate_stage = importlib.import_module("divmorph.pipeline.evaluate")
 
     run = tmp_path / "run"
     (run / "evaluate").mkdir(parents=True)
@@ -508,16 +511,17 @@ def test_a_failed_redo_puts_the_good_results_back(tmp_path, monkeypatch, capsys)
     def broken(*args, **kwargs):
         raise zipfile.BadZipFile("File is not a zip file: model.zip")
 
-    monkeypatch.setattr(P, "evaluate", broken)
+    monkeypatch.setattr(evaluate_stage, "evaluate", broken)
     with pytest.raises(zipfile.BadZipFile):
         cli(["evaluate", *common, "--redo", "evaluate"])
     assert (run / "evaluate" / "returns.csv").read_text().endswith("1863.0\n"), "the good evaluation is back"
     assert "the previous evaluate folders are back" in capsys.readouterr().err
-    monkeypatch.setattr(P, "evaluate", lambda *a, **k: (_ for _ in ()).throw(FileNotFoundError("no model.zip in teachers/FT")))
+    monkeypatch.setattr(evaluate_stage, "evaluate", lambda *a, **k: (_ for _ in ()).throw(FileNotFoundError("no model.zip in teachers/FT")))
     assert cli(["evaluate", *common, "--redo", "evaluate"]) == 2
     assert (run / "evaluate" / "returns.csv").is_file()
 
 
+@pytest.mark.shipped_results
 def test_evaluate_a_selection_of_a_shipped_run_into_a_folder_of_ones_own(official_cache, tmp_path, capsys):
     import csv
 
@@ -564,9 +568,9 @@ def test_no_ablation_figure_without_an_ablation_and_legends_stay_off_the_curves(
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from sb3_divmorph.pipeline.config import load_profile
-    from sb3_divmorph.pipeline.curves import write_eval
-    from sb3_divmorph.pipeline.figures import make_figure, outside_legend
+    from divmorph.pipeline.config import load_profile
+    from divmorph.pipeline.curves import write_eval
+    from divmorph.pipeline.figures import make_figure, outside_legend
 
     profile = load_profile("demo")
     task = profile.transfer.tasks[0]
@@ -594,8 +598,8 @@ def test_no_ablation_figure_without_an_ablation_and_legends_stay_off_the_curves(
 
 
 def test_robot_set_records_name_no_machine_paths():
-    from sb3_divmorph.pipeline.config import load_profile
-    from sb3_divmorph.pipeline.robots import robot_set_record
+    from divmorph.pipeline.config import load_profile
+    from divmorph.pipeline.robots import robot_set_record
 
     record = robot_set_record(load_profile("demo"))
     assert record["train"]["folder"] == "unimal_envs/data/morphologies/train"
@@ -608,7 +612,7 @@ def test_bad_inputs_name_the_problem(tmp_path, capsys):
     import argparse
 
     from divmorph.cli import main as divmorph_main
-    from sb3_divmorph.record import add_arguments
+    from divmorph.record import add_arguments
 
     parser = argparse.ArgumentParser()
     add_arguments(parser)
@@ -653,8 +657,8 @@ def test_load_pretrained_names_the_robot_that_ran_and_keeps_the_run_settings(tmp
     import json
     import warnings
 
-    from sb3_divmorph.pipeline.curves import episode_seed
-    from sb3_divmorph.pretrained import load_pretrained
+    from divmorph.pipeline.curves import episode_seed
+    from divmorph.pretrained import load_pretrained
 
     run = tmp_path / "run"
     tiny_model(run / "teachers" / "FT", steps=64)
@@ -693,7 +697,7 @@ def test_evaluation_rows_come_in_the_order_asked_not_the_order_episodes_end():
     rows list robot 0's episodes first, each robot's in order (break: return the rows as they finish)."""
     from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor
 
-    from sb3_divmorph.pipeline.curves import rollout_returns
+    from divmorph.pipeline.curves import rollout_returns
 
     class Fixed(gym.Env):
         observation_space = gym.spaces.Box(-1, 1, (1,))
@@ -727,9 +731,9 @@ def test_a_run_with_a_goal_range_runs_its_models_with_it(tmp_path):
 
     import numpy as np
 
-    from sb3_divmorph.pipeline.config import ConfigError, load_profile
-    from sb3_divmorph.pipeline.envs import profile_env_kwargs
-    from sb3_divmorph.pretrained import load_pretrained
+    from divmorph.pipeline.config import ConfigError, load_profile
+    from divmorph.pipeline.envs import profile_env_kwargs
+    from divmorph.pretrained import load_pretrained
 
     run = tmp_path / "run"
     tiny_model(run / "teachers" / "FT", steps=64)
@@ -756,7 +760,7 @@ def test_an_rl_zoo_run_is_filmed_and_loaded_on_the_robots_of_its_env_kwargs(tmp_
     )
     saved = find_model(zoo)
     assert saved.env_kwargs == {"morphologies": ["train-004"], "height_reference": "ground"} and saved.algo == "ppo"
-    from sb3_divmorph.pretrained import load_pretrained
+    from divmorph.pretrained import load_pretrained
 
     model = load_pretrained(zoo)
     assert [r.stem for r in model.robots] == ["train-004"] and model.normalizer is not None
@@ -783,8 +787,8 @@ def test_one_seed_is_one_episode_in_record_and_evaluate(tmp_path, capsys, monkey
     import argparse
     import re
 
-    from sb3_divmorph.pretrained import load_pretrained
-    from sb3_divmorph.record import add_arguments
+    from divmorph.pretrained import load_pretrained
+    from divmorph.record import add_arguments
 
     teacher = tmp_path / "run" / "teachers" / "FT"
     tiny_model(teacher, steps=64)
@@ -818,6 +822,28 @@ def test_one_seed_is_one_episode_in_record_and_evaluate(tmp_path, capsys, monkey
         )
 
 
+def test_the_library_loads_a_model_file_with_the_statistics_beside_it(tmp_path):
+    """``sb3_divmorph.load_model``: a model file alone (no run folder) acts through the statistics it
+    trained with -- found beside it -- and a cut-off file is refused by name (break: drop the
+    normaliser lookup -> the actions differ from the normalised ones)."""
+    from sb3_divmorph import load_model
+    from sb3_divmorph.saved_model import SavedModelError
+
+    model = tiny_model(tmp_path / "stage", steps=64)
+    loaded = load_model(tmp_path / "stage" / "model.zip")
+    assert loaded.normalizer is not None and not loaded.normalizer.training
+    env = gym.make("Unimal-FT-v0", morphologies=morphology_files("train")[:1])
+    obs, _ = env.reset(seed=0)
+    batch = {key: value[None] for key, value in obs.items()}
+    expected, _ = model.predict(loaded.normalizer.normalize_obs(batch), deterministic=True)
+    raw, _ = model.predict(batch, deterministic=True)
+    assert np.allclose(loaded.predict(batch), expected) and not np.allclose(expected, raw), "the statistics are applied"
+    cut = tmp_path / "cut.zip"
+    cut.write_bytes((tmp_path / "stage" / "model.zip").read_bytes()[:1000])
+    with pytest.raises(SavedModelError, match="truncated or not a model archive"):
+        load_model(cut)
+
+
 def test_divmorph_evaluate_takes_any_model_folder(tmp_path, capsys):
     """``divmorph evaluate FOLDER`` evaluates one saved model (a pipeline stage here; an rl-zoo run
     folder loads the same way) on the robots asked for, naming each, into ``--into``."""
@@ -840,8 +866,8 @@ def test_divmorph_evaluate_takes_any_model_folder(tmp_path, capsys):
 def test_export_finds_a_robot_by_name_among_the_runs_own_robots(official_train):
     """``divmorph export --morphology NAME`` takes any robot of the run's sets (an official robot of a
     ``cpu100``-like run), not only the shipped generated ones; an unknown name says where it looked."""
-    from divmorph.cli import _robot_path
-    from sb3_divmorph.pipeline.config import load_profile
+    from divmorph.cli.export import robot_path as _robot_path
+    from divmorph.pipeline.config import load_profile
 
     profile = load_profile("demo", overrides={"train_set": str(official_train / "xml"), "train_robots": None})
     name = sorted((official_train / "xml").glob("*.xml"))[-1].stem

@@ -78,6 +78,10 @@ def installed(tmp_path_factory) -> tuple[Path, Path]:
         "sb3_divmorph/py.typed",
         "sb3_divmorph/zoo_configs/divmorph.yml",
         "sb3_divmorph/zoo_configs/ppo.yml",
+        "divmorph/py.typed",
+        "divmorph/shipped_models.json",
+        "divmorph/cli/__init__.py",
+        "divmorph/pipeline/transfer.py",
     }
     assert shipped <= names, shipped - names
     for split in ("train", "novel"):  # the 200 generated robots, each with its metadata
@@ -110,7 +114,7 @@ def test_installed_cli_finds_its_profiles_from_any_folder(installed):
     assert {"demo", "gpu", "cpu"} <= set(listed.stdout.split())
     # the profile's `hyperparams: zoo_configs/ppo.yml` resolves to the installed file
     code = (
-        "from sb3_divmorph.pipeline.config import load_profile, load_zoo_entry, resolve_path; p = load_profile('demo'); "
+        "from divmorph.pipeline.config import load_profile, load_zoo_entry, resolve_path; p = load_profile('demo'); "
         "print(resolve_path(p.teachers.hyperparams), load_zoo_entry(p.teachers.hyperparams, 'Unimal-FT-v0').n_envs)"
     )
     entry = _run([sys.executable, "-c", code], elsewhere, site)
@@ -187,9 +191,24 @@ def test_installed_rl_zoo_trains_with_the_shipped_entries_and_record_films_it(in
 
 def test_the_installed_packages_declare_their_type_hints(installed):
     site, _ = installed
-    assert (site / "sb3_divmorph" / "py.typed").is_file() and (site / "unimal_envs" / "py.typed").is_file()
+    assert all((site / package / "py.typed").is_file() for package in ("sb3_divmorph", "unimal_envs", "divmorph"))
 
 
+def test_the_readmes_first_python_example_runs_from_the_wheel(installed):
+    """The README's first Python block (an env and ``PPO("DivMorphPolicy", env)``) runs from the installed
+    wheel in a folder outside the checkout, with nothing fetched (break: drop the policy aliases'
+    registration in ``sb3_divmorph/__init__.py`` -> "Policy DivMorphPolicy unknown")."""
+    import re
+
+    site, elsewhere = installed
+    block = re.findall(r"```python\n(.*?)```", (REPO / "README.md").read_text(), flags=re.S)[0]
+    assert 'PPO("DivMorphPolicy", env' in block and "results/" not in block
+    done = _run([sys.executable, "-c", block + "\nprint('trained', model.num_timesteps)"], elsewhere, site)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert re.search(r"^trained \d+", done.stdout, flags=re.M), done.stdout
+
+
+@pytest.mark.shipped_results
 def test_the_readme_quick_start_runs_from_the_wheel_after_the_documented_fetch(installed, official_sets, tmp_path):
     """A pip user: ``divmorph fetch-models cpu100 --source <checkout>`` (the README's command), then the
     README's quick-start block, run from a folder with no ``results/``, prints a return for each robot

@@ -8,7 +8,7 @@ every evaluation; ``progress.csv`` every PPO update), more than the repository's
 allows (``tests/test_tree_size.py``). Packing gzips ``progress.csv``, ``eval.csv`` and ``returns.csv``
 into ``<name>.gz`` (deterministic: no timestamp, so a re-pack is byte-identical) and removes the plain
 file after checking that the packed one reads back byte for byte. Every reader of the pipeline takes
-either form (``sb3_divmorph.pipeline.files.log_file``), and a plain file written later wins over its
+either form (``divmorph.pipeline.files.log_file``), and a plain file written later wins over its
 packed twin. Only finished stages are packed -- a folder with ``done.json`` at or above the file --
 because a running stage appends to its logs.
 """

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from sb3_divmorph.pipeline.files import log_file, read_progress
+from divmorph.pipeline.files import log_file, read_progress
 
 # The progress.csv columns kept, and their names in the training table.
 TRAINING_COLUMNS = {

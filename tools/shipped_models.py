@@ -1,4 +1,4 @@
-"""Write ``sb3_divmorph/shipped_models.json``: the checksums of the shipped runs' files that
+"""Write ``divmorph/shipped_models.json``: the checksums of the shipped runs' files that
 ``divmorph fetch-models`` copies (each model with its statistics and env settings, and the run's records).
 
     python tools/shipped_models.py          # after re-saving a shipped model; tests/test_shipped.py checks it is current
@@ -33,6 +33,6 @@ def manifest() -> dict[str, dict[str, str]]:
 
 
 if __name__ == "__main__":
-    out = ROOT / "sb3_divmorph" / "shipped_models.json"
+    out = ROOT / "divmorph" / "shipped_models.json"
     out.write_text(json.dumps(manifest(), indent=1, sort_keys=True) + "\n")
     print(f"{out}: {sum(len(v) for v in manifest().values())} files")

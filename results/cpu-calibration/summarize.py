@@ -4,10 +4,10 @@ import json, platform, os, time, csv, io
 import numpy as np, torch as th
 th.set_num_threads(1)
 from pathlib import Path
-from sb3_divmorph.pipeline import load_profile
-from sb3_divmorph.pipeline.evaluate import evaluate_model
-from sb3_divmorph.pipeline.files import read_done
-from sb3_divmorph.pipeline.robots import profile_robots
+from divmorph.pipeline import load_profile
+from divmorph.pipeline.evaluate import evaluate_model
+from divmorph.pipeline.files import read_done
+from divmorph.pipeline.robots import profile_robots
 root = Path("results/cpu-calibration")
 rows, lines = [], []
 for name in ("calib-lr3e-4", "calib-lr1e-3"):

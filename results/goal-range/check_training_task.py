@@ -20,11 +20,11 @@ from pathlib import Path
 import pandas as pd
 import torch as th
 
-from sb3_divmorph.pipeline.folders import student_folder, teacher_folder
-from sb3_divmorph.pipeline.metrics import robot_interval
-from sb3_divmorph.pipeline.provenance import recorded_profile
-from sb3_divmorph.pipeline.robots import transfer_eval_robots
-from sb3_divmorph.pretrained import load_pretrained
+from divmorph.pipeline.folders import student_folder, teacher_folder
+from divmorph.pipeline.metrics import robot_interval
+from divmorph.pipeline.provenance import recorded_profile
+from divmorph.pipeline.robots import transfer_eval_robots
+from divmorph.pretrained import load_pretrained
 
 HERE = Path(__file__).resolve().parent
 

@@ -21,12 +21,12 @@ import gymnasium as gym
 import numpy as np
 import torch as th
 
-from sb3_divmorph.pipeline.curves import episode_seed
-from sb3_divmorph.pipeline.folders import student_folder
-from sb3_divmorph.pipeline.provenance import recorded_profile
-from sb3_divmorph.pipeline.robots import transfer_eval_robots
-from sb3_divmorph.pipeline.transfer import _feature_layout
-from sb3_divmorph.pretrained import load_pretrained
+from divmorph.pipeline.curves import episode_seed
+from divmorph.pipeline.folders import student_folder
+from divmorph.pipeline.provenance import recorded_profile
+from divmorph.pipeline.robots import transfer_eval_robots
+from divmorph.pipeline.transfer import _feature_layout
+from divmorph.pretrained import load_pretrained
 from unimal_envs.instructions import INSTRUCTIONS
 
 HERE = Path(__file__).resolve().parent

@@ -19,8 +19,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from sb3_divmorph.pipeline.figures import save_png  # noqa: E402
-from sb3_divmorph.pipeline.metrics import robot_interval  # noqa: E402
+from divmorph.pipeline.figures import save_png  # noqa: E402
+from divmorph.pipeline.metrics import robot_interval  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE.parent

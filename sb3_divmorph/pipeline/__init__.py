@@ -1,68 +1,20 @@
-"""The knowledge-diversion pipeline: teachers -> DAgger distillation -> (GRL) -> transfer -> export -> evaluate -> report.
+"""Deprecated path of :mod:`divmorph.pipeline` (the application moved out of the library in 0.2.0; removed in 0.3.0).
 
-Each stage is a function of a validated :class:`~sb3_divmorph.pipeline.config.Profile` and a run
-folder; the ``divmorph`` console script (:mod:`divmorph.cli`) calls the same functions.
-Stages skip work whose outputs exist, resume interrupted training from the last checkpoint, and
-write their outputs atomically.
+Importing ``sb3_divmorph.pipeline`` or any of its modules warns once and gives the module of
+``divmorph.pipeline`` under the old name (the same objects: ``except ConfigError`` keeps working).
 """
 
-from sb3_divmorph.pipeline.config import ConfigError, Profile, load_profile
-from sb3_divmorph.pipeline.distill import distill
-from sb3_divmorph.pipeline.evaluate import evaluate
-from sb3_divmorph.pipeline.export import export_actor, export_all
-from sb3_divmorph.pipeline.figures import FIGURES, make_figure, make_figures
-from sb3_divmorph.pipeline.grid import GridError, make_backend
-from sb3_divmorph.pipeline.grl import evolve
-from sb3_divmorph.pipeline.hyperdistill import hyperdistill
-from sb3_divmorph.pipeline.provenance import recorded_profile
-from sb3_divmorph.pipeline.report import report
-from sb3_divmorph.pipeline.teachers import load_teachers, train_teachers
-from sb3_divmorph.pipeline.transfer import transfer
+import importlib
+import pkgutil
+import sys
+import warnings
 
-STAGES = ("teachers", "distill", "hyperdistill", "grl", "transfer", "export", "evaluate", "report")
-
-
-def run_pipeline(profile: Profile, out, progress_bar: bool = True, command: str = "", backend=None) -> str:
-    """Run every stage in order (skipping finished ones); returns the markdown summary.
-
-    The HyperDistill baseline runs only when the profile has a ``hyperdistill`` section, GRL's
-    evolution only when ``transfer.arms`` has ``grl``.
-
-    :param backend: a :mod:`~sb3_divmorph.pipeline.grid` backend for the independent trainings
-        (teachers, students, GRL agents, transfer runs); default: local, one after the other.
-    """
-    train_teachers(profile, out, progress_bar=progress_bar, backend=backend)
-    distill(profile, out, progress_bar=progress_bar, backend=backend)
-    if profile.hyperdistill is not None:
-        hyperdistill(profile, out, progress_bar=progress_bar)
-    if "grl" in profile.transfer.arm_list():
-        evolve(profile, out, backend, progress_bar)
-    transfer(profile, out, progress_bar=progress_bar, backend=backend)
-    export_all(profile, out)
-    evaluate(profile, out, progress_bar=progress_bar)
-    return report(profile, out, command)
-
-
-__all__ = [
-    "FIGURES",
-    "STAGES",
-    "ConfigError",
-    "GridError",
-    "evolve",
-    "make_backend",
-    "make_figure",
-    "make_figures",
-    "Profile",
-    "distill",
-    "evaluate",
-    "export_actor",
-    "export_all",
-    "hyperdistill",
-    "load_profile",
-    "load_teachers",
-    "recorded_profile",
-    "report",
-    "run_pipeline",
-    "train_teachers",
-    "transfer",
-]
+warnings.warn(
+    "sb3_divmorph.pipeline moved to divmorph.pipeline in 0.2.0 (see CHANGELOG); the old path goes in 0.3.0",
+    DeprecationWarning,
+    stacklevel=2,
+)
+_moved = importlib.import_module("divmorph.pipeline")
+for _info in pkgutil.iter_modules(_moved.__path__):
+    sys.modules[f"{__name__}.{_info.name}"] = importlib.import_module(f"divmorph.pipeline.{_info.name}")
+sys.modules[__name__] = _moved

@@ -1,7 +1,7 @@
 """GRL's learngene on a MetaMorph actor: its inheritable whole layers, and copying them into another.
 
 Used by the GRL stage (a child inherits its parent's layers) and by the ``grl`` transfer arm (a new
-MetaMorph inherits the evolved learngene); see :mod:`sb3_divmorph.pipeline.grl`.
+MetaMorph inherits the evolved learngene); see :mod:`divmorph.pipeline.grl`.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from torch import nn
 
 
 def layer_units(policy: nn.Module) -> dict[str, list[nn.Module]]:
-    """The inheritable whole layers of a MetaMorph actor, by name (see :mod:`sb3_divmorph.pipeline.grl`)."""
+    """The inheritable whole layers of a MetaMorph actor, by name (see :mod:`divmorph.pipeline.grl`)."""
     extractor = policy.features_extractor if policy.share_features_extractor else policy.pi_features_extractor
     units: dict[str, list[nn.Module]] = {"embedding": [extractor.embedding]}
     for i, block in enumerate(extractor.encoder.layers):

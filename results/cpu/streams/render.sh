@@ -8,7 +8,7 @@ RUN=results/cpu; V=$RUN/videos; mkdir -p $V
 pick() {  # robot with the best deterministic return of model $1 on task $2, split $3 (evaluate/returns.csv)
   python - "$@" <<'PY'
 import sys
-from sb3_divmorph.pipeline.report import read_returns
+from divmorph.pipeline.report import read_returns
 model, task, split = sys.argv[1:4]
 rows = [r for r in read_returns("results/cpu/evaluate/returns.csv") if (r["model"], r["task"], r["split"]) == (model, task, split)]  # (or .csv.gz)
 print(max(rows, key=lambda r: float(r["return"]))["morphology"])

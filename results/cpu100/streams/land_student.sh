@@ -31,8 +31,8 @@ python - "$check" "$label" "$seconds" "$folder" <<'PY'
 import csv, platform, sys, time
 from pathlib import Path
 import torch
-from sb3_divmorph.pipeline.config import load_profile
-from sb3_divmorph.pipeline.report import returns_table, student_shares
+from divmorph.pipeline.config import load_profile
+from divmorph.pipeline.report import returns_table, student_shares
 check, label, seconds, folder = Path(sys.argv[1]), sys.argv[2], sys.argv[3], sys.argv[4]
 rows = list(csv.DictReader(open(check / "returns.csv")))
 table, _ = returns_table(rows)

@@ -25,10 +25,10 @@ import sys
 import time
 from pathlib import Path
 
-from sb3_divmorph.pipeline.config import load_profile
-from sb3_divmorph.pipeline.provenance import RECORD
-from sb3_divmorph.pipeline.files import atomic_write_bytes, atomic_write_json
-from sb3_divmorph.pipeline.robots import record_robot_sets, robot_set_record
+from divmorph.pipeline.config import load_profile
+from divmorph.pipeline.provenance import RECORD
+from divmorph.pipeline.files import atomic_write_bytes, atomic_write_json
+from divmorph.pipeline.robots import record_robot_sets, robot_set_record
 
 NOTE = (
     "issue 43: the novel split is the official held-out robots (unimals100-test, 97 robots); the rows measured on "
