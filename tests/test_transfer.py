@@ -228,7 +228,7 @@ def test_a_teacher_without_an_encoder_for_a_task_input_gets_one_and_keeps_its_we
     """MetaMorph→ from an FT teacher (no exteroception encoders) must see Escape's height map,
     PushBoxIncline's box and goal: the encoders the task's own architecture has are added freshly
     initialised; every trained weight is kept (the decoder's first layer column by column)."""
-    from sb3_divmorph.pipeline.transfer import finetuned_model
+    from divmorph.pipeline.transfer import finetuned_model
 
     tiny = dict(d_model=16, n_layers=1, ff_dim=32)
     th.manual_seed(0)
@@ -332,3 +332,32 @@ def test_the_singular_values_recipe_trains_the_active_units_singular_values_and_
     assert any(not th.equal(after[n], before[n]) for n, p in names.items() if id(p) in critic)
     with pytest.raises(ValueError, match="recipe must be one of"):
         prepare_transfer(model.policy, selection, recipe="everything")
+
+
+def test_the_kind_recipe_restarts_the_selected_task_tailors_and_keeps_every_other_unit():
+    """``transfer.recipe: kind`` (KIND's rule for a large shift, issue 67 (c)): the selected task
+    tailors get fresh unit-norm directions and zero singular values, every learngene, morphology tailor
+    and unselected task tailor stays bit for bit, and one update grows the new units' singular values
+    (break: skip ``reinitialise_task_tailors`` in ``prepare_transfer`` -> their singular values are not 0)."""
+    model, venv = distilled_like_student(seed=7)
+    obs = venv.reset()
+    gates = model.policy.get_gates(obs)
+    selection = UnitSelection.from_gates(gates.morphology.numpy(), gates.task.numpy())
+    layers = [layer for layer in diverted_actor_layers(model.policy) if layer.n_task_tailors]
+    assert layers and selection.task.any() and not selection.task.all()
+    old = [(layer.singular_values.detach().clone(), layer.tall.detach().clone()) for layer in layers]
+    prepare_transfer(model.policy, selection, learngene_scale=0.1, recipe="kind")
+    restarted = []
+    for layer, (s_old, tall_old) in zip(layers, old, strict=True):
+        task = layer.unit_slices["task"]
+        units = th.arange(task.start, task.stop)[th.as_tensor(selection.task)]
+        kept = th.ones(layer.rank, dtype=th.bool)
+        kept[units] = False
+        assert th.all(layer.singular_values.detach()[units] == 0)
+        assert th.allclose(layer.tall.detach()[:, units].norm(dim=0), th.ones(len(units)), atol=1e-5)
+        assert not th.allclose(layer.tall.detach()[:, units], tall_old[:, units])
+        assert th.equal(layer.singular_values.detach()[kept], s_old[kept]) and th.equal(layer.tall.detach()[:, kept], tall_old[:, kept])
+        restarted.append(units)
+    one_ppo_like_step(model, obs)
+    grown = sum(float(layer.singular_values.detach()[units].abs().sum()) for layer, units in zip(layers, restarted, strict=True))
+    assert grown > 0, "the restarted task tailors learn"

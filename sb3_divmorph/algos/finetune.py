@@ -304,8 +304,10 @@ def unit_groups(layer: FactorizedLinear, unit: th.Tensor) -> dict[str, dict[nn.P
 #: The DivMorph-way transfer recipes (``transfer.recipe``): which parameters train under the fixed gates.
 #: ``fixed-gates`` (the paper's): selected tailors 1x, learngenes and the rest of the actor
 #: ``learngene_scale``; ``singular-values`` (FINE's rule): only the singular values of the active units
-#: (learngenes and selected tailors) at the full rate, every other actor parameter frozen.
-RECIPES = ("fixed-gates", "singular-values")
+#: (learngenes and selected tailors) at the full rate, every other actor parameter frozen; ``kind``
+#: (KIND's rule for a large task shift): as ``fixed-gates``, with the selected task tailors re-initialised
+#: first (:func:`reinitialise_task_tailors`: the old task's knowledge dropped, the learngenes kept).
+RECIPES = ("fixed-gates", "singular-values", "kind")
 
 #: Adam's ``eps`` during transfer: far below a distilled student's smallest useful gradients.
 TRANSFER_ADAM_EPS = 1e-10
@@ -371,7 +373,8 @@ def prepare_transfer(
     :param rotation_scale: learning-rate scale of every Cayley generator relative to its units'.
     :param recipe: one of :data:`RECIPES`; ``singular-values`` then trains, in the actor, only the
         singular values of the units the gates keep active (learngenes and selected tailors) at the
-        full rate (the scales above apply to ``fixed-gates``).
+        full rate (the scales above apply to ``fixed-gates``); ``kind`` re-initialises the selected
+        task tailors (:func:`reinitialise_task_tailors`), then trains as ``fixed-gates``.
     :return: the installed :class:`UnitLearningRates` (keep it, or call ``remove``); its
         :meth:`~UnitLearningRates.measured_ratio` is the learngene / selected-tailor update ratio
         (units of undiverted parts are measured apart, as the group ``undiverted``).
@@ -390,6 +393,8 @@ def prepare_transfer(
         raise ValueError(f"recipe must be one of {list(RECIPES)}, got {recipe!r}")
     freeze([policy.router])
     optimizer = policy.optimizer
+    if recipe == "kind":
+        reinitialise_task_tailors(policy, selection)
     scales: dict[nn.Parameter, th.Tensor] = {}
     groups: dict[str, dict[nn.Parameter, th.Tensor]] = {"learngene": {}, "selected_tailor": {}, "undiverted": {}}
     undiverted = undiverted_modules(policy)
@@ -428,6 +433,38 @@ def prepare_transfer(
     if adam_eps is not None:
         set_adam_eps(optimizer, adam_eps)
     return UnitLearningRates(optimizer, scales, groups)
+
+
+@th.no_grad()
+def reinitialise_task_tailors(policy: nn.Module, selection: UnitSelection) -> int:
+    """KIND's start for a large task shift: in every factorised actor layer, each task tailor the
+    fixed gates select gets a fresh random direction in its tall factor and a zero singular value.
+
+    The old task's tailors leave the function (what the student knew of the training task whose gates
+    it was given), the learngenes and morphology tailors stay; with a zero singular value the new
+    unit adds nothing until training grows it, and its direction learns once it does (as a
+    zero-initialised adapter). Square factors, being orthogonal, are left as they are.
+
+    :return: the number of units re-initialised.
+    """
+    count = 0
+    for module in actor_modules(policy):
+        for layer in module.modules():
+            if not isinstance(layer, FactorizedLinear) or layer.n_task_tailors == 0:
+                continue
+            task = layer.unit_slices["task"]
+            if len(selection.task) != layer.n_task_tailors:
+                raise ValueError(f"a selection of {len(selection.task)} task tailors for a layer with {layer.n_task_tailors}")
+            chosen = th.as_tensor(selection.task, dtype=th.bool)
+            units = th.arange(task.start, task.stop)[chosen]
+            if len(units) == 0:
+                continue
+            fresh = th.randn(layer.tall.shape[0], len(units), dtype=layer.tall.dtype, device=layer.tall.device)
+            layer.tall[:, units] = fresh / fresh.norm(dim=0, keepdim=True)  # unit columns, as the SVD's
+            layer.singular_values[units] = 0.0
+            layer._cache = None
+            count += len(units)
+    return count
 
 
 def singular_value_scales(policy: nn.Module, scales: Mapping[nn.Parameter, th.Tensor]) -> dict[nn.Parameter, th.Tensor]:
