@@ -1,4 +1,4 @@
-"""The ablation race's job list (``studies/ablation_race.sh``), worked by two workers at once with a stand-in Python."""
+"""The ablation race's job list (``results/transfer-pointnav/ablation_race.sh``), worked by two workers at once with a stand-in Python."""
 
 from __future__ import annotations
 
@@ -7,7 +7,11 @@ import stat
 import subprocess
 from pathlib import Path
 
-SCRIPT = Path(__file__).resolve().parents[1] / "studies" / "ablation_race.sh"
+import pytest
+
+SCRIPT = Path(__file__).resolve().parents[1] / "results" / "transfer-pointnav" / "ablation_race.sh"
+#: a study's script of results/: the evidence's suite (`make test-results`), not the library's
+pytestmark = pytest.mark.shipped_results
 STUDENTS = {"no-kdiv-transformer", "no-kdiv-decoder", "no-orthogonality"}
 
 # Logs each call and makes the folders the real calls make; `divmorph distill` takes a moment, then marks its student distilled as the real one does when it
@@ -17,7 +21,7 @@ echo "$*" >> "$WORK/calls.log"
 if [ "$1 $2 $3" = "-m divmorph.cli branch" ]; then
     mkdir -p "${@: -1}" && touch "${@: -1}/run.json"
 fi
-if [ "$1" = studies/novel_task_gates.py ]; then
+if [ "$1" = results/novel-task-gates/novel_task_gates.py ]; then
     mkdir -p "$5"  # its --out
 fi
 if [ "$1 $2 $3" = "-m divmorph.cli distill" ]; then
@@ -59,7 +63,7 @@ def races(calls: list[str]) -> list[tuple[int, dict[str, str]]]:
     """The race runs among the calls: (position, {option: value})."""
     found = []
     for i, call in enumerate(calls):
-        if call.startswith("studies/finetune_known_task.py"):
+        if call.startswith("results/finetune-known-task/finetune_known_task.py"):
             words = call.split()
             found.append((i, {word: words[j + 1] for j, word in enumerate(words) if word.startswith("--")}))
     return found
@@ -89,7 +93,7 @@ def test_two_workers_run_every_job_once_and_race_only_distilled_students_on_the_
     assert all(
         "--set transfer.eval_episodes=5 --set transfer.task_gates=closest" in call
         for call in calls
-        if call.startswith("studies/finetune_known_task.py")
+        if call.startswith("results/finetune-known-task/finetune_known_task.py")
     )
 
 

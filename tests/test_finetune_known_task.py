@@ -1,4 +1,4 @@
-"""The fine-tuning study's report (``studies/finetune_known_task.py --report``) on the runs a queue leaves behind."""
+"""The fine-tuning study's report (``results/finetune-known-task/finetune_known_task.py --report``) on the runs a queue leaves behind."""
 
 from __future__ import annotations
 
@@ -6,9 +6,13 @@ import importlib.util
 import json
 from pathlib import Path
 
+import pytest
+
 import pandas as pd
 
-SCRIPT = Path(__file__).resolve().parents[1] / "studies" / "finetune_known_task.py"
+SCRIPT = Path(__file__).resolve().parents[1] / "results" / "finetune-known-task" / "finetune_known_task.py"
+#: a study's script of results/: the evidence's suite (`make test-results`), not the library's
+pytestmark = pytest.mark.shipped_results
 
 
 def load_study():

@@ -210,7 +210,7 @@ def test_the_project_is_licensed_citable_and_names_its_sources():
 @pytest.mark.shipped_results
 def test_the_zero_shot_page_quotes_its_results_file():
     """Each model's "training -> held-out" mean in the zero-shot claim's table is the one
-    ``results/cpu100/zero-shot.md`` (written by ``studies/zero_shot.py``) holds for that task and model."""
+    ``results/cpu100/zero-shot.md`` (written by ``results/cpu100/zero_shot.py``) holds for that task and model."""
     results = (REPO / "results" / "cpu100" / "zero-shot.md").read_text()
     page = (REPO / "docs" / "claims" / "zero-shot.md").read_text()
     block = page.split("| task | teacher")[1].split("\n\n")[0]

@@ -156,7 +156,7 @@ class TransferConfig:
     #: learning-rate multiple of the critic's parameters in those arms' runs: their actor fine-tunes
     #: at ``finetune_overrides``' rate, while their critic (random, or another task's) has a new
     #: task's values to learn, as scratch's does at the teachers' rate; e.g. 10 with lin_1e-4 gives
-    #: the critic lin_1e-3 (``studies/critic_start.py`` measures it on a training task)
+    #: the critic lin_1e-3 (``results/critic-start/critic_start.py`` measures it on a training task)
     critic_lr_scale: float = 1.0
     checkpoint_every: int = 50_000
     #: the arms to race (see :data:`divmorph.pipeline.arms.ARMS`); default: ``divmorph`` and,

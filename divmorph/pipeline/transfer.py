@@ -398,7 +398,7 @@ def transfer_run(
     :param seed: offsets the PPO seed (the robots, budget and evaluation are the same for every seed).
     :param calibration: also accept a *training* task: a setting of the race (a learning rate, the
         critic's treatment) is chosen by running the arms on a training task, never on the novel ones
-        (``studies/critic_start.py``).
+        (``results/critic-start/critic_start.py``).
     :raises ConfigError: not a novel task, unknown arm, or the run folder was begun from another source.
     :raises FileNotFoundError: the arm's prerequisite stage has not run.
     """

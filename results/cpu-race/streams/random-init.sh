@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The race's arms from random init (scratch, modumorph) for every job, while the rule for the critics of the
-# fine-tuned arms is calibrated on FT (studies/critic_start.py): these arms have no inherited critic, so
+# fine-tuned arms is calibrated on FT (results/critic-start/critic_start.py): these arms have no inherited critic, so
 # the rule does not touch them. Same settings as race.sh; its own claims folder. (Used 2026-11-25 before the
 # rule was set; kept as the record of what ran.)
 set -euo pipefail

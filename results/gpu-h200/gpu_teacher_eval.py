@@ -7,7 +7,7 @@ profile's seed), on the 100 official training robots and the 100 novel robots. T
 from ``results/cpu100/evaluate/returns.csv(.gz)`` (rows ``teacher`` / ``teacher-untrained``), which
 that stage wrote with these same settings.
 
-    python studies/gpu_teacher_eval.py --checkpoint /path/to/step-000012134400 \
+    python results/gpu-h200/gpu_teacher_eval.py --checkpoint /path/to/step-000012134400 \
         --out results/gpu-h200/session-3/returns.csv.gz        # ~13 min per split on one core
 
 A checkpoint folder holds ``model.zip`` and ``vecnormalize.pkl`` (the run's ``checkpoints/step-*``).
@@ -31,7 +31,7 @@ from divmorph.pipeline.metrics import robot_interval
 from divmorph.pipeline.files import read_csv_rows
 from divmorph.pipeline.robots import profile_robots
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 COLUMNS = ["model", "task", "split", "morphology", "episode", "return", "length"]
 
 

@@ -14,7 +14,7 @@ above thresholds, throughput), ``<out>/returns.csv.gz`` (one row per run, model,
 actions, so below the deterministic return -- against env steps).
 
     divmorph teachers --profile cpu100 --out results/cpu100-calibration/w32 --task FT --no-progress
-    python studies/teacher_calibration.py --runs results/cpu100-calibration/w32 results/cpu100-calibration/w64 \\
+    python results/cpu100-calibration/teacher_calibration.py --runs results/cpu100-calibration/w32 results/cpu100-calibration/w64 \\
         --out results/cpu100-calibration
 """
 
@@ -138,7 +138,7 @@ def _report(args: argparse.Namespace, summaries: list[dict]) -> str:
         "next to the same policy before training; 95% bootstrap intervals over robots. No novel robot was rolled out.",
         "",
         "```bash",
-        f"python studies/teacher_calibration.py --runs {' '.join(str(r) for r in args.runs)} --task {args.task} "
+        f"python results/cpu100-calibration/teacher_calibration.py --runs {' '.join(str(r) for r in args.runs)} --task {args.task} "
         f"--episodes {args.episodes} --out {args.out}",
         "```",
         "",

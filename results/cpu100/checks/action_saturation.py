@@ -13,7 +13,7 @@ observation). Per model it writes the share of real action slots whose mean lies
 5), the median and 99th percentile of |mean|, and the students' mean absolute difference from the
 teacher's means, with the bounded difference (both clipped to [-1, 1]: what the env executes).
 
-    python studies/action_saturation.py --run results/cpu100 --task FT --robots 20 --steps 300 \\
+    python results/cpu100/checks/action_saturation.py --run results/cpu100 --task FT --robots 20 --steps 300 \\
         --out results/cpu100/checks/action-saturation.md
 """
 
@@ -104,7 +104,7 @@ def main(argv: list[str] | None = None) -> None:
         )
     lines += [
         "",
-        f"Command: `python studies/action_saturation.py --run {args.run} --task {args.task} --robots {args.robots} --steps {args.steps} "
+        f"Command: `python results/cpu100/checks/action_saturation.py --run {args.run} --task {args.task} --robots {args.robots} --steps {args.steps} "
         f"--seed {args.seed} --out {args.out}`; {time.perf_counter() - start:.0f} s on {platform.node()} (1 torch thread).",
         "",
     ]

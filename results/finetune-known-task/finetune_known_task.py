@@ -21,9 +21,9 @@ The run folder is a branch of ``--source`` (its teachers and students, read-only
 runs resume. ``--arms`` / ``--seeds`` split the runs between processes (one per core); ``--report``
 writes ``<out>/README.md`` from whatever runs are finished.
 
-    python studies/finetune_known_task.py --source results/cpu100 --out results/finetune-known-task --arms closest distilled
-    python studies/finetune_known_task.py --source results/cpu100 --out results/finetune-known-task --arms divmorph
-    python studies/finetune_known_task.py --source results/cpu100 --out results/finetune-known-task --report
+    python results/finetune-known-task/finetune_known_task.py --source results/cpu100 --out results/finetune-known-task --arms closest distilled
+    python results/finetune-known-task/finetune_known_task.py --source results/cpu100 --out results/finetune-known-task --arms divmorph
+    python results/finetune-known-task/finetune_known_task.py --source results/cpu100 --out results/finetune-known-task --report
 """
 
 from __future__ import annotations
@@ -270,7 +270,7 @@ def report(args: argparse.Namespace) -> None:
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     lines += [
         "",
-        f"Commands: `python studies/finetune_known_task.py --source {args.source} --out {args.out} --task {args.task} "
+        f"Commands: `python results/finetune-known-task/finetune_known_task.py --source {args.source} --out {args.out} --task {args.task} "
         f"--steps {args.steps} --eval-every {args.eval_every} --arms ... --seeds {' '.join(map(str, args.seeds))}` "
         f"(one process per core), then `--report`; {time.strftime('%Y-%m-%d')}, {platform.node()}, 1 torch thread per process.",
         "",
@@ -312,7 +312,7 @@ def main(argv: list[str] | None = None) -> None:
         evaluate_baselines(args, recorded_profile(args.out / "run.json", overrides(args)))
     if not args.report:
         if not (args.out / "run.json").exists():
-            branch(args.source, args.out, ("teachers", "distill"), command="python studies/finetune_known_task.py")
+            branch(args.source, args.out, ("teachers", "distill"), command="python results/finetune-known-task/finetune_known_task.py")
         profile = recorded_profile(args.out / "run.json", overrides(args))
         for arm in args.arms:
             for seed in args.seeds:

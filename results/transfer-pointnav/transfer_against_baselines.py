@@ -3,13 +3,13 @@
 A transfer curve's points are deterministic evaluations, and on tasks with random goals or terrain a
 point is one draw of heavy-tailed episodes: PointNav's mean over 20 robots x 3 episodes moves
 between 30 and 104 for one unchanged policy (``results/novel-task-gates``). So the change from step
-0 compares a fresh draw with a fixed one. This reads finished runs of ``studies/finetune_known_task.py``
+0 compares a fresh draw with a fixed one. This reads finished runs of ``results/finetune-known-task/finetune_known_task.py``
 (``<out>/transfer/<task>/<arm>/seed-<s>/eval.csv``) and reports, per variant: the mean return at each
 evaluation, the change from step 0, and the change of the last evaluation against the starting
 model's mean over many draws (per robot, paired with each run), taken from
-``studies/novel_task_gates.py``'s rows (``--baseline-rows``).
+``results/novel-task-gates/novel_task_gates.py``'s rows (``--baseline-rows``).
 
-    python studies/transfer_against_baselines.py --task PointNav --baseline-rows results/novel-task-gates/returns.csv.gz \\
+    python results/transfer-pointnav/transfer_against_baselines.py --task PointNav --baseline-rows results/novel-task-gates/returns.csv.gz \\
         --variant "DivMorph, own gates=/work/race/gates-instruction:divmorph:divmorph:PointNav" \\
         --variant "DivMorph, Patrol's gates=/work/race/gates-closest:divmorph:divmorph:Patrol" \\
         --variant "MetaMorph->=/work/race/closest:closest:teacher-Patrol:PointNav"

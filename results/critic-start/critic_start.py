@@ -17,7 +17,7 @@ For each variant it branches the source run (``divmorph branch``: its students, 
 evaluated every ``--eval-every`` steps on the training robots (3 deterministic episodes each).
 Runs resume; finished ones are skipped. Writes ``<out>/README.md`` (and ``eval.csv`` per run).
 
-    python studies/critic_start.py                      # ~70 min on one core
+    python results/critic-start/critic_start.py                      # ~70 min on one core
 """
 
 from __future__ import annotations
@@ -73,7 +73,7 @@ def main(argv: list[str] | None = None) -> None:
     for variant, settings in variants(args.warmup, args.critic_scale).items():
         out = args.out / variant
         if not (out / "run.json").exists():
-            branch(Path(args.source), out, ("distill",), command="python studies/critic_start.py")
+            branch(Path(args.source), out, ("distill",), command="python results/critic-start/critic_start.py")
         profile = recorded_profile(
             out / "run.json",
             {
@@ -108,7 +108,7 @@ def write_report(args: argparse.Namespace, seconds: float) -> None:
     lines = [
         f"# The critic a fine-tuned student starts with: a calibration on the training task {args.task}",
         "",
-        f"`python studies/critic_start.py --source {args.source} --task {args.task} --steps {args.steps} "
+        f"`python results/critic-start/critic_start.py --source {args.source} --task {args.task} --steps {args.steps} "
         f"--eval-every {args.eval_every} --warmup {args.warmup} --critic-scale {args.critic_scale:g} "
         f"--seeds {' '.join(map(str, args.seeds))}`; "
         f"machine: {platform.node()} ({platform.machine()}, 1 torch thread, beside other jobs); "

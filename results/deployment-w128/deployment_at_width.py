@@ -13,7 +13,7 @@ reports, like for like:
   training robots (`divmorph evaluate --episodes 1`), the share of the teacher's mean with a 95%
   bootstrap interval over robots (paired).
 
-    python studies/deployment_at_width.py --run RUN --eval EVAL_FOLDER --out results/deployment-w128
+    python results/deployment-w128/deployment_at_width.py --run RUN --eval EVAL_FOLDER --out results/deployment-w128
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ makes one PPO update at the cpu profile's transfer settings (learning rate 1e-3 
 lin_1e-3, 4 epochs of minibatch 512), training only the listed parameters, and reports SB3's
 ``train/approx_kl`` and clip fraction. Writes ``results/first_update_kl.md``.
 
-    python studies/first_update_kl.py            # ~2 min on one core (restore results/cpu/teachers/FT first:
+    python results/first_update_kl.py            # ~2 min on one core (restore results/cpu/teachers/FT first:
                                                     # its model is in git history, results/cpu/README.md)
 """
 
@@ -165,7 +165,7 @@ def main() -> None:
     lines = [
         "# First-update KL of fine-tuned models on a training task",
         "",
-        f"`python studies/first_update_kl.py --run {args.run} --task {args.task}`; machine: {platform.node()} "
+        f"`python results/first_update_kl.py --run {args.run} --task {args.task}`; machine: {platform.node()} "
         f"({platform.machine()}, 1 torch thread). One rollout of 4 x 512 steps on the run's training robots, observation "
         "statistics frozen, then one PPO update (4 epochs, minibatch 512); SB3's `train/approx_kl` (mean over the update's "
         "minibatches) and clip fraction. A log-probability check before the first step found rollout and update agree "

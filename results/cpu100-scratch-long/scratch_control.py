@@ -1,6 +1,6 @@
 """Where does scratch get with 4x the race's budget? A control for a transfer race's speed-ups.
 
-    python studies/scratch_control.py --race results/cpu100 --control results/cpu100-scratch-long
+    python results/cpu100-scratch-long/scratch_control.py --race results/cpu100 --control results/cpu100-scratch-long
 
 In a race where scratch learns little within the budget, the speed-up of an arm over scratch is only a
 lower bound (``>= budget / the arm's steps``). The control trains scratch (MetaMorph from random
@@ -183,7 +183,7 @@ def main() -> None:
         writer.writeheader()
         writer.writerows(flat)
     plot(args.race, args.control, tasks, args.control / "control.png")
-    command = f"python studies/scratch_control.py --race {args.race} --control {args.control}"
+    command = f"python results/cpu100-scratch-long/scratch_control.py --race {args.race} --control {args.control}"
     (args.control / "control.md").write_text(markdown(rows, command, time.time() - start))
     print((args.control / "control.md").read_text())
 

@@ -19,7 +19,7 @@ layer alone, the rest of the actor, the router; MetaMorph⚗'s weights of the sa
 the DivMorph arm's own set-up (fixed gates, per-unit rates) at the race's learngene rate and at 1x,
 and at 1x with the Cayley generators slower (``transfer.rotation_lr_scale``).
 
-    python studies/update_kl_by_parameter.py --run results/cpu100 --task PointNav --gates-of Patrol \
+    python results/transfer-pointnav/update_kl_by_parameter.py --run results/cpu100 --task PointNav --gates-of Patrol \
         --out results/transfer-pointnav/update-kl-by-parameter.md      # ~15 min on one core
 """
 
@@ -126,7 +126,7 @@ def main() -> None:
     lines = [
         f"# One fine-tuning update on {args.task}, by the parameters that train",
         "",
-        f"`python studies/update_kl_by_parameter.py --run {args.run} --task {args.task} --gates-of {args.gates_of} "
+        f"`python results/transfer-pointnav/update_kl_by_parameter.py --run {args.run} --task {args.task} --gates-of {args.gates_of} "
         f"--lr {args.lr:g} --seeds {' '.join(map(str, args.seeds))}`; {platform.node()} ({platform.machine()}, 1 torch "
         f"thread). One rollout of 4 x 512 steps on the run's training robots (the DivMorph student told {args.gates_of}'s "
         f"instruction, as `transfer.task_gates: closest` tells it; MetaMorph⚗ {args.task}'s own), observation statistics "

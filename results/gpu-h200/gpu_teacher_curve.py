@@ -5,7 +5,7 @@ Every curve is SB3's ``rollout/ep_rew_mean`` (stochastic policy, the mean over t
 episodes of all robots) from the runs' ``progress.csv``: the same quantity, logged the same way, for
 all three. Deterministic evaluations are elsewhere (results/gpu-h200/README.md).
 
-    python studies/gpu_teacher_curve.py     # writes results/gpu-h200/ft_teacher_curve.png
+    python results/gpu-h200/gpu_teacher_curve.py     # writes results/gpu-h200/ft_teacher_curve.png
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 from divmorph.pipeline.figures import save_png  # noqa: E402
 from divmorph.pipeline.files import read_csv_rows  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 RESULTS = ROOT / "results"
 
 #: (label, progress file, line style, minibatch size, epochs): the GPU sessions' teachers and the CPU

@@ -17,7 +17,7 @@ Each variant is one ``divmorph teachers`` run (resumable: run the script again a
 and validation robots, the paired difference from the project's network, wall time) and
 ``<out>/returns.csv`` (every robot and episode). Reduced scale: one seed, ``--steps`` per teacher.
 
-    python studies/metamorph_fidelity.py --steps 2000000 --out results/metamorph-fidelity
+    python results/metamorph-fidelity/metamorph_fidelity.py --steps 2000000 --out results/metamorph-fidelity
 """
 
 from __future__ import annotations
@@ -156,7 +156,7 @@ def main(argv: list[str] | None = None) -> None:
             "",
             *rows,
             "",
-            f"Command: `python studies/metamorph_fidelity.py --steps {args.steps} --episodes {args.episodes} --out {args.out}` "
+            f"Command: `python results/metamorph-fidelity/metamorph_fidelity.py --steps {args.steps} --episodes {args.episodes} --out {args.out}` "
             f"(started {start}, {args.jobs} variants side by side on {platform.node()}: {os.cpu_count()} CPU cores, "
             "torch 1 thread per process; training wall time summed over a run's segments, from its progress logs).",
             "",

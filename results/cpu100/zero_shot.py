@@ -15,7 +15,7 @@ episodes) and, where given, evaluations of variation sets (``--variations``: ``d
 Each robot's return is the mean of its episodes; intervals resample robots (the unit a
 morphology-agnostic controller varies over).
 
-    python studies/zero_shot.py --run results/cpu100 --variations results/cpu100/variations/*/ --out results/cpu100/zero-shot.md
+    python results/cpu100/zero_shot.py --run results/cpu100 --variations results/cpu100/variations/*/ --out results/cpu100/zero-shot.md
 """
 
 from __future__ import annotations
@@ -77,7 +77,7 @@ def main(argv: list[str] | None = None) -> None:
     lines = [
         f"# Zero-shot in `{args.run}`: the official held-out robots, the generated robots, variations",
         "",
-        f"`python studies/zero_shot.py --run {args.run}"
+        f"`python results/cpu100/zero_shot.py --run {args.run}"
         + (f" --variations {' '.join(str(v) for v in args.variations)}" if args.variations else "")
         + f" --out {args.out}`. Deterministic episodes (`evaluate/returns.csv`); each robot's return the mean of "
         "its episodes; 95% bootstrap intervals over robots. Robots: " + ", ".join(f"{counts[s]} {w}" for s, w in SPLITS.items()) + ".",

@@ -15,7 +15,7 @@ B. drift: fixed states of each training task (the student acting with its own st
 C. the height above the ground under the torso (``z - arena.ground_height(x, y)``, the quantity the
    fall check already uses) on the same states: its per-task statistics, beside the absolute height's.
 
-    python studies/normalizer_drift.py                  # ~3 min on one core
+    python results/normalizer_drift.py                  # ~3 min on one core
 """
 
 from __future__ import annotations
@@ -93,7 +93,7 @@ def main() -> None:
     lines = [
         "# Observation statistics of a multi-task student, and what moving them does",
         "",
-        f"`python studies/normalizer_drift.py --run {args.run} --robots {args.robots} --steps {args.steps} "
+        f"`python results/normalizer_drift.py --run {args.run} --robots {args.robots} --steps {args.steps} "
         f"--drift-steps {args.drift_steps}`; machine: {platform.node()} ({platform.machine()}, 1 torch thread); "
         "training tasks and training robots only.",
         "",

@@ -6,10 +6,10 @@ variant's starting model and each run's final model with *sampled* actions, on t
 robots (``--eval-seeds`` x 3 episodes per robot, the same episodes for start and finish), and
 reports the change per robot, paired.
 
-    python studies/transfer_stochastic.py --task PointNav --out results/transfer-pointnav/stochastic.csv.gz \\
+    python results/transfer-pointnav/transfer_stochastic.py --task PointNav --out results/transfer-pointnav/stochastic.csv.gz \\
         --variant "own gates=/work/race/gates-instruction:divmorph:PointNav"
 
-A variant is ``label=folder:arm:instruction of`` (the folder a ``studies/finetune_known_task.py``
+A variant is ``label=folder:arm:instruction of`` (the folder a ``results/finetune-known-task/finetune_known_task.py``
 branch holding ``transfer/<task>/<arm>/seed-*`` and the run's ``source.json``).
 """
 

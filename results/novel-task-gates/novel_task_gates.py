@@ -14,13 +14,13 @@ split), several evaluation seeds x 3 deterministic episodes per robot.
 Rows go to ``<out>/returns.csv.gz`` (one per episode; conditions already there are skipped, so the
 study resumes); ``--report`` writes ``<out>/README.md``'s tables.
 
-    python studies/novel_task_gates.py --run results/cpu100 --out results/novel-task-gates --tasks PointNav
-    python studies/novel_task_gates.py --run results/cpu100 --out results/novel-task-gates --report
+    python results/novel-task-gates/novel_task_gates.py --run results/cpu100 --out results/novel-task-gates --tasks PointNav
+    python results/novel-task-gates/novel_task_gates.py --run results/cpu100 --out results/novel-task-gates --report
 
 The ablated students (distilled in a branch of the run, ``divmorph distill --students no-kdiv-transformer``)
 join the same rows, each told its own task and the closest training task's (their race starts)::
 
-    python studies/novel_task_gates.py --run runs/ablate-no-kdiv-transformer --out results/novel-task-gates --students no-kdiv-transformer
+    python results/novel-task-gates/novel_task_gates.py --run runs/ablate-no-kdiv-transformer --out results/novel-task-gates --students no-kdiv-transformer
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Do a run's models see novel robots' inputs inside the range they learnt on? A control for zero-shot.
 
-    python studies/novel_inputs.py --run results/cpu100 --out results/cpu100/checks/novel-inputs.md
+    python results/cpu100/checks/novel_inputs.py --run results/cpu100 --out results/cpu100/checks/novel-inputs.md
 
 When a model's return collapses on novel robots, one cause could be inputs the model never saw: the
 teacher's observation statistics, fitted on the training robots, could put novel robots' observations
@@ -68,7 +68,7 @@ def main(argv: list[str] | None = None) -> None:
     lines = [
         "# Novel robots' inputs against the training robots' (a control for zero-shot)",
         "",
-        f"`python studies/novel_inputs.py --run {args.run} --out {args.out}` -- each teacher, deterministic, with its own "
+        f"`python results/cpu100/checks/novel_inputs.py --run {args.run} --out {args.out}` -- each teacher, deterministic, with its own "
         f"observation statistics, {args.steps} steps on each of the transfer curves' robots ({len(transfer_eval_robots(profile, 'train'))} "
         f"training and {len(transfer_eval_robots(profile, 'novel'))} novel robots, spread over each set); per observation key the "
         f"share of normalised entries with |z| > {FAR:g} and the mean |z| (keys the task does not use are 0).",

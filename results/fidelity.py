@@ -10,7 +10,7 @@ either aligned or kept, with the reason), and anchors measured on the official t
 
 Usage::
 
-    python studies/fidelity.py [--official unimals100-train | DIR] [--episodes 1] [--out results/fidelity.md]
+    python results/fidelity.py [--official unimals100-train | DIR] [--episodes 1] [--out results/fidelity.md]
 
 The official robots come from the fetched set ``unimals100-train`` or any directory in the
 unimals_100 layout (default: ``../shared/unimals_100/train`` when present).
@@ -181,7 +181,7 @@ def main(argv: list[str] | None = None) -> int:
     lines = [
         "# Fidelity to the reference implementation",
         "",
-        f"Made by `python studies/fidelity.py --episodes {args.episodes}` ({elapsed:.0f} s). Reference: the public code of "
+        f"Made by `python results/fidelity.py --episodes {args.episodes}` ({elapsed:.0f} s). Reference: the public code of "
         "MetaMorph, DERL and ModuMorph (`../shared/reference/unimal_spec.md`).",
         "",
         "## Departures",

@@ -5,7 +5,7 @@
 # Each ablated student -- no diversion in the Transformer, none in the decoder, free (not Cayley-orthogonal)
 # square factors -- is distilled like the cpu100 DivMorph student (`divmorph distill --students <name>` in a
 # branch of results/cpu100: the same teachers, profile, seed and 1M DAgger steps), its many-draw starts are
-# measured (studies/novel_task_gates.py), and it races on the DivMorph arm's terms (studies/finetune_known_task.py:
+# measured (results/novel-task-gates/novel_task_gates.py), and it races on the DivMorph arm's terms (results/finetune-known-task/finetune_known_task.py:
 # the closest training task's gates, the race's rates, 602,112 steps, 20 training robots x 5 episodes at every
 # 200,704 steps), PointNav's nine runs first, then Escape's, then Exploration's.
 #
@@ -18,7 +18,7 @@
 # message. One worker per core:
 #
 #     git worktree add /work/wt-abl e61a1b2    # the commit the race's students are distilled and raced with
-#     for i in 1 2; do CODE=/work/wt-abl WORK=/work nohup bash studies/ablation_race.sh /work/claims-1 >> ablation.log 2>&1 & done
+#     for i in 1 2; do CODE=/work/wt-abl WORK=/work nohup bash results/transfer-pointnav/ablation_race.sh /work/claims-1 >> ablation.log 2>&1 & done
 #
 # Results (per task, when its runs have finished; models are not kept):
 #
@@ -29,7 +29,7 @@
 # a student still distilling; default 60).
 set -u
 CLAIMS=${1:?usage: ablation_race.sh CLAIMS_FOLDER}
-REPO=$(cd "$(dirname "$0")/.." && pwd)
+REPO=$(cd "$(dirname "$0")/../.." && pwd)
 CODE=$(cd "${CODE:-$REPO}" && pwd) || exit 1
 WORK=${WORK:-$REPO/runs/ablation-race}
 PY=${PY:-$REPO/.venv/bin/python}
@@ -81,7 +81,7 @@ ready() {
 starts() {
     failed "$1" && { echo "not run: $1 failed to distil"; return 1; }
     [ -f "$WORK/starts-$1/finished" ] && return 0
-    "$PY" studies/novel_task_gates.py --run "$WORK/ablate-$1" --out "$WORK/starts-$1" --students "$1" --eval-seeds 0 1 2 3 4 &&
+    "$PY" results/novel-task-gates/novel_task_gates.py --run "$WORK/ablate-$1" --out "$WORK/starts-$1" --students "$1" --eval-seeds 0 1 2 3 4 &&
         touch "$WORK/starts-$1/finished"
 }
 
@@ -93,10 +93,10 @@ race() {
     (
         flock 9 || exit 1
         [ -f "$out/run.json" ] || "$PY" -c "import sys; from pathlib import Path; from divmorph.pipeline.branch import branch; \
-branch(Path(sys.argv[1]), Path(sys.argv[2]), ('teachers', 'distill'), command='python studies/finetune_known_task.py')" \
+branch(Path(sys.argv[1]), Path(sys.argv[2]), ('teachers', 'distill'), command='python results/finetune-known-task/finetune_known_task.py')" \
             "$WORK/ablate-$1" "$out"
     ) 9> "$WORK/race600/.branch-lock" || return
-    "$PY" studies/finetune_known_task.py --source "$WORK/ablate-$1" --task "$2" --steps 602112 --eval-every 200704 \
+    "$PY" results/finetune-known-task/finetune_known_task.py --source "$WORK/ablate-$1" --task "$2" --steps 602112 --eval-every 200704 \
         --set transfer.eval_episodes=5 --set transfer.task_gates=closest --arms "$1" --seeds "$3" --out "$out"
 }
 

@@ -7,7 +7,7 @@ mean return -- chosen on the *training* robots, never on the held-out ones (a sh
 test set would be a choice made on it) -- beside the model's mean over all its training robots, and
 the command that films the best one (``divmorph record FOLDER --robot best`` picks the same robot).
 
-    python studies/best_robots.py --run results/cpu100            # writes results/cpu100/best-robots.md
+    python results/cpu100/best_robots.py --run results/cpu100            # writes results/cpu100/best-robots.md
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ def main(argv: list[str] | None = None) -> None:
     lines = [
         f"# Robots each shipped model does well on: `{args.run}`",
         "",
-        "Made by `python studies/best_robots.py --run " + str(args.run) + "` from the run's evaluation "
+        "Made by `python results/cpu100/best_robots.py --run " + str(args.run) + "` from the run's evaluation "
         "(`evaluate/returns.csv`, 3 deterministic episodes per robot): per model and training task, the "
         f"{args.top} training robots with the highest mean return, chosen on the training robots only. "
         "The mean over all training robots is beside them: these are the model's best, not its typical robots. "

@@ -1,6 +1,6 @@
 """How far apart are a policy's sampled (training-time) and deterministic returns? A control for training logs.
 
-    python studies/stochastic_gap.py --model cpu100-FT=results/cpu100/teachers/FT \
+    python results/gpu-h200/stochastic_gap.py --model cpu100-FT=results/cpu100/teachers/FT \
         --model gpu-FT=/path/to/step-000012134400 --out results/gpu-h200/stochastic-gap.md
 
 PPO logs the return of the episodes it *samples* (actions drawn from the policy's Gaussian), while
@@ -48,7 +48,7 @@ def main() -> None:
     lines = [
         f"# Sampled against deterministic returns ({args.task}, {len(robots)} training robots x {args.episodes} episodes)",
         "",
-        f"`python studies/stochastic_gap.py {' '.join('--model ' + m for m in args.model)} --task {args.task} "
+        f"`python results/gpu-h200/stochastic_gap.py {' '.join('--model ' + m for m in args.model)} --task {args.task} "
         f"--episodes {args.episodes} --profile {args.profile} --out {args.out}`; the robots: the profile's "
         f"`transfer.eval_robots` spread over its training set; single C envs with the env arguments each model trained with, seed 0, episodes of at most "
         f"{profile.max_episode_steps} steps; {platform.machine()} CPU, one thread. Mean over robots [95% bootstrap CI over robots].",
