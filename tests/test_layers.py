@@ -354,7 +354,7 @@ def test_padded_tokens_never_affect_real_tokens(factorization):
 
 @pytest.mark.parametrize("collide", [False, True])
 def test_router_deduplication_groups_exactly_the_identical_rows(monkeypatch, collide):
-    from sb3_divmorph import gates
+    from sb3_divmorph.nn import gates
 
     if collide:  # every row projects to 0: the check must catch it and fall back to the exact unique
         monkeypatch.setattr(gates, "_row_projection", lambda width, device: th.zeros(width, dtype=th.float64))
