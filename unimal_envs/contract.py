@@ -52,7 +52,7 @@ XPOS = slice(0, 3)
 Z_COLUMN = 2
 #: What the height column is measured from: ``"world"`` (z = 0 plane, MetaMorph's convention, the
 #: default) or ``"ground"`` (the terrain under the torso: the same quantity on every task's ground,
-#: flat, sloped or rugged; ``results/normalizer_drift.md``).
+#: flat, sloped or rugged, so one set of normalisation statistics fits every task).
 HEIGHT_REFERENCES = ("world", "ground")
 #: Rows of the ``object`` observation (4 x 3) that are positions relative to the torso (the box and
 #: the goal); ``goal_range`` bounds their length as it bounds ``goal``'s.

@@ -152,7 +152,7 @@ class UnimalEnv(gym.Env):
         ``"world"`` (the z = 0 plane, MetaMorph's convention, default) or ``"ground"`` (the ground
         under the torso, ``arena.ground_height(x, y)``, subtracted from every real token's z): on an
         incline, a terrain or in a bowl the same posture then gives the same observation, so one set
-        of normalisation statistics fits every task (``results/normalizer_drift.md``).
+        of normalisation statistics fits every task.
     :param goal_range: ``None`` (default, the reference's observation): ``goal`` and the position rows
         of ``object`` in raw metres. A distance R: each of those vectors longer than R is observed at
         length R in its own direction (nearer ones unchanged), so a far goal reads as "that way, far".

@@ -29,7 +29,7 @@ episodes' returns and lengths and the normaliser's statistics (a few KB). With a
 :class:`DevicePPO` is exactly SB3's PPO.
 
 The cost of the ``VecEnv`` path it replaces (what ``PPO`` on a ``BatchedUnimalEnv`` pays per
-step) is measured in ``results/batched_throughput.md`` (``benchmarks/batched_throughput.py``).
+step) is what ``benchmarks/batched_throughput.py`` measures.
 
 Callbacks still run every step; in device mode their ``locals`` hold tensors: ``new_obs`` (a dict
 of normalised observation tensors), ``rewards`` and ``dones`` (``(num_envs,)`` tensors) and

@@ -445,7 +445,7 @@ class DAggerCallback(BaseCallback):
     :param target_bound: clip the teachers' action means to ``[-bound, bound]`` before they become
         targets (``None``: as the teachers give them). The env clips actions at 1, so a teacher's
         mean of 5 and one of 1 act the same, but an unbounded target asks the student for the 5:
-        bounded targets keep it no steeper than it must be (issue 42).
+        bounded targets keep it no steeper than it must be.
     :param weight_decay: the optimiser's weight decay (with ``optimizer="adamw"``: decoupled, as
         DivControl trains its diverted model; with ``"adam"``: L2 added to the gradient).
     :param optimizer: ``"adam"`` (the default) or ``"adamw"``.

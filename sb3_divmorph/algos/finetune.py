@@ -75,8 +75,7 @@ def factor_parameter_scales(
     A Cayley skew entry ``A_ij`` rotates units ``i`` and ``j`` into each other, so it moves at the
     rate of the slower of the two, times ``rotation_scale``: Adam moves every entry by about the
     rate at once, and each rotates two whole singular directions weighted by their singular values,
-    so at one rate for all the rotations move the function far more than the other factors do
-    (``results/transfer-pointnav/update-kl-by-parameter.md``).
+    so at one rate for all the rotations move the function far more than the other factors do.
     """
     scales: dict[nn.Parameter, th.Tensor] = {
         layer.singular_values: unit.clone(),
@@ -188,7 +187,7 @@ def freeze_observation_statistics(normalizer: VecNormalize) -> VecNormalize:
 
     A fine-tuned policy was trained on inputs normalised by the statistics it comes with; were they to
     go on moving (``VecNormalize`` with ``training=True``), the inputs of even a frozen network would
-    change under it (measured in ``results/normalizer_drift.md``).
+    change under it.
 
     :param normalizer: the ``VecNormalize`` (e.g. loaded from a trained model's ``vecnormalize.pkl``).
     :return: the same object.
