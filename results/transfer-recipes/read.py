@@ -57,20 +57,35 @@ def check_starts(table: pd.DataFrame) -> None:
         assert len(joined) and np.allclose(joined.iloc[:, 0], joined.iloc[:, 1], atol=1e-2), f"{variant} does not start as {reference}"
 
 
+def training_columns(variant: str) -> tuple[str, str]:
+    """The stochastic training return PPO optimises (the peers' curve: the mean of the last 100 sampled
+    episodes), first and last 30 updates per seed, and the mean approximate KL per update."""
+    if variant in ("D", "M"):
+        log = pd.read_csv(GOAL_RANGE / "training.csv.gz")
+        log = log[log.arm == VARIANTS[variant][1]]
+    else:
+        log = pd.read_csv(HERE / "training.csv.gz")
+        log = log[log.variant == variant]
+    if log.empty:
+        return "–", "–"
+    pairs = [f"{run.training_return.head(30).mean():.0f} / {run.training_return.tail(30).mean():.0f}" for _, run in log.groupby("seed")]
+    return "; ".join(pairs), f"{log.approx_kl.mean():.3f}"
+
+
 def main() -> None:
     table = curves()
     check_starts(table)
     starts = pd.read_csv(GOAL_RANGE / "starts.csv", index_col="robot")
     lines = [
-        "| variant (PointNav, goal_range 10, 3 seeds x 602,112 steps) | seeds | many-draw start | last evaluation | last against the start [95% CI] | reading |",
-        "|---|---:|---:|---:|---|---|",
+        "| variant (PointNav, goal_range 10, 3 seeds x 602,112 steps) | seeds | many-draw start | last evaluation | last against the start [95% CI] | reading | held-out robots: step 0 -> last | stochastic training return, first / last 30 updates (per seed) | approx. KL per update |",
+        "|---|---:|---:|---:|---|---|---|---|---|",
     ]
     figure, ax = plt.subplots(figsize=(7.5, 4.2))
     train = table[table.split == "train"]
     for variant, (label, arm) in VARIANTS.items():
         runs = train[train.variant == variant]
         if runs.empty:
-            lines.append(f"| {label} | 0 | – | – | not run | – |")
+            lines.append(f"| {label} | 0 | – | – | not run | – | – | – | – |")
             continue
         start = starts[arm]
         last_step = runs.groupby("seed").timesteps.transform("max")
@@ -79,8 +94,13 @@ def main() -> None:
         lo, hi = robot_interval(change)
         reading = "learns" if lo > 0 else "loses" if hi < 0 else "neither, within noise"
         seeds = runs.seed.nunique()
+        stochastic, kl = training_columns(variant)
+        held_out = table[(table.split == "novel") & (table.variant == variant)]
+        ends = held_out.groupby("seed").timesteps.transform("max")
+        novel = f"{held_out[held_out.timesteps == 0]['return'].mean():.0f} -> {held_out[held_out.timesteps == ends]['return'].mean():.0f}"
         lines.append(
-            f"| {label} | {seeds} | {start.mean():.0f} | {last.mean():.0f} | {change.mean():+.0f} [{lo:+.0f}, {hi:+.0f}] | {reading} |"
+            f"| {label} | {seeds} | {start.mean():.0f} | {last.mean():.0f} | {change.mean():+.0f} [{lo:+.0f}, {hi:+.0f}] | {reading} "
+            f"| {novel} | {stochastic} | {kl} |"
         )
         mean = runs.groupby("timesteps")["return"].mean()
         steps = mean.index.to_numpy() / 1e3
