@@ -361,3 +361,14 @@ def test_the_kind_recipe_restarts_the_selected_task_tailors_and_keeps_every_othe
     one_ppo_like_step(model, obs)
     grown = sum(float(layer.singular_values.detach()[units].abs().sum()) for layer, units in zip(layers, restarted, strict=True))
     assert grown > 0, "the restarted task tailors learn"
+
+
+def test_a_resumed_or_finished_kind_run_is_not_restarted_again():
+    """``recipe: kind`` restarts the task tailors on the fresh model only: the pipeline prepares every
+    model it builds *or loads* (a checkpoint, a finished run), and a second restart would throw away what
+    the run learnt (break: return ``recipe`` unchanged -> a loaded run is restarted)."""
+    from divmorph.pipeline.transfer import recipe_for
+
+    assert recipe_for("kind", 0) == "kind"
+    assert recipe_for("kind", 4096) == "fixed-gates"
+    assert recipe_for("singular-values", 4096) == "singular-values" and recipe_for("fixed-gates", 0) == "fixed-gates"

@@ -388,6 +388,13 @@ def transfer_seed(profile: Profile, task: str, seed: int) -> int:
     return profile.seed + 7000 + TASK_NAMES.index(task) + 100 * seed
 
 
+def recipe_for(recipe: str, num_timesteps: int) -> str:
+    """The recipe ``prepare_transfer`` applies to a model built or loaded at ``num_timesteps``: ``kind``
+    restarts the selected task tailors once, on the fresh model (step 0); a checkpoint or a finished run of
+    it was restarted already and trains, or is evaluated, as ``fixed-gates``."""
+    return "fixed-gates" if recipe == "kind" and num_timesteps > 0 else recipe
+
+
 def transfer_run(
     profile: Profile, out: Path, task: str, arm: str, seed: int = 0, progress_bar: bool = True, calibration: bool = False
 ) -> TrainingRun:
@@ -511,7 +518,7 @@ def transfer_run(
                 undiverted_scale=cfg.undiverted_lr_scale,
                 critic_scale=cfg.critic_lr_scale if source is not None else 1.0,
                 rotation_scale=cfg.rotation_lr_scale,
-                recipe=cfg.recipe,
+                recipe=recipe_for(cfg.recipe, model.num_timesteps),
             )
 
         callbacks.append(UpdateRatioLogger(lambda: installed.get("rates")))
