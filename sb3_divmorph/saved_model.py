@@ -18,7 +18,7 @@ from __future__ import annotations
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from stable_baselines3 import A2C, PPO
@@ -49,7 +49,9 @@ class NormalizedModel:
 
     def normalize(self, obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """``obs`` as the policy saw its observations in training."""
-        return self.normalizer.normalize_obs(obs) if self.normalizer is not None else obs
+        if self.normalizer is None:
+            return obs
+        return cast(dict[str, np.ndarray], self.normalizer.normalize_obs(obs))  # a dict in, a dict out
 
     def predict(self, obs: dict[str, np.ndarray], deterministic: bool = True) -> np.ndarray:
         """The model's action for a (single or batched) observation, its statistics applied."""
