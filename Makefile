@@ -32,11 +32,11 @@ demo: $(STAMP)
 tour: $(STAMP)
 	$(PY) -m unimal_envs.demo --out runs/tour
 
-# The whole suite (after lint and types), one pytest worker per core, each test file on one worker (its
-# module fixtures built once): 594 tests in 6 min 57 s of pytest on 2 idle cores from a fresh clone with
-# an empty HOME and robot cache (`.ci/run`), 9 min 22 s with a fresh .venv (pip's cache) and lint
-# (2026-12-06); the batched backend's tests compile MuJoCo Warp's kernels on a machine's first run
-# (~2 min more, then cached in ~/.cache/warp).
+# The library's suite (after lint and types), one pytest worker per core, each test file on one worker (its
+# module fixtures built once), on data it makes: 564 tests from a fresh clone with an empty HOME and robot
+# cache (`.ci/run`, 2026-12-06) in 18 min 31 s of pytest with two training runs sharing the 2 cores (the
+# suite with the evidence's tests: 6 min 57 s on 2 idle cores the day before); the batched backend's tests
+# compile MuJoCo Warp's kernels on a machine's first run (~2 min more, then cached in ~/.cache/warp).
 test: lint
 	$(PY) -m pytest -q -n 2 --dist loadfile -m "not shipped_results"
 
