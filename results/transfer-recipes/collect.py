@@ -1,6 +1,6 @@
 """Gather the finished runs of the recipes' run folders (not tracked) into the small tables ``read.py``
 reads: ``curves.csv.gz`` (each run's mean deterministic return per robot at each evaluation) and
-``training.csv.gz`` (each PPO update's stochastic training return, approximate KL and learning rate).
+``training.csv.gz`` (each PPO update's stochastic training return and approximate KL).
 
     python results/transfer-recipes/collect.py --from runs/recipes-free runs/recipes-kl runs/recipes-sv
 
@@ -21,7 +21,6 @@ LOGGED = {
     "time/total_timesteps": "timesteps",
     "rollout/ep_rew_mean": "training_return",
     "train/approx_kl": "approx_kl",
-    "train/learning_rate": "learning_rate",
 }
 VARIANTS = {
     ("recipes-free", "divmorph-finetuned"): "F",
@@ -49,7 +48,7 @@ def main() -> None:
             training.append(log.assign(variant=variant, seed=seed))
             print(f"{run}: {variant}, {len(frame)} curve rows, {len(log)} updates")
     pd.concat(curves).to_csv(HERE / "curves.csv.gz", index=False, float_format="%.5g")
-    pd.concat(training).to_csv(HERE / "training.csv.gz", index=False, float_format="%.4g")
+    pd.concat(training).to_csv(HERE / "training.csv.gz", index=False, float_format="%.3g")
 
 
 if __name__ == "__main__":
