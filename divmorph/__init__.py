@@ -1,8 +1,11 @@
-"""The ``divmorph`` command line (:mod:`divmorph.cli`) of the knowledge-diversion pipeline.
+"""The knowledge-diversion application, built on the library :mod:`sb3_divmorph` and the benchmark :mod:`unimal_envs`.
 
-The library is :mod:`sb3_divmorph` (policies, training tools, the pipeline's stages) with the
-benchmark :mod:`unimal_envs`; this package only parses commands and calls the pipeline. It is a
-package of its own so that ``divmorph --help`` answers without importing the library (and torch):
-importing any ``sb3_divmorph`` module imports the package, which registers its policies with
-Stable-Baselines3. ``python -m divmorph`` is the same command.
+- :mod:`divmorph.pipeline`: the stages (teachers, distill, hyperdistill, grl, transfer, export,
+  evaluate, report) as functions of a profile and a run folder;
+- :mod:`divmorph.pretrained`: a model loaded by its run folder, with its statistics, robots and env settings;
+- :mod:`divmorph.record`, :mod:`divmorph.plot`: videos and learning curves, headless;
+- :mod:`divmorph.shipped`: the shipped runs' models for a pip install;
+- :mod:`divmorph.cli`: the ``divmorph`` command (``python -m divmorph`` is the same).
+
+Importing this package imports nothing else, so ``divmorph --help`` answers without torch.
 """
