@@ -4,7 +4,9 @@ Importing the package registers ``"MetaMorphPolicy"``, ``"ModuMorphPolicy"``, ``
 and ``"HyperDistillPolicy"`` as PPO and A2C policy aliases, so ``PPO("DivMorphPolicy", env)`` and rl-zoo configs with ``policy: DivMorphPolicy``
 (with ``--gym-packages sb3_divmorph``) work. They are actor-critic policies, for on-policy algorithms only.
 :class:`DevicePPO` is SB3's PPO with rollouts collected on the device when its env is the batched
-MuJoCo Warp env (``sb3_divmorph.algos.device_ppo``).
+MuJoCo Warp env (``sb3_divmorph.algos.device_ppo``); :func:`load_model` loads a saved model with
+the observation statistics beside it. The application built on it (pipeline, command line, run
+folders) is the package :mod:`divmorph`, which this one never imports.
 """
 
 from stable_baselines3 import A2C, PPO
