@@ -359,12 +359,14 @@ def load_pretrained(source: str | Path, device: str = "cpu", algo: str | None = 
     :param algo: ``ppo`` or ``a2c`` (default: from the rl-zoo folder, else ppo).
     :raises PretrainedError: see :func:`find_model`; also a truncated or corrupt model file.
     """
-    from sb3_divmorph.saved_model import load_model
+    from sb3_divmorph.saved_model import SavedModelError, load_model
 
     saved = find_model(source)
     name = algo or saved.algo or "ppo"
     if name not in ALGOS:
         raise PretrainedError(f"unknown algorithm {name!r}; choose from {list(ALGOS)}")
-    check_archive(saved.model)
-    loaded = load_model(saved.model, saved.normalizer, device=device, algo=name)
+    try:  # load_model checks the archive once, before SB3 reads it
+        loaded = load_model(saved.model, saved.normalizer, device=device, algo=name)
+    except SavedModelError as error:
+        raise PretrainedError(str(error)) from None
     return Pretrained(saved, loaded.model, loaded.normalizer)
