@@ -183,7 +183,7 @@ def main() -> None:
         "",
         "## Decision",
         "",
-        "1. **Transfer keeps the statistics it inherits** (`transfer.observation_statistics: frozen`, the default; "
+        "1. **Transfer keeps the statistics it inherits** (always, since divmorph 0.2; "
         "reward statistics start afresh and learn). B: letting them learn for one task's worth of steps moves the "
         "student's actions by a large fraction of their size on every training task and takes most of its return "
         "with it, with no weight changed.",

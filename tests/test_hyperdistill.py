@@ -369,48 +369,45 @@ def test_task_input_lets_one_student_tell_ft_from_incline(teacher):
 
 
 @pytest.mark.shipped_results
-def test_the_shipped_small_runs_hyperdistill_reads_as_recorded():
-    """results/cpu, recorded before ``hyperdistill.task_input``, reads ``none`` and its own statistics."""
-    from divmorph.pipeline.provenance import recorded_profile
+def test_the_shipped_small_runs_record_says_its_hyperdistill_ran_under_the_retired_rules():
+    """results/cpu's student was trained without a task input, on statistics of its own: its record,
+    migrated to today's keys, keeps both as retired rules."""
+    record = json.loads((SHIPPED / "run.json").read_text())
+    assert {k: v for k, v in record["retired"].items() if k.startswith("hyperdistill.")} == {
+        "hyperdistill.task_input": "none",
+        "hyperdistill.observation_statistics": "own",
+    }
 
-    shipped_profile = recorded_profile(SHIPPED / "run.json").hyperdistill
-    assert (shipped_profile.task_input, shipped_profile.observation_statistics) == ("none", "own")
 
-
-def test_profile_key_task_input_new_runs_index_recorded_runs_none(tmp_path):
-    """``hyperdistill.task_input``: ``index`` for new profiles, checked; a run recorded before the key
-    (results/cpu) reads ``none``, so its student stays what it was and a new profile is a change of its
-    hyperdistill stage; the shipped student has no task input and loads as before."""
+def test_a_student_is_always_told_its_task_and_one_trained_before_that_loads_as_it_was(tmp_path):
+    """The pipeline's student reads the task's index and its teachers' statistics: the profile keys
+    that once chose otherwise are errors naming what replaced them, a record of a run made under them
+    migrates to the retired rules, and a student saved before the keys existed loads as trained."""
     from test_pipeline import TINY
 
     from divmorph.pipeline.config import ConfigError, load_profile
-    from divmorph.pipeline.provenance import _with_defaults, configuration, recorded_profile, stage_changes, with_current_values
+    from divmorph.pipeline.provenance import configuration
+    from divmorph.pipeline.retired import migrate_record
 
     profile = json.loads(json.dumps(TINY))
     profile["hyperdistill"] = {"policy_kwargs": STUDENT}
     path = tmp_path / "profiles.yml"
     path.write_text(yaml.safe_dump({"tiny": profile}))
     new = load_profile("tiny", path)
-    assert (new.hyperdistill.task_input, new.hyperdistill.observation_statistics) == ("index", "teachers")
     for bad, message in (
-        ({"task_input": "embedding"}, "hyperdistill.task_input must be 'index' or 'none', got 'embedding'"),
+        ({"task_input": "index"}, "hyperdistill.task_input was removed in divmorph 0.2: it always runs 'index'"),
         ({"policy_kwargs": dict(STUDENT, task_input="none")}, "policy_kwargs.task_input is set by the pipeline"),
-        ({"observation_statistics": "student"}, "observation_statistics must be 'teachers' or 'own', got 'student'"),
+        ({"observation_statistics": "own"}, "hyperdistill.observation_statistics was removed in divmorph 0.2"),
     ):
         path.write_text(yaml.safe_dump({"tiny": {**profile, "hyperdistill": {**profile["hyperdistill"], **bad}}}))
         with pytest.raises(ConfigError, match=message):
             load_profile("tiny", path)
-    # a record without the key
-    record = configuration(new)
-    del record["hyperdistill"]["task_input"], record["hyperdistill"]["observation_statistics"]
-    (tmp_path / "run.json").write_text(json.dumps({"configuration": record}))
-    legacy = recorded_profile(tmp_path / "run.json").hyperdistill
-    assert (legacy.task_input, legacy.observation_statistics) == ("none", "own")
-    assert stage_changes(_with_defaults(record), configuration(new), "hyperdistill") == [
-        "hyperdistill.observation_statistics: 'own' -> 'teachers'",
-        "hyperdistill.task_input: 'none' -> 'index'",
-    ]
-    assert "task_input" not in with_current_values(record)["hyperdistill"]  # a branch links the recorded student
+    # a record from before the keys: its hyperdistill section lacks them, so it ran the former rules
+    migrated, changes = migrate_record({"configuration": configuration(new), "history": []})
+    retired = {key: value for key, value in migrated["retired"].items() if key.startswith("hyperdistill.")}
+    assert retired == {"hyperdistill.task_input": "none", "hyperdistill.observation_statistics": "own"}
+    assert migrated["configuration"]["hyperdistill"] == configuration(new)["hyperdistill"]
+    assert "hyperdistill.task_input: 'none' (retired: today's rule is 'index')" in changes
     # a student saved before the keys existed (its saved policy_kwargs lack them) loads as it was
     # trained; results/cpu's own such student left the tree (git history), so one is made here
     legacy = PPO(HyperDistillPolicy, multitask_venv(tasks=("FT",)), policy_kwargs=STUDENT, n_steps=16, batch_size=16, device="cpu")

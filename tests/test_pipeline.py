@@ -1244,22 +1244,6 @@ def test_with_learning_rate_zero_a_transfer_run_leaves_every_fine_tuned_arms_act
         assert normalizer.ret_rms.count > 100, f"{arm}: the reward statistics must learn the new task"
         after = trained.predict(normalizer.normalize_obs(raw), deterministic=True)[0]
         np.testing.assert_array_equal(after, before, err_msg=f"{arm}: actions moved with learning rate 0")
-    # the former rule, kept as an option: statistics that go on learning move a frozen student's actions
-    learning = load_profile(
-        "tiny",
-        profiles,
-        overrides={
-            "transfer.finetune_overrides": {"learning_rate": 0.0},
-            "transfer.eval_every": 0,
-            "transfer.observation_statistics": "learning",
-        },
-    )
-    run = transfer_run(learning, out, "Escape", "divmorph", 2, progress_bar=False)
-    start = run.make_model()
-    run.prepare(start)
-    before = start.predict(start.get_vec_normalize_env().normalize_obs(raw), deterministic=True)[0]
-    trained = run.run()
-    assert np.abs(trained.predict(trained.get_vec_normalize_env().normalize_obs(raw), deterministic=True)[0] - before).max() > 1e-4
 
 
 def test_transfer_action_std_changes_what_a_fine_tuned_arm_samples_and_not_its_mean(finished_run, tmp_path):
@@ -1395,25 +1379,61 @@ def test_every_arm_sees_its_novel_tasks_inputs_under_one_optimiser_rule(finished
             assert moved > 1e-6, f"{arm}{f' (from the {teacher} teacher)' if teacher else ''} is blind to {task}'s {key}"
 
 
-def test_a_run_recorded_before_the_fair_race_rules_keeps_its_rules_and_a_branch_of_it_gets_the_new_ones(finished_run, tmp_path):
-    """Frozen transfer statistics, one Adam eps and full-rate ablations are new rules with new keys: a
-    run recorded without them (results/cpu) is read with the values that reproduce what it did, so a
-    profile with the new rules is a change of its begun transfer stage; a branch races under the new rules."""
+@pytest.mark.parametrize(
+    "key, value, message",
+    [
+        ("observation_statistics", "learning", "transfer.observation_statistics was removed in divmorph 0.2: it always runs 'frozen'"),
+        ("compare_scratch", False, r"transfer.compare_scratch was removed in divmorph 0.2: list the arms instead"),
+        ("adam_eps", None, r"transfer.adam_eps: None selected a rule retired in divmorph 0.2; today's is 1e-10"),
+        ("undiverted_lr_scale", None, r"transfer.undiverted_lr_scale: None selected a rule retired"),
+    ],
+)
+def test_a_profile_asking_for_a_retired_transfer_rule_is_told_what_replaced_it(tmp_path, key, value, message):
+    with pytest.raises(ConfigError, match=message):
+        load_profile("tiny", write_profiles(tmp_path, **{f"transfer__{key}": value}))
+
+
+def test_a_run_recorded_before_0_2_is_migrated_once_and_its_retired_rules_are_never_trained_on(finished_run, tmp_path, capsys):
+    """A run recorded before the fair-race rules (no keys for them: it ran with learning statistics,
+    two Adam eps, ablations at the learngene rate) is not read until migrated; ``divmorph migrate``
+    keeps the old record, writes today's keys and the retired rules apart; a command on the run then
+    stops at its transfer stage (today's code would go on under other rules) until it is retrained,
+    which drops them; a branch reuses the students and races under today's rules."""
+    from divmorph.cli import main
     from divmorph.pipeline.branch import branch
     from divmorph.pipeline.provenance import check_and_record, recorded_profile
 
     out, profiles = copied_run(finished_run, tmp_path)
     record = json.loads((out / "run.json").read_text())
-    for key in ("observation_statistics", "adam_eps", "undiverted_lr_scale"):
+    del record["format"]
+    for key in ("adam_eps", "undiverted_lr_scale"):
         del record["configuration"]["transfer"][key]
-    (out / "run.json").write_text(json.dumps(record))
-    legacy = recorded_profile(out / "run.json").transfer
-    assert (legacy.observation_statistics, legacy.adam_eps, legacy.undiverted_lr_scale) == ("learning", None, None)
-    with pytest.raises(ConfigError, match=r"transfer: .*observation_statistics: 'learning' -> 'frozen'"):
+    record["configuration"]["transfer"]["compare_scratch"] = False
+    record["configuration"]["transfer"]["arms"] = None
+    old = json.dumps(record)
+    (out / "run.json").write_text(old)
+    with pytest.raises(ConfigError, match=f"divmorph migrate {out}"):
+        recorded_profile(out / "run.json")
+    with pytest.raises(ConfigError, match="divmorph migrate"):
         check_and_record(out, load_profile("tiny", profiles), "test")
-    branch(out, tmp_path / "branch", command="test")
-    new = recorded_profile(tmp_path / "branch" / "run.json").transfer
-    assert (new.observation_statistics, new.adam_eps, new.undiverted_lr_scale) == ("frozen", 1e-10, 1.0)
+    assert main(["migrate", str(out), "--check"]) == 1
+    assert main(["migrate", str(tmp_path)]) == 0
+    assert "transfer.observation_statistics: 'learning'" in capsys.readouterr().out
+    assert (out / "run.format-1.json").read_text() == old
+    migrated = json.loads((out / "run.json").read_text())
+    retired = {key: value for key, value in migrated["retired"].items() if key.startswith("transfer.")}
+    assert retired == {"transfer.observation_statistics": "learning", "transfer.adam_eps": None, "transfer.undiverted_lr_scale": None}
+    transfer = recorded_profile(out / "run.json").transfer
+    assert (transfer.arms, transfer.adam_eps, transfer.undiverted_lr_scale) == (["divmorph"], 1e-10, 1.0)
+    assert main(["migrate", str(out)]) == 0 and json.loads((out / "run.json").read_text()) == migrated  # once
+    with pytest.raises(ConfigError, match=r"transfer: transfer.observation_statistics: 'learning' \(a rule retired in divmorph 0.2\)"):
+        check_and_record(out, recorded_profile(out / "run.json"), "test")
+    # a command that trains nothing (evaluate, export, report) goes on reading the finished stages
+    assert check_and_record(out, recorded_profile(out / "run.json"), "test", trains=False)["retired"] == migrated["retired"]
+    branch(out, tmp_path / "branch", stages=["teachers", "distill"], command="test")
+    assert "retired" not in check_and_record(tmp_path / "branch", load_profile("tiny", profiles), "test")
+    record = check_and_record(out, load_profile("tiny", profiles), "test", force=True)
+    assert "retired" not in record and not (out / "transfer").exists() and list((out / "superseded").iterdir())
 
 
 def test_a_profile_measuring_heights_from_the_ground_makes_every_env_of_the_run_that_way(tmp_path, monkeypatch):

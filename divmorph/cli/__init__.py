@@ -15,6 +15,7 @@
     divmorph plot     logs/ppo/Unimal-FT-v0_1            # learning curves of rl-zoo runs or stages, PNG, headless
     divmorph profiles [--profile demo]                   # the profiles and where they are read from
     divmorph branch --from runs/demo --out runs/demo-long  # a new run reusing demo's teachers and students
+    divmorph migrate runs/old-run                        # a run.json recorded before 0.2, in today's keys
 
 Every stage reads the profile (``zoo_configs/divmorph.yml``, shipped with the package, so any
 working directory will do) and works in ``--out`` (default ``runs/<profile>``); finished stages
@@ -67,6 +68,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "copy a shipped run's trained models (e.g. cpu100) into the local cache, checked, for a pip install",
     ),
     "branch": ("divmorph.cli.branch", "start a run folder that reuses another run's finished teachers, students and GRL learngene"),
+    "migrate": ("divmorph.cli.migrate", "rewrite the run.json of run folders recorded before divmorph 0.2 in today's keys"),
     "profiles": ("divmorph.cli.profiles", "list the profiles (or print one, validated) and the file they are read from"),
 }
 

@@ -110,4 +110,4 @@ def run(args: argparse.Namespace) -> int:
         return evaluate_model_folder(args)
     # an evaluation of a selection only reads the run: its records stay as they are
     selection = any(getattr(args, k) is not None for k in ("models", "eval_tasks", "splits", "episodes", "into"))
-    return run_on_folder(args, _work, reads_a_run=True, records=not selection)
+    return run_on_folder(args, _work, reads_a_run=True, records=not selection, trains=False)

@@ -28,4 +28,4 @@ def run(args: argparse.Namespace) -> int:
     if args.name not in FIGURES:  # a typo in the name, before anything about the run
         print(f"divmorph figure: unknown figure {args.name!r}; figures: {list(FIGURES)}", file=sys.stderr)
         return 2
-    return run_on_folder(args, _work, reads_a_run=True)
+    return run_on_folder(args, _work, reads_a_run=True, trains=False)

@@ -18,4 +18,4 @@ def _work(profile, out, args, progress, backend, command_line) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    return run_on_folder(args, _work, reads_a_run=True)
+    return run_on_folder(args, _work, reads_a_run=True, trains=False)

@@ -137,7 +137,7 @@ def _remove_if_untouched(out: Path) -> None:
 Work = Callable[..., None]
 
 
-def run_on_folder(args: argparse.Namespace, work: Work, reads_a_run: bool = False, records: bool = True) -> int:
+def run_on_folder(args: argparse.Namespace, work: Work, reads_a_run: bool = False, records: bool = True, trains: bool = True) -> int:
     """Run ``work`` in the command's run folder; the exit status.
 
     The profile is the one the folder's ``run.json`` records (a run is described by its records),
@@ -149,6 +149,8 @@ def run_on_folder(args: argparse.Namespace, work: Work, reads_a_run: bool = Fals
 
     :param reads_a_run: the command reads an existing run: a missing ``--run`` folder is a typo.
     :param records: ``False`` for a command that only reads the run (its records stay as they are).
+    :param trains: ``False`` for a command that trains nothing (it exports, evaluates or reports the
+        finished stages): it may run on stages trained under rules retired since.
     """
     import torch as th
 
@@ -187,7 +189,7 @@ def run_on_folder(args: argparse.Namespace, work: Work, reads_a_run: bool = Fals
     try:
         if records:
             previous_record = (out / "run.json").read_text() if (out / "run.json").is_file() else None
-            record = check_and_record(out, profile, command_line, args.force, args.redo, args.extend)
+            record = check_and_record(out, profile, command_line, args.force, args.redo, args.extend, trains)
             record_robot_sets(profile, out)
         backend = None
         if getattr(args, "backend", None) is not None:

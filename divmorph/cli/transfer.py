@@ -34,7 +34,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _work(profile, out, args, progress, backend, command_line) -> None:
     from divmorph.pipeline.transfer import transfer
 
-    transfer(profile, out, args.task, False if args.no_scratch else None, progress, args.arms, args.seeds, backend, args.closest_by)
+    arms = args.arms
+    if args.no_scratch and arms is None:
+        arms = [arm for arm in profile.transfer.arm_list() if arm != "scratch"]
+    transfer(profile, out, args.task, progress, arms, args.seeds, backend, args.closest_by)
 
 
 def run(args: argparse.Namespace) -> int:

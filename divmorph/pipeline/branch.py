@@ -27,8 +27,9 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from divmorph.pipeline.config import ConfigError
-from divmorph.pipeline.provenance import RECORD, STAGE_FOLDERS, with_current_values
 from divmorph.pipeline.files import DONE, atomic_write_json
+from divmorph.pipeline.provenance import RECORD, STAGE_FOLDERS
+from divmorph.pipeline.retired import format_problem
 
 #: The stages a branch can reuse: those trained before transfer, which every later stage reads.
 REUSABLE_STAGES = ("teachers", "distill", "hyperdistill", "grl")
@@ -64,6 +65,10 @@ def branch(source: Path, out: Path, stages: Sequence[str] = REUSABLE_STAGES, com
         raise ConfigError(f"{out} already exists and is not an empty folder: branch into a new one")
     if out.resolve() == source.resolve():
         raise ConfigError("a run cannot branch into itself")
+    record = json.loads((source / RECORD).read_text())
+    problem = format_problem(record, source / RECORD)
+    if problem is not None:
+        raise ConfigError(problem)
     runs = [run for stage in stages for folder in STAGE_FOLDERS[stage] for run in finished_runs(source / folder)]
     if not runs:
         raise ConfigError(f"{source} has no finished run of the stages {list(stages)} to reuse")
@@ -78,9 +83,8 @@ def branch(source: Path, out: Path, stages: Sequence[str] = REUSABLE_STAGES, com
         links.append(link)
     if (source / "robot_sets.json").is_file():
         shutil.copyfile(source / "robot_sets.json", out / "robot_sets.json")
-    record = json.loads((source / RECORD).read_text())
-    # the branch's own stages (transfer and after) run under today's rules, not a legacy record's
-    record["configuration"] = with_current_values(record["configuration"])
+    # the rules the linked stages ran under stay on record; the branch's own stages run under today's
+    record["retired"] = {key: value for key, value in record.get("retired", {}).items() if key.split(".")[0] in stages}
     record["history"] = [
         *record.get("history", []),
         {

@@ -29,6 +29,7 @@ from sb3_divmorph.zoo import (  # noqa: F401 -- the rl-zoo entries are read in s
     resolve_path,
     zoo_configs_dir,
 )
+from divmorph.pipeline.retired import REMOVED_KEYS, RETIRED_RULES
 from unimal_envs import env_id
 from unimal_envs.contract import HEIGHT_REFERENCES, NOVEL_TASKS, TASK_NAMES, TRAIN_TASKS
 
@@ -116,7 +117,7 @@ class DistillConfig:
     checkpoint_every: int = 50_000
     #: weight of the optional gate load-balancing term (0 = off; see ``DAggerCallback``)
     load_balance: float = 0.0
-    #: DAgger's recipe options (issue 42; :class:`~sb3_divmorph.algos.distillation.DAggerCallback`):
+    #: DAgger's recipe options (:class:`~sb3_divmorph.algos.distillation.DAggerCallback`):
     #: teachers' action means clipped to +-``target_bound`` as targets (null: unbounded), the
     #: optimiser (``adam`` / ``adamw``) and its weight decay, and the weight of the student critic's
     #: regression onto each state's teacher critic (0: critic not distilled)
@@ -140,7 +141,6 @@ class TransferConfig:
     tasks: list[str]
     n_timesteps: int
     learngene_lr_scale: float = 0.1
-    compare_scratch: bool = True
     #: ``{task: instruction}``: a novel task described in your own words (re-embedded by the
     #: text encoder; the gates read it); default: the task's built-in instruction
     instructions: dict[str, str] = field(default_factory=dict)
@@ -159,8 +159,7 @@ class TransferConfig:
     #: the critic lin_1e-3 (``results/critic-start/critic_start.py`` measures it on a training task)
     critic_lr_scale: float = 1.0
     checkpoint_every: int = 50_000
-    #: the arms to race (see :data:`divmorph.pipeline.arms.ARMS`); default: ``divmorph`` and,
-    #: with ``compare_scratch``, ``scratch``
+    #: the arms to race (see :data:`divmorph.pipeline.arms.ARMS`); default: ``divmorph`` and ``scratch``
     arms: list[str] | None = None
     #: one run per arm and seed (the seed offsets the PPO seed; the robots are the same)
     seeds: list[int] = field(default_factory=lambda: [0])
@@ -188,28 +187,20 @@ class TransferConfig:
     #: robots per split of those evaluations: the first N training and the first N novel robots
     #: (a fixed subset, chosen by position, never by result); ``null``: every robot of both splits
     eval_robots: int | None = None
-    #: observation statistics of the arms that start from trained weights: ``frozen`` (as inherited,
-    #: for the whole run) or ``learning`` (they go on moving under the inherited weights; the rule
-    #: before issue 26, kept for comparison). Reward statistics always start afresh and learn
-    observation_statistics: str = "frozen"
     #: Adam's ``eps`` of every arm's optimiser (one rule for the whole race). DivMorph's per-unit
     #: learning rates need it far below a distilled student's gradients
-    #: (:data:`~sb3_divmorph.algos.finetune.TRANSFER_ADAM_EPS`), so every arm gets that value; ``null``:
-    #: the rule before issue 26 (1e-10 for the DivMorph-way arms, SB3's 1e-5 for the others)
-    adam_eps: float | None = 1e-10
+    #: (:data:`~sb3_divmorph.algos.finetune.TRANSFER_ADAM_EPS`), so every arm gets that value
+    adam_eps: float = 1e-10
     #: learning-rate scale of the parts a DivMorph ablation does not divert (``no-kdiv-*``: every unit
     #: of the undiverted part would otherwise be a learngene, trained ``learngene_lr_scale`` times
-    #: slower); 1.0: the full rate, like any fine-tuned network; ``null``: ``learngene_lr_scale``
-    #: (the rule before issue 26)
-    undiverted_lr_scale: float | None = 1.0
+    #: slower); 1.0: the full rate, like any fine-tuned network
+    undiverted_lr_scale: float = 1.0
     #: learning-rate scale of the Cayley generators of the DivMorph-way arms' square factors, relative
-    #: to the rate of the units they rotate. Adam moves every generator entry by about the rate at
-    #: once and each turns two whole singular directions, so at 1.0 the rotations dominate an
-    #: update where the policy is far from its training: on PointNav one update of the cpu100
-    #: student with its learngenes at the full rate moves the policy by a KL of ~60, by 0.027 with
-    #: the rotations frozen (MetaMorph⚗: 0.026); on FT by 0.034 and 0.020
-    #: (``results/transfer-pointnav/update-kl-by-parameter*.md``). 1.0: the rule before issue 42.
-    #: It also applies to ``divmorph-finetuned`` (every Cayley generator at this multiple of its rate)
+    #: to the rate of the units they rotate (1.0: the same rate; 0: rotations frozen). Adam moves
+    #: every generator entry by about the rate at once and each turns two whole singular
+    #: directions, so at 1.0 the rotations can dominate an update where the policy is far from its
+    #: training (measured: ``docs/claims/transfer.md``). It also applies to ``divmorph-finetuned``
+    #: (every Cayley generator at this multiple of its rate)
     rotation_lr_scale: float = 1.0
     #: where the task gates of the arms that start from a DivMorph student come from (fixed in the
     #: DivMorph-way arms, the start of ``divmorph-finetuned``'s): ``instruction`` (the novel task's own
@@ -236,10 +227,8 @@ class TransferConfig:
     recipe: str = "fixed-gates"
 
     def arm_list(self) -> list[str]:
-        """The arms to run: ``arms``, or the pre-arms default (``divmorph`` [+ ``scratch``])."""
-        if self.arms is not None:
-            return list(self.arms)
-        return ["divmorph", "scratch"] if self.compare_scratch else ["divmorph"]
+        """The arms to run: ``arms``, or ``divmorph`` and ``scratch``."""
+        return list(self.arms) if self.arms is not None else ["divmorph", "scratch"]
 
 
 @dataclass
@@ -271,15 +260,6 @@ class HyperDistillConfig:
     n_envs: int = 4
     n_steps: int = 256
     buffer_size: int = 50_000
-    #: what the one student is told of the task (the paper: one hypernetwork per task): ``index``
-    #: (default: the one-hot of ``task_index`` conditions the hypernetwork, one MLP per robot and
-    #: task) or ``none`` (no task input: the student guesses the task from its observations, so FT
-    #: and Incline, which share their observation keys, look alike; runs recorded before this key)
-    task_input: str = "index"
-    #: whose observation statistics the student normalises with: ``teachers`` (default, the paper's:
-    #: each state with the statistics of its task's teacher, kept in the student's ``model.zip``) or
-    #: ``own`` (one ``VecNormalize`` of the student's over all the tasks' states; runs recorded before this key)
-    observation_statistics: str = "teachers"
 
 
 @dataclass
@@ -367,6 +347,7 @@ class Profile:
             "evaluate": EvaluateConfig,
         }
         values = dict(values)
+        check_removed_keys(values, f"profile {name!r}")
         parsed = {
             key: _from_dict(section, values.pop(key, None), f"profile {name!r}, section {key!r}") for key, section in sections.items()
         }
@@ -396,20 +377,11 @@ class Profile:
             )
         if profile.hyperdistill is not None and profile.hyperdistill.loss not in ("nll", "kl"):
             raise ConfigError(f"profile {name!r}: hyperdistill.loss must be 'nll' or 'kl', got {profile.hyperdistill.loss!r}")
-        if profile.hyperdistill is not None and profile.hyperdistill.task_input not in ("none", "index"):
-            raise ConfigError(
-                f"profile {name!r}: hyperdistill.task_input must be 'index' or 'none', got {profile.hyperdistill.task_input!r}"
-            )
-        if profile.hyperdistill is not None and profile.hyperdistill.observation_statistics not in ("teachers", "own"):
-            raise ConfigError(
-                f"profile {name!r}: hyperdistill.observation_statistics must be 'teachers' or 'own', "
-                f"got {profile.hyperdistill.observation_statistics!r}"
-            )
         for key in ("task_input", "observation_statistics", "normalized_keys"):
             if profile.hyperdistill is not None and key in profile.hyperdistill.policy_kwargs:
                 raise ConfigError(
-                    f"profile {name!r}: hyperdistill.policy_kwargs.{key} is set by the pipeline; "
-                    f"use hyperdistill.{key if key != 'normalized_keys' else 'observation_statistics'}"
+                    f"profile {name!r}: hyperdistill.policy_kwargs.{key} is set by the pipeline (the task's index in, "
+                    "each state normalised with its task's teacher's statistics)"
                 )
         if profile.height_reference not in HEIGHT_REFERENCES:
             raise ConfigError(
@@ -463,6 +435,19 @@ class Profile:
         return profile
 
 
+def check_removed_keys(values: dict[str, Any], where: str) -> None:
+    """A profile that sets a key removed in 0.2, or a kept key to its retired value, is an error naming
+    it and what replaces it (a run recorded before 0.2 is migrated once: ``divmorph migrate``)."""
+    for key, instead in REMOVED_KEYS.items():
+        section_name, name = key.split(".")
+        if isinstance(values.get(section_name), dict) and name in values[section_name]:
+            raise ConfigError(f"{where}: {key} was removed in divmorph 0.2: {instead}")
+    for rule in RETIRED_RULES:
+        section = values.get(rule.section)
+        if rule.kept and isinstance(section, dict) and rule.name in section and section[rule.name] == rule.value:
+            raise ConfigError(f"{where}: {rule.key}: {rule.value!r} selected a rule retired in divmorph 0.2; today's is {rule.today!r}")
+
+
 def check_arms(arms: list[str], where: str) -> None:
     """Unknown or repeated arms are an error that lists the valid ones."""
     from divmorph.pipeline.arms import ARMS
@@ -497,21 +482,18 @@ def check_transfer(cfg: TransferConfig, where: str) -> None:
         raise ConfigError(f"{where}.critic_warmup must be >= 0 env steps, got {cfg.critic_warmup}")
     if not cfg.critic_lr_scale > 0:
         raise ConfigError(f"{where}.critic_lr_scale must be > 0, got {cfg.critic_lr_scale}")
-    if cfg.observation_statistics not in ("frozen", "learning"):
-        raise ConfigError(f"{where}.observation_statistics must be 'frozen' or 'learning', got {cfg.observation_statistics!r}")
-    if cfg.adam_eps is not None:
-        try:
-            cfg.adam_eps = float(cfg.adam_eps)  # YAML reads 1e-10 (no dot) as a string
-        except (TypeError, ValueError):
-            raise ConfigError(f"{where}.adam_eps must be a number > 0 or null, got {cfg.adam_eps!r}") from None
-        if not cfg.adam_eps > 0:
-            raise ConfigError(f"{where}.adam_eps must be a number > 0 or null, got {cfg.adam_eps!r}")
+    try:
+        cfg.adam_eps = float(cfg.adam_eps)  # YAML reads 1e-10 (no dot) as a string
+    except (TypeError, ValueError):
+        raise ConfigError(f"{where}.adam_eps must be a number > 0, got {cfg.adam_eps!r}") from None
+    if not cfg.adam_eps > 0:
+        raise ConfigError(f"{where}.adam_eps must be a number > 0, got {cfg.adam_eps!r}")
     if not 0 <= cfg.rotation_lr_scale <= 1:
         raise ConfigError(f"{where}.rotation_lr_scale must be in [0, 1], got {cfg.rotation_lr_scale}")
     if cfg.recipe not in RECIPES:
         raise ConfigError(f"{where}.recipe must be one of {list(RECIPES)}, got {cfg.recipe!r}")
-    if cfg.undiverted_lr_scale is not None and not 0 <= cfg.undiverted_lr_scale <= 1:
-        raise ConfigError(f"{where}.undiverted_lr_scale must be in [0, 1] or null (= learngene_lr_scale), got {cfg.undiverted_lr_scale!r}")
+    if not isinstance(cfg.undiverted_lr_scale, (int, float)) or not 0 <= cfg.undiverted_lr_scale <= 1:
+        raise ConfigError(f"{where}.undiverted_lr_scale must be in [0, 1], got {cfg.undiverted_lr_scale!r}")
 
 
 def load_profiles(path: str | Path = DEFAULT_PROFILES) -> dict[str, dict[str, Any]]:

@@ -7,18 +7,17 @@ Runs when the profile has a ``hyperdistill`` section (``divmorph hyperdistill`` 
 2. the student (``hyperdistill/student/``): offline from ``rollout_samples`` teacher-rollout states on
    ``Unimal-MultiTask-v0`` over the training robots (loss ``nll`` or ``kl``), then optionally
    ``dagger_timesteps`` of DAgger on the states the student visits; ``model.zip`` + ``vecnormalize.pkl``.
-   One student for all the training tasks: ``task_input: index`` (default) conditions its
-   hypernetwork on the task (the paper's one hypernetwork per task, in one network), ``none`` is the
-   student of runs recorded before the key. ``observation_statistics: teachers`` (default): each
-   state is normalised with the statistics of its task's teacher, held in ``model.zip`` (no
-   ``vecnormalize.pkl``); ``own`` (runs recorded before the key): one ``VecNormalize`` of the
-   student's own over all the tasks' states (see :mod:`sb3_divmorph.policies.hyperdistill`);
+   One student for all the training tasks: the one-hot of the task conditions its hypernetwork
+   (the paper's one hypernetwork per task, in one network), and each state is normalised with the
+   statistics of its task's teacher, held in ``model.zip`` (see :mod:`sb3_divmorph.policies.hyperdistill`).
+   A student trained before divmorph 0.2 without a task input and with one ``VecNormalize`` of its
+   own (``vecnormalize.pkl``) is still exported, for any task;
 3. per (robot, task) of the ``export`` section: the MLP generated once for that robot, written as
    TorchScript (``mlp.pt``) and ONNX (``mlp.onnx``), checked against the student (max |diff| <= 1e-5)
    and reported with its size against the teacher's actor (``hyperdistill/export/<robot>-<task>/``).
 
-Resumable: the teacher-rollout states are written to ``student/rollouts.npz`` once collected (with the
-student's ``VecNormalize`` when it keeps its own statistics) and the offline fit checkpoints after every
+Resumable: the teacher-rollout states are written to ``student/rollouts.npz`` once collected and the
+offline fit checkpoints after every
 epoch (``student/offline-fit.pt``), so a killed stage resumes from its last epoch; both are removed
 once the student is saved. The DAgger phase, when there is one, starts over.
 """
@@ -33,7 +32,6 @@ import gymnasium as gym
 import numpy as np
 import torch as th
 from stable_baselines3.common.logger import configure
-from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_divmorph.algos.distillation import DAggerCallback, ImitationPPO, Teacher, load_normalizer
 from sb3_divmorph.algos.hyperdistill_fit import TeacherRollouts, collect_teacher_rollouts, fit_offline, load_student
@@ -44,7 +42,7 @@ from divmorph.pipeline.config import ConfigError, Profile, teacher_policy
 from divmorph.pipeline.folders import TEACHER_RUN, load_teachers, teacher_folder
 from divmorph.pipeline.grid import Job, run_grid
 from divmorph.pipeline.envs import make_vec_env, profile_env_kwargs, resolve_device, task_env_name
-from divmorph.pipeline.files import MODEL, NORMALIZER, atomic_save, atomic_write_json, is_done, mark_done
+from divmorph.pipeline.files import MODEL, atomic_save, atomic_write_json, is_done, mark_done, read_done
 from divmorph.pipeline.robots import profile_robots
 from divmorph.pipeline.training import stage_model, stage_normalizer
 from sb3_divmorph.policies.hyperdistill import HyperDistillPolicy
@@ -53,7 +51,7 @@ from unimal_envs.tasks import TASKS
 
 NORM_OBS_KEYS = ["proprioceptive"]
 #: The student folder's resume files, removed once the student is saved.
-ROLLOUTS, ROLLOUTS_NORMALIZER, FIT_CHECKPOINT = "rollouts.npz", "rollouts-vecnormalize.pkl", "offline-fit.pt"
+ROLLOUTS, FIT_CHECKPOINT = "rollouts.npz", "offline-fit.pt"
 #: Largest accepted difference between an exported MLP and the student.
 TOLERANCE = 1e-5
 
@@ -68,9 +66,11 @@ def _config(profile: Profile):
     return profile.hyperdistill
 
 
-def _any_task(cfg) -> bool:
-    """Whether the student can be written for a task without a teacher (no task input, own statistics)."""
-    return cfg.task_input == "none" and cfg.observation_statistics == "own"
+def _any_task(student: Path) -> bool:
+    """Whether the trained student in folder ``student`` can be written for a task without a teacher:
+    one trained before 0.2, without a task input and with its own statistics."""
+    info = read_done(student)
+    return info.get("task_input") == "none" and info.get("observation_statistics") == "own"
 
 
 def hyperdistill_teachers(profile: Profile, out: Path, progress_bar: bool = True) -> dict[int, Teacher]:
@@ -107,18 +107,14 @@ def train_student(profile: Profile, out: Path, progress_bar: bool = True) -> Pat
         morphologies=robots,
         **profile_env_kwargs(profile),
     )
-    own_statistics = cfg.observation_statistics == "own"
-    if own_statistics:
-        venv = VecNormalize(venv, norm_obs_keys=NORM_OBS_KEYS, norm_reward=False)
-        statistics: dict[str, Any] = {}
-    else:  # raw observations in; the policy normalises each state with its task's teacher's statistics
-        keys = {tuple(sorted(t.normalizer.norm_obs_keys or ())) for t in teachers.values() if t.normalizer is not None}
-        if len(keys) > 1:
-            raise ConfigError(
-                f"the teachers normalise different observations {sorted(keys)}; "
-                "hyperdistill.observation_statistics: teachers needs them alike (or use 'own')"
-            )
-        statistics = dict(observation_statistics="teachers", normalized_keys=list(next(iter(keys), NORM_OBS_KEYS)))
+    # raw observations in; the policy normalises each state with its task's teacher's statistics
+    keys = {tuple(sorted(t.normalizer.norm_obs_keys or ())) for t in teachers.values() if t.normalizer is not None}
+    if len(keys) > 1:
+        raise ConfigError(
+            f"the teachers normalise different observations {sorted(keys)}; the HyperDistill student normalises each "
+            "state with its task's teacher's statistics and needs them alike"
+        )
+    statistics = dict(observation_statistics="teachers", normalized_keys=list(next(iter(keys), NORM_OBS_KEYS)))
     dataset = None
     if cfg.rollout_samples > 0:
         print(f"[hyperdistill] {cfg.rollout_samples} teacher-rollout states, {cfg.epochs} epochs of {cfg.loss} -> {folder}")
@@ -127,27 +123,26 @@ def train_student(profile: Profile, out: Path, progress_bar: bool = True) -> Pat
     model = ImitationPPO(
         HyperDistillPolicy,
         venv,
-        policy_kwargs=dict(cfg.policy_kwargs, task_input=cfg.task_input, **statistics),
+        policy_kwargs=dict(cfg.policy_kwargs, task_input="index", **statistics),
         n_steps=cfg.n_steps,
         batch_size=min(cfg.batch_size, cfg.n_steps * cfg.n_envs),
         seed=seed,
         device=resolve_device(profile.device),
     )
     model.set_logger(configure(str(folder / "logs"), ["csv", "tensorboard"]))
-    if not own_statistics:
-        for index, teacher in teachers.items():
-            model.policy.set_teacher_statistics(index, teacher.normalizer)
+    for index, teacher in teachers.items():
+        model.policy.set_teacher_statistics(index, teacher.normalizer)
     info: dict[str, Any] = {
         "teacher_policy": cfg.teacher_policy,
         "loss": cfg.loss,
-        "task_input": cfg.task_input,
-        "observation_statistics": cfg.observation_statistics,
+        "task_input": "index",
+        "observation_statistics": "teachers",
     }
     if dataset is not None:
         history = fit_offline(
             model.policy,
             dataset,
-            venv if own_statistics else None,
+            None,
             cfg.loss,
             cfg.epochs,
             cfg.batch_size,
@@ -173,32 +168,22 @@ def train_student(profile: Profile, out: Path, progress_bar: bool = True) -> Pat
         )
         model.learn(cfg.dagger_timesteps, callback=callback, progress_bar=progress_bar)
     atomic_save(folder / MODEL, model.save)
-    if own_statistics:
-        venv.training = False
-        atomic_save(folder / NORMALIZER, lambda p: venv.save(str(p)))
-        info["normalizer"] = True
     mark_done(folder, **info)
-    for scratch in (ROLLOUTS, ROLLOUTS_NORMALIZER, FIT_CHECKPOINT):  # gigabytes of states, not needed again
+    for scratch in (ROLLOUTS, FIT_CHECKPOINT):  # gigabytes of states, not needed again
         (folder / scratch).unlink(missing_ok=True)
     return folder
 
 
 def _teacher_rollouts(folder: Path, teachers: dict[int, Teacher], venv, n_samples: int, seed: int):
-    """The teacher-rollout states of the student in ``folder``: collected once and written there, read back
-    on a resume. Returns ``(dataset, venv)``; a ``VecNormalize`` of the student's own comes back with the
-    statistics the collection gave it."""
-    path, statistics = folder / ROLLOUTS, folder / ROLLOUTS_NORMALIZER
-    own = isinstance(venv, VecNormalize)
-    if path.is_file() and (statistics.is_file() or not own):
+    """The teacher-rollout states of the student in ``folder``: collected once and written there, read
+    back on a resume. Returns ``(dataset, venv)``."""
+    path = folder / ROLLOUTS
+    if path.is_file():
         dataset = TeacherRollouts.load(path)
         print(f"[resume] {folder}: {dataset.size} teacher-rollout states read from {path.name}")
-        if own:
-            venv = VecNormalize.load(str(statistics), venv.venv)
         return dataset, venv
     dataset = collect_teacher_rollouts(teachers, venv, n_samples, seed=seed, verbose=1)
     folder.mkdir(parents=True, exist_ok=True)
-    if own:  # before the states: a resume reads the states only when the statistics are there too
-        atomic_save(statistics, lambda p: venv.save(str(p)))
     atomic_save(path, dataset.save)
     return dataset, venv
 
@@ -207,11 +192,6 @@ def export_mlp(profile: Profile, out: Path, robot_file: Path, task: str, steps: 
     """Generate, export and check the MLP of one robot x task; returns (and writes) its report."""
     if task not in TASK_NAMES:
         raise ConfigError(f"unknown task {task!r}; choose from {list(TASK_NAMES)}")
-    if not _any_task(_config(profile)) and task not in profile.teachers.tasks:
-        raise ConfigError(
-            f"the HyperDistill student has no teacher for {task!r} (task input / teachers' statistics: it "
-            f"is written for its teachers' tasks {list(profile.teachers.tasks)})"
-        )
     robot_file = Path(robot_file)
     folder = hyperdistill_folder(out) / "export" / f"{robot_file.stem}-{task}"
     if is_done(folder):
@@ -220,6 +200,11 @@ def export_mlp(profile: Profile, out: Path, robot_file: Path, task: str, steps: 
     source = hyperdistill_folder(out) / "student"
     if not is_done(source):
         raise FileNotFoundError(f"no HyperDistill student in {source}; run `divmorph hyperdistill --out {out}` first")
+    if not _any_task(source) and task not in profile.teachers.tasks:
+        raise ConfigError(
+            f"the HyperDistill student has no teacher for {task!r} (task input / teachers' statistics: it "
+            f"is written for its teachers' tasks {list(profile.teachers.tasks)})"
+        )
     policy = load_student(stage_model(source), observation_space())
     statistics = stage_normalizer(source)  # none when the student holds its teachers' statistics
     normalizer = None if statistics is None else load_normalizer(statistics)
@@ -301,7 +286,7 @@ def hyperdistill(profile: Profile, out: Path, progress_bar: bool = True) -> list
     robots = profile_robots(profile, "train")[:n] + profile_robots(profile, "novel")[:n]
     reports = []
     tasks = list(profile.export.tasks)
-    if not _any_task(_config(profile)):
+    if not _any_task(hyperdistill_folder(out) / "student"):
         untaught = [t for t in tasks if t not in profile.teachers.tasks]
         if untaught:
             print(

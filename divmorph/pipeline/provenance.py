@@ -31,6 +31,7 @@ from divmorph.pipeline.config import ConfigError, Profile, apply_overrides
 from divmorph.pipeline.folders import DOWNSTREAM, STAGE_FOLDERS  # noqa: F401 -- re-exported
 from divmorph.pipeline.envs import resolve_device
 from divmorph.pipeline.files import DONE, atomic_write_json, read_done
+from divmorph.pipeline.retired import RECORD_FORMAT, format_problem, retired_changes
 from divmorph.pipeline.robots import robot_set_record
 from divmorph.pipeline.training import reopen
 
@@ -79,48 +80,22 @@ def _versions() -> dict[str, str | None]:
     return versions
 
 
-#: Keys added since runs were first recorded whose default is not what a run recorded before them
-#: did: a record without one is read with the value that reproduces its rule (issue 26: frozen
-#: transfer statistics, one Adam eps, ablations at the full rate), so such a run folder goes on
-#: under its own rules and a profile with the new ones counts as a change of its transfer stage.
-LEGACY_VALUES: dict[str, dict[str, Any]] = {
-    "transfer": {"observation_statistics": "learning", "adam_eps": None, "undiverted_lr_scale": None},
-    # HyperDistill students recorded before these keys: no task input, their own statistics (issue 26 item 5)
-    "hyperdistill": {"task_input": "none", "observation_statistics": "own"},
-}
-
-
-def with_legacy_values(recorded: dict[str, Any]) -> dict[str, Any]:
-    """A recorded configuration with :data:`LEGACY_VALUES` for the keys it lacks."""
-    values = dict(recorded)
-    for section, legacy in LEGACY_VALUES.items():
-        if isinstance(values.get(section), dict):
-            values[section] = {**legacy, **values[section]}
-    return values
-
-
-def with_current_values(recorded: dict[str, Any]) -> dict[str, Any]:
-    """A recorded configuration with today's defaults, written out, for the :data:`LEGACY_VALUES` keys
-    it lacks: what a branch records for its own (not reused) stages, so they run under today's rules."""
-    from divmorph.pipeline.config import TransferConfig
-
-    # transfer only: hyperdistill is a stage a branch reuses (links), and its linked student is the recorded one
-    current = {"transfer": {f.name: f.default for f in dataclasses.fields(TransferConfig) if f.name in LEGACY_VALUES["transfer"]}}
-    values = dict(recorded)
-    for section, defaults in current.items():
-        if isinstance(values.get(section), dict):
-            values[section] = {**defaults, **values[section]}
-    return values
-
-
 def configuration(profile: Profile) -> dict[str, Any]:
     """The profile as plain values (what a run's models depend on)."""
     return json.loads(json.dumps(dataclasses.asdict(profile), default=str))
 
 
 def recorded_profile(path: Path, overrides: dict[str, Any] | None = None) -> Profile:
-    """The profile a run was run with, from its ``run.json`` (``overrides`` applied, validated like the YAML)."""
-    values = with_legacy_values(json.loads(Path(path).read_text())["configuration"])
+    """The profile a run was run with, from its ``run.json`` (``overrides`` applied, validated like the YAML).
+
+    :raises ConfigError: the record is of an older format (the message names ``divmorph migrate``),
+        or its configuration does not parse.
+    """
+    record = json.loads(Path(path).read_text())
+    problem = format_problem(record, path)
+    if problem is not None:
+        raise ConfigError(problem)
+    values = dict(record["configuration"])
     name = values.pop("name")
     try:
         return Profile.from_dict(name, apply_overrides(values, overrides or {}))
@@ -131,7 +106,7 @@ def recorded_profile(path: Path, overrides: dict[str, Any] | None = None) -> Pro
 def _with_defaults(recorded: dict[str, Any]) -> dict[str, Any]:
     """A recorded configuration with the defaults of keys added to the profile since it was
     recorded (a new key at its default changes nothing a run did); as recorded if it no longer parses."""
-    values = with_legacy_values(recorded)
+    values = dict(recorded)
     try:
         return configuration(Profile.from_dict(values.pop("name", "recorded"), values))
     except ConfigError:
@@ -201,6 +176,7 @@ def check_and_record(
     force: bool = False,
     redo: tuple[str, ...] | list[str] = (),
     extend: tuple[str, ...] | list[str] = (),
+    trains: bool = True,
 ) -> dict[str, Any]:
     """Compare ``profile`` with the configuration recorded in ``out/run.json``, retrain what must be
     retrained, and (re)write the record.
@@ -212,6 +188,9 @@ def check_and_record(
     :param extend: continue these stages' finished runs to a larger budget (:data:`EXTENDABLE`):
         the budget may grow and nothing else of theirs change; the stages built on them still see
         the change (retrain them with ``redo``, or use another run folder).
+    :param trains: the command may train a begun stage (``False``: it reads, exports or evaluates the
+        finished ones): a begun stage that ran under a retired rule (the record's ``retired``) is then
+        a change, since today's code would go on under another rule.
     :raises ConfigError: a begun stage's settings changed and neither ``force`` nor ``redo`` covers
         it (the message lists the stages and keys); an unknown stage in ``redo``.
     """
@@ -226,7 +205,7 @@ def check_and_record(
         )
     # commands started side by side on one run (a worker per core) each append to its history
     with _locked(Path(out)):
-        return _check_and_record(out, profile, command, force, redo, extend)
+        return _check_and_record(out, profile, command, force, redo, extend, trains)
 
 
 def _extended_stages(
@@ -257,7 +236,13 @@ def _extended_stages(
 
 
 def _check_and_record(
-    out: Path, profile: Profile, command: str, force: bool, redo: tuple[str, ...] | list[str], extend: tuple[str, ...] | list[str] = ()
+    out: Path,
+    profile: Profile,
+    command: str,
+    force: bool,
+    redo: tuple[str, ...] | list[str],
+    extend: tuple[str, ...] | list[str] = (),
+    trains: bool = True,
 ) -> dict[str, Any]:
     path = Path(out) / RECORD
     config = configuration(profile)
@@ -265,9 +250,16 @@ def _check_and_record(
     if profile.device == "auto":
         print(f"[provenance] device auto -> {device} (recorded in {path.name} as device_used)")
     previous = json.loads(path.read_text()) if path.is_file() else None
+    if previous is not None and (problem := format_problem(previous, path)) is not None:
+        raise ConfigError(problem)
     begun = begun_stages(out)
     recorded = _with_defaults(previous["configuration"]) if previous else None
-    changed = {stage: stage_changes(recorded, config, stage) for stage in begun} if recorded is not None else {}
+    # a stage trained under a retired rule is a change to a command that trains: today's code would go on under another rule
+    changed = (
+        {stage: (retired_changes(previous, stage) if trains else []) + stage_changes(recorded, config, stage) for stage in begun}
+        if previous is not None and recorded is not None
+        else {}
+    )
     changed = {stage: keys for stage, keys in changed.items() if keys}
     extended = _extended_stages(out, recorded, config, changed, [stage for stage in extend if stage in begun])
     blocked = {stage: keys for stage, keys in changed.items() if stage not in redo and not force}
@@ -287,13 +279,16 @@ def _check_and_record(
         for marker in sorted(p for f in STAGE_FOLDERS[stage] for p in (Path(out) / f).rglob(DONE)):
             if read_done(marker.parent).get("num_timesteps", budget) < budget and (step := reopen(marker.parent)) is not None:
                 print(f"[provenance] {marker.parent}: finished at step {step:,}, continues to {budget:,}")
+    retired = {key: value for key, value in (previous or {}).get("retired", {}).items() if key.split(".")[0] not in retrain}
     record = {
+        "format": RECORD_FORMAT,
         "configuration": config,
         "device_used": device,
         "robots": robot_set_record(profile),
         "versions": _versions(),
         "git_commit": _git_commit(),
         "machine": f"{platform.node()} ({platform.machine()}, {platform.system()})",
+        **({"retired": retired} if retired else {}),
         "history": [
             *(previous or {}).get("history", []),
             {

@@ -18,7 +18,7 @@ the task's instruction (the built-in one, or ``transfer.instructions[task]`` of 
 embedded by the text encoder) and stay fixed; PPO trains the tailors those gates select and,
 ``learngene_lr_scale`` times slower, the shared knowledge (:func:`sb3_divmorph.algos.finetune.prepare_transfer`).
 A part an ablation does not divert has no tailors; it trains at ``transfer.undiverted_lr_scale``
-(default: the full rate, as any fine-tuned network; ``null``: as learngenes, the former rule).
+(default: the full rate, as any fine-tuned network).
 """
 
 from __future__ import annotations
@@ -39,7 +39,6 @@ from stable_baselines3.common.vec_env import VecNormalize
 from sb3_divmorph.algos.adaptive_rate import AdaptiveLearningRate
 from sb3_divmorph.algos.device_ppo import DevicePPO
 from sb3_divmorph.algos.finetune import (
-    TRANSFER_ADAM_EPS,
     CriticWarmup,
     UnitLearningRates,
     UnitSelection,
@@ -485,7 +484,7 @@ def transfer_run(
 
         def make_model():
             # a new MetaMorph; only the learngene's layers (and the observation statistics they were trained with) inherited
-            venv = inherited_normalizer(source, make_env(), gamma, freeze_observations=cfg.observation_statistics == "frozen")
+            venv = inherited_normalizer(source, make_env(), gamma, freeze_observations=True)
             policy_kwargs = {**grl_policy_kwargs(profile), **({"action_std": cfg.action_std} if cfg.action_std is not None else {})}
             model = algo("MetaMorphPolicy", venv, policy_kwargs=policy_kwargs, seed=run_seed, device=device, **entry.ppo_kwargs)
             inherit(model.policy, PPO.load(stage_model(source), device=device).policy, learngene["units"])
@@ -498,7 +497,7 @@ def transfer_run(
             # the source's weights and observation statistics (frozen); reward statistics start afresh for the
             # new task; an encoder for a task input the source never had (a teacher of another task) is added
             saved = PPO.load(stage_model(source), device=device)
-            venv = inherited_normalizer(source, make_env(), gamma, freeze_observations=cfg.observation_statistics == "frozen")
+            venv = inherited_normalizer(source, make_env(), gamma, freeze_observations=True)
             return finetuned_model(saved, venv, task, task_policy_kwargs, run_seed, device, entry.ppo_kwargs, algo, cfg.action_std)
 
     installed: dict[str, UnitLearningRates] = {}
@@ -509,12 +508,11 @@ def transfer_run(
             with th.no_grad():
                 selection = gate_selection(model.policy, selection_obs, model.get_vec_normalize_env())
             # the hooks live on the optimiser; they are installed again whenever the run is loaded
-            eps = TRANSFER_ADAM_EPS if cfg.adam_eps is None else cfg.adam_eps
             installed["rates"] = prepare_transfer(
                 model.policy,
                 selection,
                 cfg.learngene_lr_scale,
-                adam_eps=eps,
+                adam_eps=cfg.adam_eps,
                 undiverted_scale=cfg.undiverted_lr_scale,
                 critic_scale=cfg.critic_lr_scale if source is not None else 1.0,
                 rotation_scale=cfg.rotation_lr_scale,
@@ -526,8 +524,7 @@ def transfer_run(
 
         def prepare(model):
             # one optimiser rule for every arm (set again whenever the run is loaded)
-            if cfg.adam_eps is not None:
-                set_adam_eps(model.policy.optimizer, cfg.adam_eps)
+            set_adam_eps(model.policy.optimizer, cfg.adam_eps)
             scales = critic_rate_scales(model.policy, cfg.critic_lr_scale) if source is not None and cfg.critic_lr_scale != 1 else {}
             if spec.gated and cfg.rotation_lr_scale != 1:
                 # a DivMorph student fine-tuned freely: its Cayley generators at rotation_lr_scale of the rate
@@ -565,7 +562,6 @@ def transfer(
     profile: Profile,
     out: Path,
     tasks: list[str] | None = None,
-    compare_scratch: bool | None = None,
     progress_bar: bool = True,
     arms: list[str] | None = None,
     seeds: list[int] | None = None,
@@ -575,7 +571,6 @@ def transfer(
     """Race the arms on the novel tasks: every arm x task x seed is one resumable run (finished ones are skipped).
 
     :param tasks: novel tasks (default: the profile's).
-    :param compare_scratch: ``False`` drops ``scratch`` from the default arms (pre-arms option).
     :param arms: arms to run (default: ``transfer.arms``); see :data:`~divmorph.pipeline.arms.ARMS`.
     :param seeds: seeds (default: ``transfer.seeds``).
     :param backend: a :mod:`~divmorph.pipeline.grid` backend (default: local, in this process).
@@ -589,10 +584,7 @@ def transfer(
         profile = dataclasses.replace(profile, transfer=dataclasses.replace(cfg, closest_by=closest_by))
         cfg = profile.transfer
     tasks = list(tasks or cfg.tasks)
-    if arms is None:
-        arms = cfg.arm_list()
-        if compare_scratch is False and "scratch" in arms:
-            arms.remove("scratch")
+    arms = cfg.arm_list() if arms is None else list(arms)
     seeds = list(cfg.seeds if seeds is None else seeds)
     # every name is checked before the first one is announced and trained
     unknown = [task for task in tasks if task not in NOVEL_TASKS]
