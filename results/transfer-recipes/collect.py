@@ -28,6 +28,7 @@ VARIANTS = {
     ("recipes-kl", "distilled"): "Km",
     ("recipes-sv", "divmorph"): "S",
     ("recipes-kl-escape", "divmorph"): "K-Escape",
+    ("recipes-kl-exploration", "divmorph"): "K-Exploration",
 }
 
 
