@@ -10,7 +10,8 @@ Curves: K's from ``curves.csv.gz`` / ``training.csv.gz`` (``collect.py``); the r
 arm's step 0 is its many-draw start (``../novel-task-gates/returns.csv.gz``: 5 evaluation seeds x 3 episodes
 per robot), scratch's its own step 0. Intervals: 95% bootstrap over robots and seeds (robots paired across
 arms) for the readings of 3x, over robot x seed pairs for the gain (the race's reading); the stochastic
-training return's over the seeds (t).
+training return's over the seeds (t). Held-out robots: the 20 curve robots of the official test split,
+against each run's own step-0 evaluation (a single draw).
 
 The two readings of "~3x more sample-efficient":
 - against scratch: the steps from which an arm's mean curve holds scratch's final return (linear between
@@ -55,15 +56,15 @@ def race_folder(task: str, arm: str) -> Path:
     return RACE / name / "transfer" / task / arm
 
 
-def curves(task: str, arm: str) -> pd.DataFrame:
-    """Per (seed, timesteps, robot): mean deterministic return on the training curve robots."""
+def curves(task: str, arm: str, split: str = "train") -> pd.DataFrame:
+    """Per (seed, timesteps, robot): mean deterministic return on the curve robots of ``split``."""
     if arm == "K":
         table = pd.read_csv(HERE / "curves.csv.gz")
-        return table[(table.variant == f"K-{task}") & (table.split == "train")][["seed", "timesteps", "robot", "return"]]
+        return table[(table.variant == f"K-{task}") & (table.split == split)][["seed", "timesteps", "robot", "return"]]
     parts = []
     for path in sorted(race_folder(task, arm).glob("seed-*/eval.csv.gz")):
         frame = pd.read_csv(path)
-        frame = frame[frame.split == "train"].groupby(["timesteps", "robot"], as_index=False)["return"].mean()
+        frame = frame[frame.split == split].groupby(["timesteps", "robot"], as_index=False)["return"].mean()
         parts.append(frame.assign(seed=int(path.parent.name.split("-")[1])))
     return pd.concat(parts)[["seed", "timesteps", "robot", "return"]]
 
@@ -175,10 +176,14 @@ def task_rows(task: str, rng: np.random.Generator) -> tuple[list[str], dict[str,
             readings.append(f"{fmt_steps(mine)}: {fmt_ratio(ratio(own, mine))} [{fmt_ratio(lo)}, {fmt_ratio(hi)}]")
         noisy = stochastic(task, arm)
         noisy_lo, noisy_hi = t_interval(noisy)
+        held_out = curves(task, arm, "novel").pivot_table(index=["seed", "robot"], columns="timesteps", values="return")
+        held_gain = (held_out.iloc[:, -1] - held_out.iloc[:, 0]).to_numpy()
+        held_lo, held_hi = robot_interval(held_gain)
         rows.append(
             f"| {task} | {LABELS[arm]} | {values.shape[0]} | {means[arm][1][0]:.1f} | {means[arm][1][-1]:.1f} "
             f"| {gain.mean():+.1f} [{gain_lo:+.1f}, {gain_hi:+.1f}] | {reading} | {readings[0]} | {readings[1]} "
-            f"| {noisy.mean():+.1f} [{noisy_lo:+.1f}, {noisy_hi:+.1f}] |"
+            f"| {noisy.mean():+.1f} [{noisy_lo:+.1f}, {noisy_hi:+.1f}] "
+            f"| {held_out.iloc[:, 0].mean():.1f} -> {held_out.iloc[:, -1].mean():.1f}: {held_gain.mean():+.1f} [{held_lo:+.1f}, {held_hi:+.1f}] |"
         )
     return rows, means
 
@@ -205,8 +210,8 @@ def main() -> None:
     lines = [
         "| task | arm | seeds | start | last | last - start [95% CI] | reading | holds scratch's final from: "
         "x fewer steps [95% CI] | holds MetaMorph→'s final from: x fewer steps [95% CI] | stochastic training return, "
-        "last - first 30 updates [95% CI] |",
-        "|---|---|---:|---:|---:|---|---|---|---|---|",
+        "last - first 30 updates [95% CI] | held-out robots: step 0 -> last: last - step 0 [95% CI] |",
+        "|---|---|---:|---:|---:|---|---|---|---|---|---|",
     ]
     all_means = {}
     for task in TASKS:
