@@ -153,6 +153,27 @@ def test_a_part_an_ablation_does_not_divert_trains_at_the_full_rate_unless_asked
     assert 0.07 <= rates.measured_ratio() <= 0.14  # the decoder's learngenes keep their rate
 
 
+@pytest.mark.parametrize("ablation, expected", [({"divert_transformer": False}, 1.0), ({"divert_decoder": False}, 1.0), ({}, 0.1)])
+def test_outside_its_diverted_parts_an_ablation_trains_as_the_dense_student(ablation, expected):
+    """The token embedding and exteroception encoders: shared knowledge at the learngene rate in DivMorph, an
+    ordinary fine-tuned network at the full rate in an ablation (as in the dense student), so that an
+    ablation differs from DivMorph in its diversion and not in these rates (broken by giving them
+    ``learngene_scale`` in every policy: the ablations' ratio falls to 0.1)."""
+    model, venv = distilled_like_student(seed=2, policy_kwargs={**TINY_DIVMORPH, **ablation})
+    obs = venv.reset()
+    gates = model.policy.get_gates(obs)
+    selection = UnitSelection.from_gates(gates.morphology.numpy(), gates.task.numpy())
+    rates = prepare_transfer(model.policy, selection, learngene_scale=0.1)
+    extractor = model.policy.features_extractor
+    embedding = next(p for name, p in extractor.named_parameters() if "embed" in name and p.dim() == 2)
+    before = embedding.detach().clone()
+    ratio_after_tiny_steps(model, obs, rates, "learngene")  # 20 steps of one fixed loss: each moves a weight by ~its rate
+    per_step = (embedding.detach() - before).abs().mean().item() / 20
+    measured = per_step / rates.mean_updates()["selected_tailor"]
+    assert 0.6 * expected <= measured <= 1.5 * expected, f"embedding / selected tailor update ratio {measured:.3f}, expected {expected}"
+    assert 0.07 <= rates.measured_ratio() <= 0.14  # the diverted part's learngenes keep their rate
+
+
 def one_ppo_like_step(model, obs) -> dict[str, th.Tensor]:
     """The parameters after one optimiser step on a loss of both heads (log-likelihood of fixed actions + value)."""
     batch = {k: np.repeat(v, 16, axis=0) for k, v in obs.items()}

@@ -312,18 +312,26 @@ RECIPES = ("fixed-gates", "singular-values", "kind")
 TRANSFER_ADAM_EPS = 1e-10
 
 
+def _divertible_parts(policy: nn.Module) -> dict[str, list[nn.Module]]:
+    """The actor's parts that diversion can factorise, by the config key that diverts them: the
+    Transformer encoder, and the decoder (its hidden layers and the action head)."""
+    extractor = policy.features_extractor if policy.share_features_extractor else policy.pi_features_extractor
+    return {"divert_transformer": [extractor.encoder], "divert_decoder": [policy.mlp_extractor.policy_net, policy.action_net]}
+
+
 def undiverted_modules(policy: nn.Module) -> list[nn.Module]:
     """The actor parts a DivMorph ablation does not divert: the Transformer encoder with
-    ``divert_transformer=False``, the actor's decoder layers with ``divert_decoder=False`` (empty for
-    the full DivMorph, whose undiverted pieces -- the action head, embeddings -- are shared knowledge)."""
-    extractor = policy.features_extractor if policy.share_features_extractor else policy.pi_features_extractor
+    ``divert_transformer=False``, the decoder (hidden layers and action head) with
+    ``divert_decoder=False``; empty for the full DivMorph."""
     config = getattr(policy, "config", {})
-    parts = []
-    if not config.get("divert_transformer", True):
-        parts.append(extractor.encoder)
-    if not config.get("divert_decoder", True):
-        parts.append(policy.mlp_extractor.policy_net)
-    return parts
+    return [part for key, parts in _divertible_parts(policy).items() if not config.get(key, True) for part in parts]
+
+
+def diverted_modules(policy: nn.Module) -> list[nn.Module]:
+    """The actor parts a DivMorph policy diverts (those with tailors): of the Transformer encoder and
+    the decoder, those an ablation does not leave out (:func:`undiverted_modules`)."""
+    config = getattr(policy, "config", {})
+    return [part for key, parts in _divertible_parts(policy).items() if config.get(key, True) for part in parts]
 
 
 def set_adam_eps(optimizer: th.optim.Optimizer, eps: float) -> None:
@@ -352,10 +360,11 @@ def prepare_transfer(
       learngenes at ``learngene_scale`` of it, unselected tailors not at all;
     * the actor's other parameters (token embedding, layer norms, biases, exteroception
       encoders), which carry shared knowledge like the learngenes, train at ``learngene_scale``;
-    * a part an ablation does not divert (:func:`undiverted_modules`: it has no tailors, so every
-      unit of it would count as a learngene) trains at ``undiverted_scale`` -- by default the full
-      rate, as any fine-tuned network, so that the ablation differs from DivMorph in its
-      diversion, not in a learning rate;
+    * in an ablation, a part it does not divert (:func:`undiverted_modules`: it has no tailors, so
+      every unit of it would count as a learngene) and every parameter outside the parts it diverts
+      (embedding, exteroception encoders) train at ``undiverted_scale`` -- by default the full rate,
+      as in the dense student, so that the ablation differs from DivMorph in its diversion, not in
+      learning rates; inside its diverted part the rule is DivMorph's;
     * the critic (never distilled) trains at ``critic_scale`` times the full rate;
     * the Cayley generators of the square factors train at ``rotation_scale`` times their units'
       rate (:func:`factor_parameter_scales`);
@@ -410,6 +419,9 @@ def prepare_transfer(
             if p.requires_grad and p not in scales:
                 scales[p] = th.full((), float(undiverted_scale))
     handled = {id(layer) for part in undiverted for layer in part.modules()}
+    # outside the diverted parts: shared knowledge in DivMorph, an ordinary fine-tuned network in an ablation
+    inside = {p for part in diverted_modules(policy) for p in part.parameters()}
+    outside_scale = undiverted_scale if undiverted else learngene_scale
     for module in actor_modules(policy):
         for layer in module.modules():
             if isinstance(layer, FactorizedLinear) and id(layer) not in handled:
@@ -423,9 +435,9 @@ def prepare_transfer(
                     groups[name].update(masks)
         for p in module.parameters():
             if p.requires_grad and p not in scales:
-                scales[p] = th.full((), float(learngene_scale))
+                scales[p] = th.full((), float(learngene_scale if p in inside else outside_scale))
     if isinstance(getattr(policy, "log_std", None), nn.Parameter):
-        scales[policy.log_std] = th.full((), float(learngene_scale))
+        scales[policy.log_std] = th.full((), float(outside_scale))
     if recipe == "singular-values":
         scales = singular_value_scales(policy, scales)
     scales.update(critic_rate_scales(policy, critic_scale))
