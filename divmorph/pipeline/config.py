@@ -68,13 +68,19 @@ TEACHER_POLICIES = ("MetaMorphPolicy", "ModuMorphPolicy", "DivMorphPolicy")
 class TeachersConfig:
     """One teacher per training task (MetaMorph unless ``policy`` says otherwise), trained with PPO."""
 
+    #: the training tasks, one teacher each (of ``TRAIN_TASKS``)
     tasks: list[str]
+    #: PPO env steps per teacher
     n_timesteps: int
     #: the teachers' policy (default: the rl-zoo entry's, MetaMorphPolicy)
     policy: str | None = None
+    #: the rl-zoo hyperparameter file the teachers' PPO settings come from (entry ``Unimal-<task>-v0``)
     hyperparams: str = "zoo_configs/ppo.yml"
+    #: PPO settings on top of the zoo entry's, e.g. ``{n_envs: 2, learning_rate: 3e-4}``
     overrides: dict[str, Any] = field(default_factory=dict)
+    #: updates of the zoo entry's ``policy_kwargs`` (the network's size, its input encoders)
     policy_kwargs: dict[str, Any] = field(default_factory=dict)
+    #: env steps between checkpoints (an interrupted run resumes from the last)
     checkpoint_every: int = 50_000
     #: ``""``: the zoo entry ``Unimal-<task>-v0``; ``"metamorph"``: ``Unimal-<task>-v0-metamorph``,
     #: MetaMorph's training recipe (cosine lr with warm-up, Adam eps 1e-5, KL stop at 0.2,
@@ -93,6 +99,7 @@ class TeachersConfig:
 class StudentConfig:
     """The DivMorph student's ``policy_kwargs``, and updates of them for other students."""
 
+    #: the DivMorph student's ``policy_kwargs`` (size, tailors, TopK...; see ``DivMorphPolicy``)
     policy_kwargs: dict[str, Any] = field(default_factory=dict)
     #: per-student updates of the ``policy_kwargs`` a student derives from the profile, by student
     #: name, e.g. ``{deploy-g1k1: {d_model: 64, ff_dim: 256}}`` (a wider deployment student, whose
@@ -104,16 +111,27 @@ class StudentConfig:
 class DistillConfig:
     """DAgger distillation of the teachers into the student."""
 
+    #: DAgger env steps (the student's own rollouts, labelled by the teachers)
     n_timesteps: int
+    #: parallel envs of the rollouts (``Unimal-MultiTask-v0``: each episode a training task and robot)
     n_envs: int = 4
+    #: env steps per env between distillation updates
     n_steps: int = 256
+    #: probability of executing the teacher's action instead of the student's, annealed linearly
+    #: from ``beta_start`` to ``beta_end`` over the run
     beta_start: float = 0.5
     beta_end: float = 0.0
+    #: passes over the aggregated dataset after each rollout
     epochs: int = 2
+    #: minibatch size of the distillation updates
     batch_size: int = 256
+    #: the student's Adam learning rate
     learning_rate: float = 1e-3
+    #: capacity of the aggregated dataset (states; the oldest leave first)
     buffer_size: int = 50_000
+    #: ``true``: the distillation steps run alongside PPO's own update (needs ``beta_start = beta_end = 0``)
     ppo_loss: bool = False
+    #: env steps between checkpoints (dataset, optimiser and shuffling state included)
     checkpoint_every: int = 50_000
     #: weight of the optional gate load-balancing term (0 = off; see ``DAggerCallback``)
     load_balance: float = 0.0
@@ -138,12 +156,17 @@ class DistillConfig:
 class TransferConfig:
     """Transfer of the student to novel tasks (and the MetaMorph-from-scratch comparison)."""
 
+    #: the novel tasks to transfer to (of ``NOVEL_TASKS``)
     tasks: list[str]
+    #: PPO env steps of every transfer run (arm x task x seed)
     n_timesteps: int
+    #: learning-rate ratio of the shared knowledge (learngenes, embedding, encoders) to the selected
+    #: tailors in the DivMorph-way arms
     learngene_lr_scale: float = 0.1
     #: ``{task: instruction}``: a novel task described in your own words (re-embedded by the
     #: text encoder; the gates read it); default: the task's built-in instruction
     instructions: dict[str, str] = field(default_factory=dict)
+    #: PPO settings on top of the novel task's zoo entry, for every arm
     overrides: dict[str, Any] = field(default_factory=dict)
     #: PPO settings applied on top of ``overrides`` for the arms that start from trained weights
     #: (every arm but ``scratch`` and ``modumorph``), e.g. ``{learning_rate: lin_3e-4}``: a rate
@@ -158,6 +181,7 @@ class TransferConfig:
     #: task's values to learn, as scratch's does at the teachers' rate; e.g. 10 with lin_1e-4 gives
     #: the critic lin_1e-3 (``results/critic-start/critic_start.py`` measures it on a training task)
     critic_lr_scale: float = 1.0
+    #: env steps between checkpoints of each run
     checkpoint_every: int = 50_000
     #: the arms to race (see :data:`divmorph.pipeline.arms.ARMS`); default: ``divmorph`` and ``scratch``
     arms: list[str] | None = None
@@ -235,8 +259,11 @@ class TransferConfig:
 class ExportConfig:
     """Pruned compact actors for a few robots and tasks."""
 
+    #: the tasks whose compact actors are exported
     tasks: list[str]
+    #: robots exported per split (the first of the training and of the novel robots)
     robots_per_split: int = 1
+    #: forward passes timed for the batch-1 latency
     latency_repeats: int = 200
 
 
@@ -247,18 +274,27 @@ class HyperDistillConfig:
     #: teachers to distil: the run's own (``teachers/``) when their policy is this one, otherwise
     #: teachers of this policy are trained with the ``teachers`` settings into ``hyperdistill/teachers/``
     teacher_policy: str = "ModuMorphPolicy"
+    #: the hypernetwork student's ``policy_kwargs`` (see ``HyperDistillPolicy``)
     policy_kwargs: dict[str, Any] = field(default_factory=dict)
     #: teacher-rollout states for the offline phase (authors: ~16k per robot); 0 = no offline phase
     rollout_samples: int = 16384
+    #: the offline fit's loss: ``nll`` (the authors') or ``kl``
     loss: str = "nll"
+    #: passes of the offline fit over the teacher-rollout states
     epochs: int = 50
+    #: minibatch size of the fit and of DAgger (authors: 5120)
     batch_size: int = 5120
+    #: Adam learning rate of the fit and of DAgger
     learning_rate: float = 3e-4
     #: DAgger steps after the offline phase (0 = none)
     dagger_timesteps: int = 0
+    #: passes over the aggregated dataset after each DAgger rollout
     dagger_epochs: int = 2
+    #: parallel envs of the rollouts
     n_envs: int = 4
+    #: env steps per env between DAgger updates
     n_steps: int = 256
+    #: capacity of DAgger's aggregated dataset (states)
     buffer_size: int = 50_000
 
 
@@ -270,6 +306,7 @@ class GRLConfig:
 
     #: agents per generation
     population: int = 8
+    #: generations of the evolution (each trains and selects ``population`` agents)
     generations: int = 3
     #: PPO steps each agent trains (GRL: 50 x 4096)
     steps_per_agent: int = 50_000
@@ -295,6 +332,7 @@ class EvaluateConfig:
 class Profile:
     """A whole pipeline configuration (one entry of ``zoo_configs/divmorph.yml``)."""
 
+    #: the profile's name (its key in the profiles file)
     name: str
     teachers: TeachersConfig
     student: StudentConfig
@@ -302,8 +340,11 @@ class Profile:
     transfer: TransferConfig
     export: ExportConfig
     evaluate: EvaluateConfig
+    #: the run's seed (every stage derives its own from it)
     seed: int = 0
+    #: ``auto`` (CUDA when there is one), ``cpu`` or ``cuda``; what was used is recorded in ``run.json``
     device: str = "auto"
+    #: torch threads of the stage commands
     torch_threads: int = 2
     #: the training robots: a shipped set name (``train``/``novel``), a directory of MJCF files
     #: (``DIR/xml/*.xml``, e.g. the official unimals_100 set), relative paths resolved like files
@@ -313,13 +354,17 @@ class Profile:
     #: With the official training robots, the official held-out robots (``unimals100-test``): the
     #: split the field reports zero-shot on
     novel_set: str = "novel"
+    #: the first N robots of ``train_set`` (``null``: all)
     train_robots: int | None = None
+    #: the first N robots of ``novel_set`` (``null``: all)
     novel_robots: int | None = None
     #: an out-of-distribution robot set, evaluated zero-shot and reported apart from the novel robots
     #: (split ``ood``), e.g. the shipped generated ``novel`` set beside official training robots
     #: (taller, lighter, random designs: ``results/morphology_sets.md``); ``None``: none
     ood_set: str | None = None
+    #: the first N robots of ``ood_set`` (``null``: all)
     ood_robots: int | None = None
+    #: episode length limit of every env of the run
     max_episode_steps: int = 1000
     #: what body heights in the robots' proprioception are measured from, in every env of the run
     #: (``gym.make(..., height_reference=...)``): ``world`` (MetaMorph's convention, default) or
