@@ -6,7 +6,8 @@ reads: ``curves.csv.gz`` (each run's mean deterministic return per robot at each
 
 A run is named by its arm and the one setting its folder varies (``rule.md``): ``F`` (recipes-free:
 divmorph-finetuned, rotations frozen), ``K`` / ``Km`` (recipes-kl: the fixed-gate arm / MetaMorph⚗ at a
-KL of 0.01 per update), ``S`` (recipes-sv: FINE's singular values).
+KL of 0.01 per update), ``S`` (recipes-sv: FINE's singular values), ``KIND`` (recipes-kind: the task tailors
+restarted).
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ VARIANTS = {
     ("recipes-kl", "divmorph"): "K",
     ("recipes-kl", "distilled"): "Km",
     ("recipes-sv", "divmorph"): "S",
+    ("recipes-kind", "divmorph"): "KIND",
     ("recipes-kl-escape", "divmorph"): "K-Escape",
     ("recipes-kl-exploration", "divmorph"): "K-Exploration",
 }
