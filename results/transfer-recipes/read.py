@@ -33,6 +33,8 @@ VARIANTS = {
     "K": ("(d) fixed gates, KL 0.01 per update", "divmorph"),
     "Km": ("(d) MetaMorph⚗, KL 0.01 per update", "distilled"),
     "S": ("(c) fixed gates, singular values only (FINE)", "divmorph"),
+    # the restart changes the policy before step 0: its start is its own runs' step-0 evaluations
+    "KIND": ("(c) fixed gates, task tailors restarted (KIND)", None),
 }
 
 
@@ -49,7 +51,7 @@ def check_starts(table: pd.DataFrame) -> None:
     """Each run's step-0 evaluation is its goal-range arm's, episode for episode (the same policy and episodes)."""
     first = table[table.timesteps == 0].set_index(["split", "robot", "seed"])
     for variant, (_, arm) in VARIANTS.items():
-        if variant in ("D", "M") or variant not in set(table.variant):
+        if variant in ("D", "M") or arm is None or variant not in set(table.variant):
             continue
         reference = {"divmorph": "D", "distilled": "M"}[arm]
         mine, theirs = first[first.variant == variant]["return"], first[first.variant == reference]["return"]
@@ -87,7 +89,8 @@ def main() -> None:
         if runs.empty:
             lines.append(f"| {label} | 0 | – | – | not run | – | – | – | – |")
             continue
-        start = starts[arm]
+        own = runs[runs.timesteps == 0].groupby("robot")["return"].mean()
+        start = starts[arm] if arm is not None else own
         last_step = runs.groupby("seed").timesteps.transform("max")
         last = runs[runs.timesteps == last_step].set_index(["robot", "seed"])["return"]
         change = (last - start.reindex(last.index.get_level_values(0)).to_numpy()).dropna().to_numpy()
@@ -102,6 +105,13 @@ def main() -> None:
             f"| {label} | {seeds} | {start.mean():.0f} | {last.mean():.0f} | {change.mean():+.0f} [{lo:+.0f}, {hi:+.0f}] | {reading} "
             f"| {novel} | {stochastic} | {kl} |"
         )
+        if arm is None:  # the rule's second reading: above the un-restarted student's start?
+            above = (last - starts["divmorph"].reindex(last.index.get_level_values(0)).to_numpy()).dropna().to_numpy()
+            lo, hi = robot_interval(above)
+            lines.append(
+                f"| {label}: last against the un-restarted start | {seeds} | {starts['divmorph'].mean():.0f} | {last.mean():.0f} "
+                f"| {above.mean():+.0f} [{lo:+.0f}, {hi:+.0f}] | {'useful' if lo > 0 else 'not useful'} | | | |"
+            )
         mean = runs.groupby("timesteps")["return"].mean()
         steps = mean.index.to_numpy() / 1e3
         values = np.r_[start.mean(), mean.to_numpy()[1:]]
