@@ -118,7 +118,7 @@ def train_student(profile: Profile, out: Path, progress_bar: bool = True) -> Pat
     dataset = None
     if cfg.rollout_samples > 0:
         print(f"[hyperdistill] {cfg.rollout_samples} teacher-rollout states, {cfg.epochs} epochs of {cfg.loss} -> {folder}")
-        dataset, venv = _teacher_rollouts(folder, teachers, venv, cfg.rollout_samples, seed)
+        dataset = _teacher_rollouts(folder, teachers, venv, cfg.rollout_samples, seed)
     th.manual_seed(seed)
     model = ImitationPPO(
         HyperDistillPolicy,
@@ -174,18 +174,18 @@ def train_student(profile: Profile, out: Path, progress_bar: bool = True) -> Pat
     return folder
 
 
-def _teacher_rollouts(folder: Path, teachers: dict[int, Teacher], venv, n_samples: int, seed: int):
+def _teacher_rollouts(folder: Path, teachers: dict[int, Teacher], venv, n_samples: int, seed: int) -> TeacherRollouts:
     """The teacher-rollout states of the student in ``folder``: collected once and written there, read
-    back on a resume. Returns ``(dataset, venv)``."""
+    back on a resume."""
     path = folder / ROLLOUTS
     if path.is_file():
         dataset = TeacherRollouts.load(path)
         print(f"[resume] {folder}: {dataset.size} teacher-rollout states read from {path.name}")
-        return dataset, venv
+        return dataset
     dataset = collect_teacher_rollouts(teachers, venv, n_samples, seed=seed, verbose=1)
     folder.mkdir(parents=True, exist_ok=True)
     atomic_save(path, dataset.save)
-    return dataset, venv
+    return dataset
 
 
 def export_mlp(profile: Profile, out: Path, robot_file: Path, task: str, steps: int = 32) -> dict[str, Any]:

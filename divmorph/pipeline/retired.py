@@ -30,15 +30,15 @@ class RetiredRule:
     :param value: the retired value.
     :param today: the value (and rule) today's code runs.
     :param kept: whether the key is still a profile key (only its retired value went) or gone whole.
-    :param missing_means_retired: a format-1 record without the key ran the retired rule (the key came
-        later and its default changed the rule).
+
+    Every key here came after runs were first recorded, with a default that changed the rule: a
+    format-1 record without it ran the retired rule.
     """
 
     key: str
     value: Any
     today: Any
     kept: bool
-    missing_means_retired: bool = True
 
     @property
     def section(self) -> str:
@@ -79,10 +79,7 @@ def migrate_configuration(configuration: dict[str, Any]) -> tuple[dict[str, Any]
         section = values.get(rule.section)
         if not isinstance(section, dict):
             continue
-        if rule.name in section:
-            value = section[rule.name]
-        else:
-            value = rule.value if rule.missing_means_retired else rule.today
+        value = section.get(rule.name, rule.value)  # a record from before the key ran the retired rule
         if value == rule.value:
             retired[rule.key] = value
         if rule.kept:
