@@ -376,7 +376,7 @@ def prepare_transfer(
     :param learngene_scale: learning-rate ratio of the shared knowledge to the selected tailors.
     :param adam_eps: ``eps`` for every parameter group of the optimiser; ``None`` keeps it.
     :param undiverted_scale: learning-rate scale of the parts an ablation does not divert;
-        ``None``: ``learngene_scale`` (every unit a learngene, the behaviour before this option).
+        ``None``: ``learngene_scale`` (every unit of such a part trained as a learngene).
     :param critic_scale: learning-rate scale of the critic (:func:`critic_rate_scales`).
     :param rotation_scale: learning-rate scale of every Cayley generator relative to its units'.
     :param recipe: one of :data:`RECIPES`; ``singular-values`` then trains, in the actor, only the
