@@ -165,3 +165,17 @@ def test_baked_normalisation_keeps_float64_precision_for_nearly_constant_feature
     with th.no_grad():
         diff = (student_means(model, venv, batch) - actor(*actor_inputs(batch, batch=True))).abs().max().item()
     assert diff <= 1e-5
+
+
+def test_a_students_trained_adapters_are_kept_in_its_compact_actor():
+    """A student fine-tuned by the ``adapter`` recipe exports with its adapters as extra always-on units:
+    the compact actor acts as the student does (break: drop the adapter from ``selected_units`` -> the
+    actions differ by the adapters' share)."""
+    model, venv, batch = trained_student("VT", diversion="deploy-g2k1", adapter_rank=2)
+    with th.no_grad():
+        for layer in model.policy.modules():
+            if isinstance(layer, FactorizedLinear) and layer.adapter_rank:
+                layer.adapter_up.normal_(0, 0.3)  # as if trained: the adapters now change the function
+    first = {k: v[0] for k, v in batch.items()}
+    actor = CompactActor.from_policy(model.policy, first, TASKS["VT"].observation_keys, venv)
+    assert (student_means(model, venv, batch) - actor(*actor_inputs(batch, batch=True))).abs().max().item() <= 1e-5

@@ -393,3 +393,40 @@ def test_a_resumed_or_finished_kind_run_is_not_restarted_again():
     assert recipe_for("kind", 0) == "kind"
     assert recipe_for("kind", 4096) == "fixed-gates"
     assert recipe_for("singular-values", 4096) == "singular-values" and recipe_for("fixed-gates", 0) == "fixed-gates"
+
+
+def test_the_adapter_recipe_starts_as_the_student_and_trains_only_its_adapters():
+    """``transfer.recipe: adapter`` (LoRA's rule, issue 67 (c)): the student loaded with zero-initialised
+    adapters acts exactly as before; after an update every factor, bias and embedding of the actor is bit
+    for bit where it was, the adapters and the critic moved, and the actions changed (break: drop
+    ``adapter_scales`` from ``prepare_transfer`` -> the tall factors move; drop the adapter from
+    ``FactorizedLinear.forward`` -> the actions do not change)."""
+    from divmorph.pipeline.transfer import finetuned_model
+
+    student, venv = distilled_like_student(seed=8)
+    obs = venv.reset()
+    obs_t, _ = student.policy.obs_to_tensor(obs)
+    with th.no_grad():
+        mean_student = student.policy.get_distribution(obs_t).distribution.mean.clone()
+    ppo_kwargs = dict(n_steps=64, batch_size=16, n_epochs=5, learning_rate=3e-3)
+    model = finetuned_model(student, venv, "Escape", TINY_DIVMORPH, 8, "cpu", ppo_kwargs, adapter_rank=2)
+    layers = [m for module in actor_modules(model.policy) for m in module.modules() if isinstance(m, FactorizedLinear)]
+    assert layers and all(layer.adapter_rank == 2 for layer in layers)
+    with th.no_grad():
+        assert th.allclose(model.policy.get_distribution(obs_t).distribution.mean, mean_student, atol=1e-5)
+    gates = model.policy.get_gates(obs)
+    selection = UnitSelection.from_gates(gates.morphology.numpy(), gates.task.numpy())
+    prepare_transfer(model.policy, selection, learngene_scale=0.1, recipe="adapter")
+    before = {name: p.detach().clone() for name, p in model.policy.named_parameters()}
+    after = one_ppo_like_step(model, obs)
+    actor = {id(p) for module in actor_modules(model.policy) for p in module.parameters()}
+    critic = {id(p) for module in critic_modules(model.policy) for p in module.parameters()}
+    for name, p in model.policy.named_parameters():
+        if id(p) in actor and id(p) not in critic and not name.endswith(("adapter_down", "adapter_up")):
+            assert th.equal(after[name], before[name]), name
+    assert all(not th.equal(after[name], before[name]) for name in before if name.endswith("adapter_up"))
+    assert any(not th.equal(after[n], before[n]) for n, p in model.policy.named_parameters() if id(p) in critic)
+    with th.no_grad():
+        assert not th.allclose(model.policy.get_distribution(obs_t).distribution.mean, mean_student, atol=1e-5)
+    with pytest.raises(ValueError, match="adapter_rank"):
+        prepare_transfer(student.policy, selection, recipe="adapter")

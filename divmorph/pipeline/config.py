@@ -246,9 +246,12 @@ class TransferConfig:
     #: what the DivMorph-way arms train under their fixed gates
     #: (:data:`~sb3_divmorph.algos.finetune.RECIPES`): ``fixed-gates`` (the paper's: selected tailors,
     #: learngenes ``learngene_lr_scale`` times slower), ``singular-values`` (FINE's: only the
-    #: singular values of the active units) or ``kind`` (KIND's for a large shift: the selected task
-    #: tailors re-initialised, then as ``fixed-gates``)
+    #: singular values of the active units), ``kind`` (KIND's for a large shift: the selected task
+    #: tailors re-initialised, then as ``fixed-gates``) or ``adapter`` (LoRA's: a zero-initialised
+    #: adapter of width ``adapter_rank`` on every factorized actor layer, the only part that trains)
     recipe: str = "fixed-gates"
+    #: width of each layer's low-rank adapter under ``recipe: adapter`` (ignored by the other recipes)
+    adapter_rank: int = 4
 
     def arm_list(self) -> list[str]:
         """The arms to run: ``arms``, or ``divmorph`` and ``scratch``."""
@@ -537,6 +540,8 @@ def check_transfer(cfg: TransferConfig, where: str) -> None:
         raise ConfigError(f"{where}.rotation_lr_scale must be in [0, 1], got {cfg.rotation_lr_scale}")
     if cfg.recipe not in RECIPES:
         raise ConfigError(f"{where}.recipe must be one of {list(RECIPES)}, got {cfg.recipe!r}")
+    if isinstance(cfg.adapter_rank, bool) or not isinstance(cfg.adapter_rank, int) or cfg.adapter_rank < 1:
+        raise ConfigError(f"{where}.adapter_rank must be an integer >= 1, got {cfg.adapter_rank!r}")
     if not isinstance(cfg.undiverted_lr_scale, (int, float)) or not 0 <= cfg.undiverted_lr_scale <= 1:
         raise ConfigError(f"{where}.undiverted_lr_scale must be in [0, 1], got {cfg.undiverted_lr_scale!r}")
 

@@ -323,6 +323,7 @@ def finetuned_model(
     ppo_kwargs: dict[str, Any],
     algo: type[PPO] = PPO,
     action_std: float | None = None,
+    adapter_rank: int = 0,
 ) -> PPO:
     """A PPO model on ``venv`` that starts from ``saved``'s policy and sees ``task``'s inputs.
 
@@ -339,10 +340,14 @@ def finetuned_model(
     :param algo: ``PPO``, or ``DevicePPO`` on the batched backend (rollouts on the device).
     :param action_std: the std the fine-tuned policy samples from (``None``: ``saved``'s); its mean
         action, every weight, stays ``saved``'s.
+    :param adapter_rank: give every factorized layer a zero-initialised adapter of this width (the
+        ``adapter`` recipe); the policy computes what ``saved``'s does until the adapters train.
     """
     kwargs = dict(saved.policy_kwargs)
     if action_std is not None:
         kwargs["action_std"] = action_std
+    if adapter_rank:
+        kwargs["adapter_rank"] = adapter_rank
     extractor = saved.policy.features_extractor if saved.policy.share_features_extractor else saved.policy.pi_features_extractor
     has = set(extractor.exteroception.keys()) if hasattr(extractor, "exteroception") else None
     needed = [key for key in TASKS[task].observation_keys if has is not None and key not in has]
@@ -359,7 +364,10 @@ def finetuned_model(
     if needed:
         load_widened(model.policy, saved.policy)
     else:
-        model.policy.load_state_dict(saved.policy.state_dict())
+        missing, unexpected = model.policy.load_state_dict(saved.policy.state_dict(), strict=False)
+        fresh = [key for key in missing if not key.endswith(("adapter_down", "adapter_up"))]
+        if fresh or unexpected:
+            raise RuntimeError(f"the source policy does not fit: missing {fresh}, unexpected {unexpected}")
     if action_std is not None:
         set_action_std(model.policy, action_std)
     return model
@@ -498,7 +506,10 @@ def transfer_run(
             # new task; an encoder for a task input the source never had (a teacher of another task) is added
             saved = PPO.load(stage_model(source), device=device)
             venv = inherited_normalizer(source, make_env(), gamma, freeze_observations=True)
-            return finetuned_model(saved, venv, task, task_policy_kwargs, run_seed, device, entry.ppo_kwargs, algo, cfg.action_std)
+            adapter_rank = cfg.adapter_rank if spec.divmorph_transfer and cfg.recipe == "adapter" else 0
+            return finetuned_model(
+                saved, venv, task, task_policy_kwargs, run_seed, device, entry.ppo_kwargs, algo, cfg.action_std, adapter_rank
+            )
 
     installed: dict[str, UnitLearningRates] = {}
     if spec.divmorph_transfer:

@@ -29,6 +29,7 @@ VARIANTS = {
     ("recipes-kl", "distilled"): "Km",
     ("recipes-sv", "divmorph"): "S",
     ("recipes-kind", "divmorph"): "KIND",
+    ("recipes-adapter", "divmorph"): "A",
     ("recipes-kl-escape", "divmorph"): "K-Escape",
     ("recipes-kl-exploration", "divmorph"): "K-Exploration",
 }

@@ -305,8 +305,11 @@ def unit_groups(layer: FactorizedLinear, unit: th.Tensor) -> dict[str, dict[nn.P
 #: ``learngene_scale``; ``singular-values`` (FINE's rule): only the singular values of the active units
 #: (learngenes and selected tailors) at the full rate, every other actor parameter frozen; ``kind``
 #: (KIND's rule for a large task shift): as ``fixed-gates``, with the selected task tailors re-initialised
-#: first (:func:`reinitialise_task_tailors`: the old task's knowledge dropped, the learngenes kept).
-RECIPES = ("fixed-gates", "singular-values", "kind")
+#: first (:func:`reinitialise_task_tailors`: the old task's knowledge dropped, the learngenes kept);
+#: ``adapter`` (LoRA's rule): only a zero-initialised low-rank adapter on every factorized actor layer
+#: trains, at the full rate, every factor and every other actor parameter frozen (the policy must be
+#: built with ``adapter_rank > 0``).
+RECIPES = ("fixed-gates", "singular-values", "kind", "adapter")
 
 #: Adam's ``eps`` during transfer: far below a distilled student's smallest useful gradients.
 TRANSFER_ADAM_EPS = 1e-10
@@ -382,7 +385,8 @@ def prepare_transfer(
     :param recipe: one of :data:`RECIPES`; ``singular-values`` then trains, in the actor, only the
         singular values of the units the gates keep active (learngenes and selected tailors) at the
         full rate (the scales above apply to ``fixed-gates``); ``kind`` re-initialises the selected
-        task tailors (:func:`reinitialise_task_tailors`), then trains as ``fixed-gates``.
+        task tailors (:func:`reinitialise_task_tailors`), then trains as ``fixed-gates``; ``adapter``
+        trains only the layers' adapters (:func:`adapter_scales`).
     :return: the installed :class:`UnitLearningRates` (keep it, or call ``remove``); its
         :meth:`~UnitLearningRates.measured_ratio` is the learngene / selected-tailor update ratio
         (units of undiverted parts are measured apart, as the group ``undiverted``).
@@ -440,6 +444,9 @@ def prepare_transfer(
         scales[policy.log_std] = th.full((), float(outside_scale))
     if recipe == "singular-values":
         scales = singular_value_scales(policy, scales)
+    elif recipe == "adapter":
+        scales = adapter_scales(policy, scales)
+        groups["adapter"] = {p: th.ones((), dtype=th.bool) for p in adapter_parameters(policy)}
     scales.update(critic_rate_scales(policy, critic_scale))
     if adam_eps is not None:
         set_adam_eps(optimizer, adam_eps)
@@ -476,6 +483,31 @@ def reinitialise_task_tailors(policy: nn.Module, selection: UnitSelection) -> in
             layer._cache = None
             count += len(units)
     return count
+
+
+def adapter_parameters(policy: nn.Module) -> list[nn.Parameter]:
+    """The adapters' parameters of every factorized actor layer (empty without ``adapter_rank``)."""
+    layers = [layer for module in actor_modules(policy) for layer in module.modules() if isinstance(layer, FactorizedLinear)]
+    return [p for layer in layers if layer.adapter_rank for p in (layer.adapter_down, layer.adapter_up)]
+
+
+def adapter_scales(policy: nn.Module, scales: Mapping[nn.Parameter, th.Tensor]) -> dict[nn.Parameter, th.Tensor]:
+    """LoRA's rule on top of :func:`prepare_transfer`'s scales: in the actor, the adapters train at the
+    full rate and every other parameter (factors, biases, embeddings, encoders, std) is frozen.
+
+    :raises ValueError: the policy has no adapters (build it with ``adapter_rank > 0``).
+    """
+    adapters = set(adapter_parameters(policy))
+    if not adapters:
+        raise ValueError(
+            "recipe 'adapter' trains the low-rank adapters of the factorized layers, but this policy has none: "
+            "build it with DivMorphPolicy(adapter_rank=...) (the pipeline's transfer.adapter_rank)"
+        )
+    frozen = {p: th.zeros(()) for p in scales if p not in adapters}
+    frozen.update({p: th.zeros(()) for module in actor_modules(policy) for p in module.parameters() if p.requires_grad and p not in adapters})
+    if isinstance(getattr(policy, "log_std", None), nn.Parameter):
+        frozen[policy.log_std] = th.zeros(())
+    return {**frozen, **{p: th.ones(()) for p in adapters}}
 
 
 def singular_value_scales(policy: nn.Module, scales: Mapping[nn.Parameter, th.Tensor]) -> dict[nn.Parameter, th.Tensor]:

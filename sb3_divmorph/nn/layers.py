@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -107,6 +108,10 @@ class FactorizedLinear(nn.Module):
         per gate slot): its ``j``-th morphology tailor is then scaled by the sum of the gates of
         the ``j``-th of ``N_m`` contiguous groups of morphology slots (likewise for task tailors),
         so TopK still selects at most ``k`` of its tailors per gate. Default: one slot per tailor.
+    :param adapter_rank: width of a zero-initialised low-rank adapter added to the weight,
+        ``W + B A`` (LoRA: ``A`` random, ``B`` zero, so the layer starts as the factors alone); 0
+        for none. Transfer's ``adapter`` recipe trains only the adapters; pruning keeps them as
+        always-on units (:meth:`selected_units`).
     """
 
     # Buffers (register_buffer), declared for the type checker: Q0 when orthogonal; the gate pooling
@@ -125,9 +130,12 @@ class FactorizedLinear(nn.Module):
         bias: th.Tensor | None | bool = True,
         path: str = "auto",
         gate_slots: tuple[int, int] | None = None,
+        adapter_rank: int = 0,
     ):
         super().__init__()
         rank = min(in_features, out_features)
+        if adapter_rank < 0:
+            raise ValueError(f"adapter_rank must be >= 0, got {adapter_rank}")
         n_tailors = n_morph_tailors + n_task_tailors
         if n_morph_tailors < 0 or n_task_tailors < 0 or n_tailors > rank:
             raise ValueError(
@@ -176,6 +184,12 @@ class FactorizedLinear(nn.Module):
         else:
             self.square = nn.Parameter(square.to(dtype).contiguous())
         self.bias = None if bias is None or bias is False else nn.Parameter(bias.detach().to(dtype).clone())
+        self.adapter_rank = int(adapter_rank)
+        if adapter_rank:
+            # LoRA's start: a random down-projection of nn.Linear's scale and a zero up-projection
+            bound = 1.0 / math.sqrt(in_features)
+            self.adapter_down = nn.Parameter(th.empty(adapter_rank, in_features, dtype=dtype).uniform_(-bound, bound))
+            self.adapter_up = nn.Parameter(th.zeros(out_features, adapter_rank, dtype=dtype))
 
         # Per-row multiply-adds of both paths; the merged one also builds an (out x in) matrix
         # once per batch, which is negligible for training minibatches and cached in rollouts.
@@ -289,14 +303,16 @@ class FactorizedLinear(nn.Module):
         """
         U, V = self.factors()[:2]
         scales = self.unit_scales(None if tailor_gates is None else tailor_gates.reshape(1, -1)).reshape(-1)
-        return (U * scales) @ V.T
+        weight = (U * scales) @ V.T
+        return weight + self.adapter_up @ self.adapter_down if self.adapter_rank else weight
 
     def selected_units(self, tailor_gates: th.Tensor | None = None) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
         """Compact factors for one gate vector: learngenes plus the tailors with a non-zero gate.
 
         Tailors the TopK gates did not select contribute exactly nothing, so dropping them gives
         the same layer with fewer units (DivMorph's deployment pruning):
-        ``W = U_sel diag(s_sel) V_sel^T``.
+        ``W = U_sel diag(s_sel) V_sel^T``. An adapter's ``B A`` is appended as ``adapter_rank``
+        further units (columns of ``B`` and of ``A^T``, singular value 1).
 
         :param tailor_gates: (N_m + N_t,) gates of one sample, or ``None`` for every unit.
         :return: ``U_sel`` (out, k), ``s_sel`` (k,), ``V_sel`` (in, k), detached.
@@ -307,7 +323,12 @@ class FactorizedLinear(nn.Module):
             keep = th.ones(self.rank, dtype=th.bool, device=scales.device)
             if tailor_gates is not None and self.n_tailors:
                 keep[self.n_learngenes :] = self.local_gates(tailor_gates.reshape(1, -1)).reshape(-1) != 0
-            return U[:, keep].clone(), scales[keep].clone(), V[:, keep].clone()
+            U, scales, V = U[:, keep], scales[keep], V[:, keep]
+            if self.adapter_rank:
+                U = th.cat([U, self.adapter_up], dim=1)
+                scales = th.cat([scales, th.ones(self.adapter_rank, dtype=scales.dtype, device=scales.device)])
+                V = th.cat([V, self.adapter_down.T], dim=1)
+            return U.clone(), scales.clone(), V.clone()
 
     def forward(self, x: th.Tensor, tailor_gates: th.Tensor | None = None) -> th.Tensor:
         """
@@ -316,6 +337,12 @@ class FactorizedLinear(nn.Module):
             to switch every unit on (the layer is then the dense init it was built from).
         :return: (B, ..., out_features).
         """
+        out = self._factor_forward(x, tailor_gates)
+        if self.adapter_rank:
+            out = out + F.linear(F.linear(x, self.adapter_down), self.adapter_up)
+        return out
+
+    def _factor_forward(self, x: th.Tensor, tailor_gates: th.Tensor | None) -> th.Tensor:
         f = self.factors()
         if tailor_gates is None or self.n_tailors == 0:
             if self.n_tailors == 0:
@@ -340,7 +367,9 @@ class FactorizedLinear(nn.Module):
             f"in_features={self.in_features}, out_features={self.out_features}, "
             f"learngenes={self.n_learngenes}, morph_tailors={self.n_morph_tailors}, "
             f"task_tailors={self.n_task_tailors}, orthogonal={self.orthogonal}, "
-            f"square={self.square_side}, path={self.path}" + (f", gate_slots={self.gate_slots}" if self.gate_pool is not None else "")
+            f"square={self.square_side}, path={self.path}"
+            + (f", gate_slots={self.gate_slots}" if self.gate_pool is not None else "")
+            + (f", adapter_rank={self.adapter_rank}" if self.adapter_rank else "")
         )
 
 
@@ -405,6 +434,8 @@ class Factorization:
         tailors than slots pool the slots, see ``FactorizedLinear``'s ``gate_slots``). A layer of
         rank below ``N_G + 2`` (e.g. the 3-input goal encoder) keeps ``r - 2`` learngenes, at least
         one. Few learngenes and a small TopK make the deployed actor small.
+    :param adapter_rank: a zero-initialised low-rank adapter of this width on every factorized
+        layer (``FactorizedLinear``'s ``adapter_rank``); 0 for none.
     """
 
     n_morph_tailors: int
@@ -412,6 +443,7 @@ class Factorization:
     orthogonal: bool = True
     divert: bool = True
     n_learngenes: int | None = None
+    adapter_rank: int = 0
 
     @property
     def n_tailors(self) -> int:
@@ -494,6 +526,7 @@ class LinearBuilder:
             weight=dense.weight.detach(),
             bias=dense.bias.detach(),
             gate_slots=(f.n_morph_tailors, f.n_task_tailors) if any(counts) else None,
+            adapter_rank=f.adapter_rank,
         )
 
 
@@ -523,7 +556,11 @@ def project_many(layers: list[nn.Module], x: th.Tensor, tailor_gates: th.Tensor 
             return [layer(x, tailor_gates) for layer in layers]
         return list(F.linear(x, weight, bias).split([layer.out_features for layer in layers], dim=-1))
     gated = tailor_gates is not None and all(
-        isinstance(layer, FactorizedLinear) and layer.n_tailors > 0 and layer.path == "merged" and layer.bias is not None
+        isinstance(layer, FactorizedLinear)
+        and layer.n_tailors > 0
+        and layer.path == "merged"
+        and layer.bias is not None
+        and not layer.adapter_rank
         for layer in layers
     )
     if not gated:

@@ -527,6 +527,9 @@ class DivMorphPolicy(MorphologyTransformerPolicy):
         MetaMorph's. Distillation never trains a critic, so diverting it would carry no knowledge
         to transfer or deploy, while it would cost as much again as the actor's factorization.
         With ``share_features_extractor=True`` the shared Transformer is the actor's (factorized).
+    :param adapter_rank: a zero-initialised low-rank adapter of this width on every factorized
+        layer of the actor (0: none; transfer's ``adapter`` recipe builds its model with one and
+        trains only the adapters).
 
     Other arguments: see :class:`MorphologyTransformerPolicy`.
     """
@@ -547,6 +550,7 @@ class DivMorphPolicy(MorphologyTransformerPolicy):
         "divert_exteroception",
         "n_learngenes",
         "factorize_critic",
+        "adapter_rank",
     )
     _config_keys = MorphologyTransformerPolicy._config_keys + _divmorph_keys
 
@@ -569,6 +573,7 @@ class DivMorphPolicy(MorphologyTransformerPolicy):
         divert_exteroception: bool | None = None,
         n_learngenes: int | None = None,
         factorize_critic: bool = False,
+        adapter_rank: int = 0,
         diversion: str = "default",
         **kwargs: Any,
     ):
@@ -590,6 +595,7 @@ class DivMorphPolicy(MorphologyTransformerPolicy):
             divert_exteroception=divert_exteroception,
             n_learngenes=n_learngenes,
             factorize_critic=factorize_critic,
+            adapter_rank=int(adapter_rank),
         )
         # explicit keywords win over the named diversion, which wins over the size preset
         for key, value in named.items():
@@ -616,7 +622,12 @@ class DivMorphPolicy(MorphologyTransformerPolicy):
     def _factorization(self, divert: bool) -> Factorization:
         c = self.config
         return Factorization(
-            c["n_morph_tailors"], c["n_task_tailors"], orthogonal=c["orthogonal"], divert=divert, n_learngenes=c["n_learngenes"]
+            c["n_morph_tailors"],
+            c["n_task_tailors"],
+            orthogonal=c["orthogonal"],
+            divert=divert,
+            n_learngenes=c["n_learngenes"],
+            adapter_rank=c.get("adapter_rank", 0),
         )
 
     def _extractor_kwargs(self) -> dict[str, Any]:
@@ -630,6 +641,7 @@ class DivMorphPolicy(MorphologyTransformerPolicy):
                 orthogonal=f.orthogonal,
                 divert=f.divert,
                 n_learngenes=f.n_learngenes,
+                adapter_rank=f.adapter_rank,
             ),
             "factorize_exteroception": self.config["divert_exteroception"],
         }
