@@ -4,7 +4,7 @@ the table of ``README.md`` and ``pointnav.png``.
 
     python results/transfer-recipes/read.py
 
-Every variant starts from a model whose step-0 policy is one of ``../goal-range/``'s arms (F, K, S: the
+Every variant starts from a model whose step-0 policy is one of ``../goal-range/``'s arms (F, K, S, A: the
 DivMorph student under Patrol's gates; Km: MetaMorph⚗), so its many-draw start is that arm's
 (``../goal-range/starts.csv``); the check below asserts each run's step-0 evaluation equals that arm's.
 """
@@ -33,6 +33,8 @@ VARIANTS = {
     "K": ("(d) fixed gates, KL 0.01 per update", "divmorph"),
     "Km": ("(d) MetaMorph⚗, KL 0.01 per update", "distilled"),
     "S": ("(c) fixed gates, singular values only (FINE)", "divmorph"),
+    # B = 0: the adapted student acts as the student does
+    "A": ("(c) fixed gates, a zero-initialised adapter only (LoRA, width 4)", "divmorph"),
     # the restart changes the policy before step 0: its start is its own runs' step-0 evaluations
     "KIND": ("(c) fixed gates, task tailors restarted (KIND)", None),
 }

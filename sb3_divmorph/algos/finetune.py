@@ -497,29 +497,30 @@ def adapter_scales(policy: nn.Module, scales: Mapping[nn.Parameter, th.Tensor]) 
 
     :raises ValueError: the policy has no adapters (build it with ``adapter_rank > 0``).
     """
-    adapters = set(adapter_parameters(policy))
+    adapters = adapter_parameters(policy)
     if not adapters:
         raise ValueError(
             "recipe 'adapter' trains the low-rank adapters of the factorized layers, but this policy has none: "
             "build it with DivMorphPolicy(adapter_rank=...) (the pipeline's transfer.adapter_rank)"
         )
-    frozen = {p: th.zeros(()) for p in scales if p not in adapters}
-    frozen.update({p: th.zeros(()) for module in actor_modules(policy) for p in module.parameters() if p.requires_grad and p not in adapters})
-    if isinstance(getattr(policy, "log_std", None), nn.Parameter):
-        frozen[policy.log_std] = th.zeros(())
-    return {**frozen, **{p: th.ones(()) for p in adapters}}
+    return _actor_trains_only(policy, scales, {p: th.ones(()) for p in adapters})
 
 
 def singular_value_scales(policy: nn.Module, scales: Mapping[nn.Parameter, th.Tensor]) -> dict[nn.Parameter, th.Tensor]:
     """FINE's rule on top of :func:`prepare_transfer`'s scales: in the actor, the singular values of
     every active unit (a non-zero scale) train at the full rate and every other parameter is frozen."""
-    singular = {
+    singular = [
         layer.singular_values for module in actor_modules(policy) for layer in module.modules() if isinstance(layer, FactorizedLinear)
-    }
-    frozen = {p: th.zeros(()) for p in scales if p not in singular}
-    frozen.update(
-        {p: th.zeros(()) for module in actor_modules(policy) for p in module.parameters() if p.requires_grad and p not in singular}
-    )
+    ]
+    return _actor_trains_only(policy, scales, {p: (scales[p] > 0).float() if p in scales else th.ones(()) for p in singular})
+
+
+def _actor_trains_only(
+    policy: nn.Module, scales: Mapping[nn.Parameter, th.Tensor], trained: Mapping[nn.Parameter, th.Tensor]
+) -> dict[nn.Parameter, th.Tensor]:
+    """``scales`` with every actor parameter (and a learned std) frozen except ``trained``, at its own scale."""
+    frozen = {p: th.zeros(()) for p in scales if p not in trained}
+    frozen.update({p: th.zeros(()) for module in actor_modules(policy) for p in module.parameters() if p.requires_grad and p not in trained})
     if isinstance(getattr(policy, "log_std", None), nn.Parameter):
         frozen[policy.log_std] = th.zeros(())
-    return {**frozen, **{p: (scales[p] > 0).float() if p in scales else th.ones(()) for p in singular}}
+    return {**frozen, **trained}
