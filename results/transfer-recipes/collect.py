@@ -32,6 +32,7 @@ VARIANTS = {
     ("recipes-adapter", "divmorph"): "A",
     ("recipes-kl-escape", "divmorph"): "K-Escape",
     ("recipes-kl-exploration", "divmorph"): "K-Exploration",
+    ("recipes-free-escape", "divmorph-finetuned"): "F-Escape",
 }
 
 

@@ -1,11 +1,12 @@
 """The candidate recipe's confirmation on the novel tasks it was not chosen on (``rule.md``'s addendum):
 fixed gates at a KL of 0.01 per update (K) against the race's arms on Escape and Exploration, with both
 readings of the paper's 3x claim and the stochastic training return beside the deterministic evaluation;
-``confirm.md`` and ``confirm.png``.
+and, on Escape, the control F (every DivMorph weight at MetaMorph⚗'s rate, rotations frozen: the 08:30
+addendum); ``confirm.md`` and ``confirm.png``.
 
     python results/transfer-recipes/confirm.py
 
-Curves: K's from ``curves.csv.gz`` / ``training.csv.gz`` (``collect.py``); the race's from
+Curves: K's and F's from ``curves.csv.gz`` / ``training.csv.gz`` (``collect.py``); the race's from
 ``../transfer-pointnav/runs-600k/`` (same terms, robots, episodes and budget, nominal rates). A fine-tuned
 arm's step 0 is its many-draw start (``../novel-task-gates/returns.csv.gz``: 5 evaluation seeds x 3 episodes
 per robot), scratch's its own step 0. Intervals: 95% bootstrap over robots and seeds (robots paired across
@@ -38,9 +39,12 @@ HERE = Path(__file__).resolve().parent
 RESULTS = HERE.parent
 RACE = RESULTS / "transfer-pointnav" / "runs-600k"
 TASKS = {"Escape": "FT", "Exploration": "Obstacle"}  # novel task -> the training task closest by instruction
-ARMS = ("K", "divmorph", "closest", "distilled", "scratch")
+ARMS = ("K", "F", "divmorph", "closest", "distilled", "scratch")
+#: this study's arms (``curves.csv.gz`` variants ``<arm>-<task>``); each starts as the fixed-gate arm
+OURS = ("K", "F")
 LABELS = {
     "K": "fixed gates, KL 0.01 per update (candidate)",
+    "F": "every DivMorph weight, rotations frozen (F, control)",
     "divmorph": "fixed gates, nominal rate",
     "closest": "MetaMorph→ (direct fine-tuning)",
     "distilled": "MetaMorph⚗ (dense distilled student)",
@@ -58,9 +62,9 @@ def race_folder(task: str, arm: str) -> Path:
 
 def curves(task: str, arm: str, split: str = "train") -> pd.DataFrame:
     """Per (seed, timesteps, robot): mean deterministic return on the curve robots of ``split``."""
-    if arm == "K":
+    if arm in OURS:
         table = pd.read_csv(HERE / "curves.csv.gz")
-        return table[(table.variant == f"K-{task}") & (table.split == split)][["seed", "timesteps", "robot", "return"]]
+        return table[(table.variant == f"{arm}-{task}") & (table.split == split)][["seed", "timesteps", "robot", "return"]]
     parts = []
     for path in sorted(race_folder(task, arm).glob("seed-*/eval.csv.gz")):
         frame = pd.read_csv(path)
@@ -73,7 +77,7 @@ def start(task: str, arm: str) -> pd.Series | None:
     """The many-draw start per robot of a fine-tuned arm (``None``: scratch, its own step 0)."""
     if arm == "scratch":
         return None
-    model, told = {"K": ("divmorph", TASKS[task]), "divmorph": ("divmorph", TASKS[task])}.get(
+    model, told = {arm: ("divmorph", TASKS[task]) for arm in (*OURS, "divmorph")}.get(
         arm, (f"teacher-{TASKS[task]}" if arm == "closest" else arm, task)
     )
     rows = pd.read_csv(RESULTS / "novel-task-gates" / "returns.csv.gz")
@@ -111,11 +115,11 @@ def ratio(reference: float, arm: float) -> float:
     return np.inf if arm == 0 else 0.0 if np.isinf(arm) else reference / arm
 
 
-def stochastic(task: str, arm: str) -> np.ndarray:
-    """Per seed: mean stochastic training return of the last ``WINDOW`` updates minus the first ``WINDOW``."""
-    if arm == "K":
+def training_log(task: str, arm: str) -> pd.DataFrame:
+    """One row per PPO update of every seed: stochastic training return and approximate KL."""
+    if arm in OURS:
         log = pd.read_csv(HERE / "training.csv.gz")
-        log = log[log.variant == f"K-{task}"]
+        log = log[log.variant == f"{arm}-{task}"]
     else:
         name = {
             "divmorph": f"training-{task}-gates-closest-{task}-closest",
@@ -125,8 +129,13 @@ def stochastic(task: str, arm: str) -> np.ndarray:
         }[arm]
         log = pd.read_csv(RACE / f"{name}.csv.gz")
         log = log[(log.task == task) & (log.arm == arm)]
+    return log
+
+
+def stochastic(task: str, arm: str) -> np.ndarray:
+    """Per seed: mean stochastic training return of the last ``WINDOW`` updates minus the first ``WINDOW``."""
     gains = []
-    for _, run in log.sort_values("timesteps").groupby("seed"):
+    for _, run in training_log(task, arm).sort_values("timesteps").groupby("seed"):
         returns = run.training_return.to_numpy()
         gains.append(returns[-WINDOW:].mean() - returns[:WINDOW].mean())
     return np.array(gains)
@@ -147,8 +156,12 @@ def fmt_ratio(value: float) -> str:
     return "from the start" if np.isinf(value) else "never" if value == 0 else f"{value:.1f}x"
 
 
+def has_runs(task: str, arm: str) -> bool:
+    return arm not in OURS or not curves(task, arm).empty
+
+
 def task_rows(task: str, rng: np.random.Generator) -> tuple[list[str], dict[str, tuple[np.ndarray, np.ndarray]]]:
-    data = {arm: cube(task, arm) for arm in ARMS}
+    data = {arm: cube(task, arm) for arm in ARMS if has_runs(task, arm)}
     robots = sorted(set.intersection(*(set(r) for _, _, r in data.values())))
     robot_draws = rng.integers(0, len(robots), (DRAWS, len(robots)))
     means, draws = {}, {}
@@ -157,7 +170,7 @@ def task_rows(task: str, rng: np.random.Generator) -> tuple[list[str], dict[str,
         means[arm] = (steps, values.mean(axis=(0, 1)))
         draws[arm] = (steps, resampled(values, robot_draws, rng), values)
     rows = []
-    for arm in ARMS:
+    for arm in data:
         steps, boot, values = draws[arm]
         gain = (values[:, :, -1] - values[:, :, 0]).ravel()  # per (seed, robot), as the race's reading
         gain_lo, gain_hi = robot_interval(gain)
@@ -183,7 +196,8 @@ def task_rows(task: str, rng: np.random.Generator) -> tuple[list[str], dict[str,
             f"| {task} | {LABELS[arm]} | {values.shape[0]} | {means[arm][1][0]:.1f} | {means[arm][1][-1]:.1f} "
             f"| {gain.mean():+.1f} [{gain_lo:+.1f}, {gain_hi:+.1f}] | {reading} | {readings[0]} | {readings[1]} "
             f"| {noisy.mean():+.1f} [{noisy_lo:+.1f}, {noisy_hi:+.1f}] "
-            f"| {held_out.iloc[:, 0].mean():.1f} -> {held_out.iloc[:, -1].mean():.1f}: {held_gain.mean():+.1f} [{held_lo:+.1f}, {held_hi:+.1f}] |"
+            f"| {held_out.iloc[:, 0].mean():.1f} -> {held_out.iloc[:, -1].mean():.1f}: {held_gain.mean():+.1f} [{held_lo:+.1f}, {held_hi:+.1f}] "
+            f"| {training_log(task, arm).approx_kl.mean():.4f} |"
         )
     return rows, means
 
@@ -191,15 +205,14 @@ def task_rows(task: str, rng: np.random.Generator) -> tuple[list[str], dict[str,
 def figure(all_means: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]) -> None:
     fig, axes = plt.subplots(1, len(all_means), figsize=(5.2 * len(all_means), 3.8), squeeze=False)
     for ax, (task, means) in zip(axes[0], all_means.items()):
-        for arm in ARMS:
-            steps, curve = means[arm]
-            ax.plot(steps / 1e3, curve, marker="o", lw=2.2 if arm == "K" else 1.2, label=LABELS[arm])
+        for arm, (steps, curve) in means.items():
+            ax.plot(steps / 1e3, curve, marker="o", lw=2.2 if arm in OURS else 1.2, label=LABELS[arm])
         ax.set_title(f"{task} (training robots)")
         ax.set_xlabel("env steps on the task (thousands)")
         ax.set_ylabel("deterministic return (mean over robots, seeds)")
         ax.grid(alpha=0.3)
     axes[0][0].legend(fontsize=7, loc="lower right")
-    fig.suptitle("Confirmation of the candidate recipe (3 seeds x 602,112 steps; step 0 = many-draw start)", fontsize=9)
+    fig.suptitle("Confirmation of the candidate recipe, and control F on Escape (3 seeds x 602,112 steps; step 0 = many-draw start)", fontsize=9)
     fig.tight_layout()
     save_png(fig, HERE / "confirm.png")
     plt.close(fig)
@@ -210,8 +223,8 @@ def main() -> None:
     lines = [
         "| task | arm | seeds | start | last | last - start [95% CI] | reading | holds scratch's final from: "
         "x fewer steps [95% CI] | holds MetaMorph→'s final from: x fewer steps [95% CI] | stochastic training return, "
-        "last - first 30 updates [95% CI] | held-out robots: step 0 -> last: last - step 0 [95% CI] |",
-        "|---|---|---:|---:|---:|---|---|---|---|---|---|",
+        "last - first 30 updates [95% CI] | held-out robots: step 0 -> last: last - step 0 [95% CI] | approx. KL per update |",
+        "|---|---|---:|---:|---:|---|---|---|---|---|---|---:|",
     ]
     all_means = {}
     for task in TASKS:
