@@ -1573,3 +1573,38 @@ def test_a_loaded_transfer_run_plays_with_the_instruction_it_trained_with(finish
     assert told.env_kwargs["instruction"] == INSTRUCTIONS["Patrol"]
     assert np.allclose(embedding(told), embeddings["Patrol"], atol=1e-5)
     assert np.allclose(embedding(told, task="FT"), embeddings["FT"], atol=1e-5)
+
+
+def test_an_adapter_transfer_run_starts_as_the_student_learns_in_its_adapters_and_resumes_with_them(finished_run, tmp_path):
+    """``transfer.recipe: adapter`` through the pipeline: the run's first model acts as the fixed-gate arm's
+    (zero-initialised adapters), training moves its actions while every factor stays, and the finished run
+    loads again with its trained adapters (break: leave ``adapter_rank`` out of ``finetuned_model``'s
+    kwargs -> the recipe finds no adapters; load with ``strict=True`` -> the source does not fit)."""
+    from sb3_divmorph.algos.finetune import adapter_parameters
+    from sb3_divmorph.nn.layers import FactorizedLinear
+    from divmorph.pipeline.robots import profile_robots
+    from divmorph.pipeline.transfer import transfer_run
+
+    out, profiles = copied_run(finished_run, tmp_path)
+    plain = load_profile("tiny", profiles, overrides={"transfer.eval_every": 0})
+    adapted = load_profile("tiny", profiles, overrides={"transfer.eval_every": 0, "transfer.recipe": "adapter", "transfer.adapter_rank": 2})
+    raw = fixed_states("Escape", profile_robots(plain, "train"))
+
+    def actions(model):
+        return model.predict(model.get_vec_normalize_env().normalize_obs(raw), deterministic=True)[0]
+
+    student = transfer_run(plain, out, "Escape", "divmorph", 3, progress_bar=False).make_model()
+    run = transfer_run(adapted, out, "Escape", "divmorph", 4, progress_bar=False)
+    start = run.make_model()
+    run.prepare(start)
+    assert adapter_parameters(start.policy) and start.policy_kwargs["adapter_rank"] == 2
+    np.testing.assert_allclose(actions(start), actions(student), atol=1e-5)
+    factors = {name: p.detach().clone() for name, p in start.policy.named_parameters() if name.startswith("mlp_extractor.policy_net") and "adapter" not in name}
+    trained = run.run()
+    assert np.abs(actions(trained) - actions(student)).max() > 1e-4, "the adapters learnt nothing"
+    for name, p in trained.policy.named_parameters():
+        if name in factors:
+            assert th.equal(p.detach(), factors[name]), name
+    loaded = transfer_run(adapted, out, "Escape", "divmorph", 4, progress_bar=False).run()  # finished: loaded, not retrained
+    assert any(isinstance(m, FactorizedLinear) and m.adapter_rank == 2 for m in loaded.policy.modules())
+    np.testing.assert_array_equal(actions(loaded), actions(trained))
