@@ -268,12 +268,40 @@ def test_router_inference_cache_follows_parameters_and_inputs():
 
 def test_project_many_equals_separate_projections():
     x, gates = th.randn(4, 5, 16), _gates(4, 8)
-    for builder in (LinearBuilder(), LinearBuilder(Factorization(4, 4))):
+    for builder in (LinearBuilder(), LinearBuilder(Factorization(4, 4)), LinearBuilder(Factorization(4, 4, adapter_rank=2))):
         th.manual_seed(0)
         layers = [builder(16, 16) for _ in range(3)]
+        with th.no_grad():
+            for layer in layers:
+                if getattr(layer, "adapter_rank", 0):
+                    layer.adapter_up.normal_()  # a trained adapter: its term must be in both
         fused = project_many(layers, x, gates)
         for layer, out in zip(layers, fused):
             assert th.allclose(out, layer(x, gates), atol=1e-5)
+
+
+def test_a_zero_adapter_changes_nothing_and_a_trained_one_adds_its_low_rank_term():
+    """``adapter_rank``: with ``B = 0`` the layer (alone or fused by ``project_many``) computes bit for bit
+    what the same factors compute without an adapter, so a transfer starts exactly at the student; once
+    ``B`` is trained the layer adds ``x A^T B^T``, and its dense weight and pruned units include it (break:
+    skip the adapter in ``forward`` -> the trained term is missing)."""
+    th.manual_seed(0)
+    weight, bias = th.randn(16, 16), th.randn(16)
+    plain = [FactorizedLinear(16, 16, 4, 4, weight=weight, bias=bias) for _ in range(2)]
+    adapted = [FactorizedLinear(16, 16, 4, 4, weight=weight, bias=bias, adapter_rank=3) for _ in range(2)]
+    x, gates = th.randn(4, 5, 16), _gates(4, 8)
+    with th.no_grad():
+        assert th.equal(adapted[0](x, gates), plain[0](x, gates))
+        for ours, theirs in zip(project_many(adapted, x, gates), project_many(plain, x, gates)):
+            assert th.equal(ours, theirs)
+        layer = adapted[0]
+        layer.adapter_up.normal_()
+        term = x @ (layer.adapter_up @ layer.adapter_down).T
+        assert th.allclose(layer(x, gates), plain[0](x, gates) + term, atol=1e-5)
+        assert th.allclose(layer.dense_weight(), plain[0].dense_weight() + layer.adapter_up @ layer.adapter_down, atol=1e-5)
+        one = gates[0]
+        U, s, V = layer.selected_units(one)
+        assert th.allclose(x[0] @ ((U * s) @ V.T).T + bias, layer(x[:1], gates[:1])[0], atol=1e-5)
 
 
 # -- gates ---------------------------------------------------------------------------------------

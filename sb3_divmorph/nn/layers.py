@@ -560,7 +560,6 @@ def project_many(layers: list[nn.Module], x: th.Tensor, tailor_gates: th.Tensor 
         and layer.n_tailors > 0
         and layer.path == "merged"
         and layer.bias is not None
-        and not layer.adapter_rank
         for layer in layers
     )
     if not gated:
@@ -575,7 +574,7 @@ def project_many(layers: list[nn.Module], x: th.Tensor, tailor_gates: th.Tensor 
     scales = th.cat([f.tailor_s * layer.local_gates(tailor_gates) for f, layer in zip(factors, layers)], dim=-1)
     hidden = ((rows @ down).view(batch, -1, scales.shape[-1]) * scales[:, None, :]).view(-1, scales.shape[-1])
     tailor_hidden = hidden.split([layer.n_tailors for layer in layers], dim=1)
-    return [
-        th.addmm(out, part, f.tailor_U.T).view(*x.shape[:-1], layer.out_features)
-        for out, part, f, layer in zip(learngene_out, tailor_hidden, factors, layers)
-    ]
+    outs = [th.addmm(out, part, f.tailor_U.T) for out, part, f in zip(learngene_out, tailor_hidden, factors)]
+    # an adapter adds its own term, as in FactorizedLinear.forward (exactly nothing while B = 0)
+    outs = [out + F.linear(F.linear(rows, layer.adapter_down), layer.adapter_up) if layer.adapter_rank else out for out, layer in zip(outs, layers)]
+    return [out.view(*x.shape[:-1], layer.out_features) for out, layer in zip(outs, layers)]
