@@ -29,6 +29,7 @@ writes ``<out>/README.md`` from whatever runs are finished.
 from __future__ import annotations
 
 import argparse
+import fcntl
 import platform
 import time
 from pathlib import Path
@@ -311,8 +312,14 @@ def main(argv: list[str] | None = None) -> None:
         # the starts are measured in the envs the runs train in (``--set goal_range=...`` included)
         evaluate_baselines(args, recorded_profile(args.out / "run.json", overrides(args)))
     if not args.report:
-        if not (args.out / "run.json").exists():
-            branch(args.source, args.out, ("teachers", "distill"), command="python results/finetune-known-task/finetune_known_task.py")
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        # one process per core may start on the same --out at once: the first branches it, the others wait
+        lock_path = args.out.parent / f".{args.out.name}.branch.lock"
+        with open(lock_path, "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            if not (args.out / "run.json").exists():
+                branch(args.source, args.out, ("teachers", "distill"), command="python results/finetune-known-task/finetune_known_task.py")
+            lock_path.unlink(missing_ok=True)  # safe: whoever locks a new file after this finds run.json
         profile = recorded_profile(args.out / "run.json", overrides(args))
         for arm in args.arms:
             for seed in args.seeds:
