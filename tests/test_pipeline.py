@@ -1599,7 +1599,11 @@ def test_an_adapter_transfer_run_starts_as_the_student_learns_in_its_adapters_an
     run.prepare(start)
     assert adapter_parameters(start.policy) and start.policy_kwargs["adapter_rank"] == 2
     np.testing.assert_allclose(actions(start), actions(student), atol=1e-5)
-    factors = {name: p.detach().clone() for name, p in start.policy.named_parameters() if name.startswith("mlp_extractor.policy_net") and "adapter" not in name}
+    factors = {
+        name: p.detach().clone()
+        for name, p in start.policy.named_parameters()
+        if name.startswith("mlp_extractor.policy_net") and "adapter" not in name
+    }
     trained = run.run()
     assert np.abs(actions(trained) - actions(student)).max() > 1e-4, "the adapters learnt nothing"
     for name, p in trained.policy.named_parameters():

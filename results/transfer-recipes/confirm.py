@@ -212,7 +212,9 @@ def figure(all_means: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]) -> No
         ax.set_ylabel("deterministic return (mean over robots, seeds)")
         ax.grid(alpha=0.3)
     axes[0][0].legend(fontsize=7, loc="lower right")
-    fig.suptitle("Confirmation of the candidate recipe, and control F on Escape (3 seeds x 602,112 steps; step 0 = many-draw start)", fontsize=9)
+    fig.suptitle(
+        "Confirmation of the candidate recipe, and control F on Escape (3 seeds x 602,112 steps; step 0 = many-draw start)", fontsize=9
+    )
     fig.tight_layout()
     save_png(fig, HERE / "confirm.png")
     plt.close(fig)

@@ -520,7 +520,9 @@ def _actor_trains_only(
 ) -> dict[nn.Parameter, th.Tensor]:
     """``scales`` with every actor parameter (and a learned std) frozen except ``trained``, at its own scale."""
     frozen = {p: th.zeros(()) for p in scales if p not in trained}
-    frozen.update({p: th.zeros(()) for module in actor_modules(policy) for p in module.parameters() if p.requires_grad and p not in trained})
+    frozen.update(
+        {p: th.zeros(()) for module in actor_modules(policy) for p in module.parameters() if p.requires_grad and p not in trained}
+    )
     if isinstance(getattr(policy, "log_std", None), nn.Parameter):
         frozen[policy.log_std] = th.zeros(())
     return {**frozen, **trained}

@@ -556,10 +556,7 @@ def project_many(layers: list[nn.Module], x: th.Tensor, tailor_gates: th.Tensor 
             return [layer(x, tailor_gates) for layer in layers]
         return list(F.linear(x, weight, bias).split([layer.out_features for layer in layers], dim=-1))
     gated = tailor_gates is not None and all(
-        isinstance(layer, FactorizedLinear)
-        and layer.n_tailors > 0
-        and layer.path == "merged"
-        and layer.bias is not None
+        isinstance(layer, FactorizedLinear) and layer.n_tailors > 0 and layer.path == "merged" and layer.bias is not None
         for layer in layers
     )
     if not gated:
@@ -576,5 +573,8 @@ def project_many(layers: list[nn.Module], x: th.Tensor, tailor_gates: th.Tensor 
     tailor_hidden = hidden.split([layer.n_tailors for layer in layers], dim=1)
     outs = [th.addmm(out, part, f.tailor_U.T) for out, part, f in zip(learngene_out, tailor_hidden, factors)]
     # an adapter adds its own term, as in FactorizedLinear.forward (exactly nothing while B = 0)
-    outs = [out + F.linear(F.linear(rows, layer.adapter_down), layer.adapter_up) if layer.adapter_rank else out for out, layer in zip(outs, layers)]
+    outs = [
+        out + F.linear(F.linear(rows, layer.adapter_down), layer.adapter_up) if layer.adapter_rank else out
+        for out, layer in zip(outs, layers)
+    ]
     return [out.view(*x.shape[:-1], layer.out_features) for out, layer in zip(outs, layers)]
