@@ -33,6 +33,7 @@ VARIANTS = {
     ("recipes-kl-escape", "divmorph"): "K-Escape",
     ("recipes-kl-exploration", "divmorph"): "K-Exploration",
     ("recipes-free-escape", "divmorph-finetuned"): "F-Escape",
+    ("recipes-g-escape", "divmorph"): "G-Escape",
 }
 
 

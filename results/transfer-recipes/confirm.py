@@ -1,12 +1,12 @@
 """The candidate recipe's confirmation on the novel tasks it was not chosen on (``rule.md``'s addendum):
 fixed gates at a KL of 0.01 per update (K) against the race's arms on Escape and Exploration, with both
 readings of the paper's 3x claim and the stochastic training return beside the deterministic evaluation;
-and, on Escape, the control F (every DivMorph weight at MetaMorph⚗'s rate, rotations frozen: the 08:30
-addendum); ``confirm.md`` and ``confirm.png``.
+and, on Escape, the controls F (every DivMorph weight at MetaMorph⚗'s rate, rotations frozen: the 08:30
+addendum) and G (F with the gates fixed: the 09:45 addendum); ``confirm.md`` and ``confirm.png``.
 
     python results/transfer-recipes/confirm.py
 
-Curves: K's and F's from ``curves.csv.gz`` / ``training.csv.gz`` (``collect.py``); the race's from
+Curves: K's, F's and G's from ``curves.csv.gz`` / ``training.csv.gz`` (``collect.py``); the race's from
 ``../transfer-pointnav/runs-600k/`` (same terms, robots, episodes and budget, nominal rates). A fine-tuned
 arm's step 0 is its many-draw start (``../novel-task-gates/returns.csv.gz``: 5 evaluation seeds x 3 episodes
 per robot), scratch's its own step 0. Intervals: 95% bootstrap over robots and seeds (robots paired across
@@ -39,12 +39,13 @@ HERE = Path(__file__).resolve().parent
 RESULTS = HERE.parent
 RACE = RESULTS / "transfer-pointnav" / "runs-600k"
 TASKS = {"Escape": "FT", "Exploration": "Obstacle"}  # novel task -> the training task closest by instruction
-ARMS = ("K", "F", "divmorph", "closest", "distilled", "scratch")
+ARMS = ("K", "F", "G", "divmorph", "closest", "distilled", "scratch")
 #: this study's arms (``curves.csv.gz`` variants ``<arm>-<task>``); each starts as the fixed-gate arm
-OURS = ("K", "F")
+OURS = ("K", "F", "G")
 LABELS = {
     "K": "fixed gates, KL 0.01 per update (candidate)",
     "F": "every DivMorph weight, rotations frozen (F, control)",
+    "G": "fixed gates, every active weight 1x, rotations frozen (G, control)",
     "divmorph": "fixed gates, nominal rate",
     "closest": "MetaMorph→ (direct fine-tuning)",
     "distilled": "MetaMorph⚗ (dense distilled student)",
@@ -192,12 +193,13 @@ def task_rows(task: str, rng: np.random.Generator) -> tuple[list[str], dict[str,
         held_out = curves(task, arm, "novel").pivot_table(index=["seed", "robot"], columns="timesteps", values="return")
         held_gain = (held_out.iloc[:, -1] - held_out.iloc[:, 0]).to_numpy()
         held_lo, held_hi = robot_interval(held_gain)
+        kl = training_log(task, arm).approx_kl
         rows.append(
             f"| {task} | {LABELS[arm]} | {values.shape[0]} | {means[arm][1][0]:.1f} | {means[arm][1][-1]:.1f} "
             f"| {gain.mean():+.1f} [{gain_lo:+.1f}, {gain_hi:+.1f}] | {reading} | {readings[0]} | {readings[1]} "
             f"| {noisy.mean():+.1f} [{noisy_lo:+.1f}, {noisy_hi:+.1f}] "
             f"| {held_out.iloc[:, 0].mean():.1f} -> {held_out.iloc[:, -1].mean():.1f}: {held_gain.mean():+.1f} [{held_lo:+.1f}, {held_hi:+.1f}] "
-            f"| {training_log(task, arm).approx_kl.mean():.4f} |"
+            f"| {kl.mean():.4f} / {kl.median():.4f} / {kl.max():.3f} |"
         )
     return rows, means
 
@@ -225,7 +227,7 @@ def main() -> None:
     lines = [
         "| task | arm | seeds | start | last | last - start [95% CI] | reading | holds scratch's final from: "
         "x fewer steps [95% CI] | holds MetaMorph→'s final from: x fewer steps [95% CI] | stochastic training return, "
-        "last - first 30 updates [95% CI] | held-out robots: step 0 -> last: last - step 0 [95% CI] | approx. KL per update |",
+        "last - first 30 updates [95% CI] | held-out robots: step 0 -> last: last - step 0 [95% CI] | approx. KL per update: mean / median / largest |",
         "|---|---|---:|---:|---:|---|---|---|---|---|---|---:|",
     ]
     all_means = {}
