@@ -51,6 +51,8 @@ LABELS = {
     "distilled": "MetaMorph⚗ (dense distilled student)",
     "scratch": "MetaMorph from scratch",
 }
+#: one colour per arm in every panel (a task without one of this study's arms keeps the others' colours)
+COLORS = dict(zip(ARMS, plt.get_cmap("tab10").colors))
 DRAWS, WINDOW = 2000, 30
 #: Student's t 97.5% quantiles by degrees of freedom (the seeds' interval; scipy is not a dependency)
 T975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571}
@@ -208,14 +210,15 @@ def figure(all_means: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]) -> No
     fig, axes = plt.subplots(1, len(all_means), figsize=(5.2 * len(all_means), 3.8), squeeze=False)
     for ax, (task, means) in zip(axes[0], all_means.items()):
         for arm, (steps, curve) in means.items():
-            ax.plot(steps / 1e3, curve, marker="o", lw=2.2 if arm in OURS else 1.2, label=LABELS[arm])
+            ax.plot(steps / 1e3, curve, marker="o", lw=2.2 if arm in OURS else 1.2, color=COLORS[arm], label=LABELS[arm])
         ax.set_title(f"{task} (training robots)")
         ax.set_xlabel("env steps on the task (thousands)")
         ax.set_ylabel("deterministic return (mean over robots, seeds)")
         ax.grid(alpha=0.3)
-    axes[0][0].legend(fontsize=7, loc="lower right")
+    for ax in axes[0]:
+        ax.legend(fontsize=6, loc="lower right")
     fig.suptitle(
-        "Confirmation of the candidate recipe, and control F on Escape (3 seeds x 602,112 steps; step 0 = many-draw start)", fontsize=9
+        "Confirmation of the candidate recipe, and the controls on Escape (3 seeds x 602,112 steps; step 0 = many-draw start)", fontsize=9
     )
     fig.tight_layout()
     save_png(fig, HERE / "confirm.png")
