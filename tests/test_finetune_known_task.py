@@ -46,3 +46,42 @@ def test_the_report_of_a_resumed_run_reads_the_attempt_that_finished_it(tmp_path
     assert "| DivMorph student | 1 | 15 [" in printed and "| +20 [" in printed  # the curve: 15 -> 35 over the two robots
     assert "| DivMorph student | 5 / 7 | 0.25 / 0.75 |" in printed  # the resumed attempt's training log, halves
     assert (tmp_path / "README.md").is_file()
+
+
+class _RecordingModel:
+    """Stands for a loaded student: remembers the instruction each evaluation is told."""
+
+    def __init__(self):
+        self.told = []
+
+    def evaluate(self, robots, task, episodes, seed, max_episode_steps, instruction=None, **env_kwargs):
+        self.told.append(instruction)
+        return [{"robot": "a", "return": 1.0}, {"robot": "b", "return": 3.0}]
+
+
+@pytest.mark.parametrize(
+    "source, configured, expected",
+    [
+        ({"instruction": "Walk forward as fast as possible on flat ground."}, {}, "Walk forward as fast as possible on flat ground."),
+        ({}, {"transfer.instructions.Escape": "Walk up a slope."}, "Walk up a slope."),
+        ({}, {}, None),
+    ],
+    ids=["closest-task-gates", "configured-instruction", "own-instruction"],
+)
+def test_the_many_draw_start_is_measured_with_the_instruction_the_runs_are_told(tmp_path, monkeypatch, source, configured, expected):
+    # Broken once by reading the instruction from source.json only: the configured one is then not told (None).
+    import divmorph.pipeline.robots
+    import divmorph.pretrained
+    from divmorph.pipeline.config import load_profile
+
+    study = load_study()
+    model = _RecordingModel()
+    monkeypatch.setattr(divmorph.pretrained, "load_pretrained", lambda path: model)
+    monkeypatch.setattr(divmorph.pipeline.robots, "transfer_eval_robots", lambda profile, split: ["a", "b"])
+    run = tmp_path / "transfer" / "Escape" / "divmorph" / "seed-0"
+    run.mkdir(parents=True)
+    (run / "source.json").write_text(json.dumps({"arm": "divmorph", "seed": 0, "source": "student", **source}))
+    args = study.argparse.Namespace(out=tmp_path, arms=["divmorph"], task="Escape", seeds=[0], baseline_seeds=2)
+    found = study.evaluate_baselines(args, load_profile("demo", overrides=configured))
+    assert model.told == [expected, expected]
+    assert found == {"divmorph": {"0": {"a": 1.0, "b": 3.0}, "1": {"a": 1.0, "b": 3.0}}}

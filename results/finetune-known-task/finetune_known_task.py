@@ -100,8 +100,10 @@ def evaluate_baselines(args: argparse.Namespace, profile) -> dict[str, dict[str,
     for arm in args.arms:
         record = json.loads((transfer_folder(args.out, args.task, arm, args.seeds[0]) / "source.json").read_text())
         model = load_pretrained(args.out / record["source"])
-        # told what the runs are told: the closest task's instruction under ``transfer.task_gates: closest``
-        told = {"instruction": record["instruction"]} if "instruction" in record else {}
+        # told what the runs are told: the closest task's instruction under ``transfer.task_gates: closest``,
+        # else the profile's ``transfer.instructions[task]`` (``--set``), else the task's own
+        instruction = record.get("instruction", profile.transfer.instructions.get(args.task))
+        told = {"instruction": instruction} if instruction is not None else {}
         for seed in range(args.baseline_seeds):
             if str(seed) in found.get(arm, {}):
                 continue
