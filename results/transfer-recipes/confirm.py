@@ -3,7 +3,7 @@ fixed gates at a KL of 0.01 per update (K) against the race's arms on Escape and
 readings of the paper's 3x claim and the stochastic training return beside the deterministic evaluation;
 and, on Escape, the controls F (every DivMorph weight at MetaMorph⚗'s rate, rotations frozen: the 08:30
 addendum), G (F with the gates fixed: the 09:45 addendum) and L (the fixed-gate arm from a low start,
-told Incline's instruction: the 11:15 addendum); ``confirm.md`` and ``confirm.png``.
+told Incline's instruction: the 11:00 addendum); ``confirm.md`` and ``confirm.png``.
 
     python results/transfer-recipes/confirm.py
 
