@@ -7,7 +7,7 @@ reads: ``curves.csv.gz`` (each run's mean deterministic return per robot at each
 A run is named by its arm and the one setting its folder varies (``rule.md``): ``F`` (recipes-free:
 divmorph-finetuned, rotations frozen), ``K`` / ``Km`` (recipes-kl: the fixed-gate arm / MetaMorph⚗ at a
 KL of 0.01 per update), ``S`` (recipes-sv: FINE's singular values), ``KIND`` (recipes-kind: the task tailors
-restarted), ``A`` (recipes-adapter), ``<F|G|L>-Escape`` (the controls on Escape; L: Incline's gates).
+restarted), ``A`` (recipes-adapter), ``<F|G|L|GL>-Escape`` (the controls on Escape; L, GL: Incline's gates).
 """
 
 from __future__ import annotations
@@ -35,6 +35,7 @@ VARIANTS = {
     ("recipes-free-escape", "divmorph-finetuned"): "F-Escape",
     ("recipes-g-escape", "divmorph"): "G-Escape",
     ("recipes-low-escape", "divmorph"): "L-Escape",
+    ("recipes-g-low-escape", "divmorph"): "GL-Escape",
 }
 
 

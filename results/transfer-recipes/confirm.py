@@ -3,7 +3,7 @@ fixed gates at a KL of 0.01 per update (K) against the race's arms on Escape and
 readings of the paper's 3x claim and the stochastic training return beside the deterministic evaluation;
 and, on Escape, the controls F (every DivMorph weight at MetaMorph⚗'s rate, rotations frozen: the 08:30
 addendum), G (F with the gates fixed: the 09:45 addendum) and L (the fixed-gate arm from a low start,
-told Incline's instruction: the 11:00 addendum); ``confirm.md`` and ``confirm.png``.
+told Incline's instruction: the 11:00 addendum; G-L, G from there: the 12:00 one); ``confirm.md`` and ``confirm.png``.
 
     python results/transfer-recipes/confirm.py
 
@@ -40,15 +40,16 @@ HERE = Path(__file__).resolve().parent
 RESULTS = HERE.parent
 RACE = RESULTS / "transfer-pointnav" / "runs-600k"
 TASKS = {"Escape": "FT", "Exploration": "Obstacle"}  # novel task -> the training task closest by instruction
-ARMS = ("K", "F", "G", "divmorph", "closest", "distilled", "scratch", "L")
-#: this study's arms (``curves.csv.gz`` variants ``<arm>-<task>``); each starts as the fixed-gate arm, but L,
-#: which is told Incline's instruction (its router selects Incline's tailors: a low start)
-OURS = ("K", "F", "G", "L")
+ARMS = ("K", "F", "G", "divmorph", "closest", "distilled", "scratch", "L", "GL")
+#: this study's arms (``curves.csv.gz`` variants ``<arm>-<task>``); each starts as the fixed-gate arm, but L and
+#: GL, which are told Incline's instruction (their router selects Incline's tailors: a low start)
+OURS = ("K", "F", "G", "L", "GL")
 LABELS = {
     "K": "fixed gates, KL 0.01 per update (candidate)",
     "F": "every DivMorph weight, rotations frozen (F, control)",
     "G": "fixed gates, every active weight 1x, rotations frozen (G, control)",
     "L": "fixed gates, Incline's tailors: a low start (L, control)",
+    "GL": "L with every active weight 1x, rotations frozen (G-L, control)",
     "divmorph": "fixed gates, nominal rate",
     "closest": "MetaMorph→ (direct fine-tuning)",
     "distilled": "MetaMorph⚗ (dense distilled student)",
@@ -83,7 +84,7 @@ def start(task: str, arm: str) -> pd.Series | None:
     """The many-draw start per robot of a fine-tuned arm (``None``: scratch, its own step 0)."""
     if arm == "scratch":
         return None
-    told_by = {arm: ("divmorph", TASKS[task]) for arm in (*OURS, "divmorph")} | {"L": ("divmorph", "Incline")}
+    told_by = {arm: ("divmorph", TASKS[task]) for arm in (*OURS, "divmorph")} | {low: ("divmorph", "Incline") for low in ("L", "GL")}
     model, told = told_by.get(arm, (f"teacher-{TASKS[task]}" if arm == "closest" else arm, task))
     rows = pd.read_csv(RESULTS / "novel-task-gates" / "returns.csv.gz")
     rows = rows[(rows.task == task) & (rows.model == model) & (rows.instruction_of == told)]
