@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import json
 import os
 import stat
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -13,38 +15,53 @@ SCRIPT = Path(__file__).resolve().parents[1] / "results" / "transfer-pointnav" /
 #: a study's script of results/: the evidence's suite (`make test-results`), not the library's
 pytestmark = pytest.mark.shipped_results
 STUDENTS = {"no-kdiv-transformer", "no-kdiv-decoder", "no-orthogonality"}
+INCLINE = "transfer.instructions.Escape=Walk forward as fast as possible up a ten degree incline."
+G_TERMS = ["transfer.eval_episodes=5", "transfer.learngene_lr_scale=1", "transfer.rotation_lr_scale=0"]
 
-# Logs each call and makes the folders the real calls make; `divmorph distill` takes a moment, then marks its student distilled as the real one does when it
-# finishes -- or fails, for the student named in FAIL_DISTILL.
-STAND_IN = """#!/usr/bin/env bash
-echo "$*" >> "$WORK/calls.log"
-if [ "$1 $2 $3" = "-m divmorph.cli branch" ]; then
-    mkdir -p "${@: -1}" && touch "${@: -1}/run.json"
-fi
-if [ "$1" = results/novel-task-gates/novel_task_gates.py ]; then
-    mkdir -p "$5"  # its --out
-fi
-if [ "$1 $2 $3" = "-m divmorph.cli distill" ]; then
-    student=${@: -1}
-    sleep 0.5
-    [ "$student" = "${FAIL_DISTILL:-}" ] && exit 1
-    mkdir -p "$WORK/ablate-$student/students/$student" && touch "$WORK/ablate-$student/students/$student/done.json"
-    echo "distilled $student" >> "$WORK/calls.log"
-fi
+# Logs each call (its arguments as JSON) and makes the files the real calls make: `divmorph branch` a run.json,
+# `divmorph distill` (after a moment) the student's done.json -- or fails, for the student named in FAIL_DISTILL --,
+# and a race run its seed's done.json.
+STAND_IN = f"""#!{sys.executable}
+import json, os, sys, time
+from pathlib import Path
+
+argv = sys.argv[1:]
+work = Path(os.environ["WORK"])
+with open(work / "calls.log", "a") as log:
+    log.write(json.dumps(argv) + "\\n")
+if argv[:3] == ["-m", "divmorph.cli", "branch"]:
+    Path(argv[-1]).mkdir(parents=True, exist_ok=True)
+    (Path(argv[-1]) / "run.json").touch()
+elif argv[:3] == ["-m", "divmorph.cli", "distill"]:
+    student = argv[-1]
+    time.sleep(0.5)
+    if student == os.environ.get("FAIL_DISTILL"):
+        sys.exit(1)
+    done = work / f"ablate-{{student}}" / "students" / student
+    done.mkdir(parents=True, exist_ok=True)
+    (done / "done.json").touch()
+    with open(work / "calls.log", "a") as log:
+        log.write(json.dumps(["distilled", student]) + "\\n")
+elif argv[0] == "results/finetune-known-task/finetune_known_task.py" and "--baseline-seeds" not in argv:
+    option = {{argv[i]: argv[i + 1] for i in range(1, len(argv) - 1) if argv[i].startswith("--")}}
+    seed = Path(option["--out"]) / "transfer" / option["--task"] / option["--arms"] / f"seed-{{option['--seeds']}}"
+    seed.mkdir(parents=True, exist_ok=True)
+    (seed / "done.json").touch()
 """
 
 
-def run_workers(tmp_path: Path, **env: str) -> tuple[list[tuple[int, str, int]], list[str]]:
+def run_workers(tmp_path: Path, **env: str) -> tuple[list[tuple[int, str, int]], list[list[str]]]:
     """Two workers to the end; returns the jobs they ran (number, job, exit status) and the stand-in's calls."""
     python = tmp_path / "python"
     python.write_text(STAND_IN)
     python.chmod(python.stat().st_mode | stat.S_IEXEC)
+    (tmp_path / "work").mkdir()
     env = {**os.environ, "WORK": str(tmp_path / "work"), "PY": str(python), "CODE": str(tmp_path), "POLL": "0.1", **env}
     workers = [
         subprocess.Popen(["bash", str(SCRIPT), "claims"], cwd=tmp_path, env=env, stdout=subprocess.PIPE, text=True) for _ in range(2)
     ]
     try:
-        logs = [worker.communicate(timeout=60)[0] for worker in workers]
+        logs = [worker.communicate(timeout=120)[0] for worker in workers]
     finally:
         for worker in workers:
             worker.kill()
@@ -56,54 +73,75 @@ def run_workers(tmp_path: Path, **env: str) -> tuple[list[tuple[int, str, int]],
             head, job = line.split(" ends job ")[1].split(": ", 1)
             number, status = head.split(" (exit ")
             ended.append((int(number), job, int(status.rstrip(")"))))
-    return sorted(ended), (tmp_path / "work" / "calls.log").read_text().splitlines()
+    calls = [json.loads(line) for line in (tmp_path / "work" / "calls.log").read_text().splitlines()]
+    return sorted(ended), calls
 
 
-def races(calls: list[str]) -> list[tuple[int, dict[str, str]]]:
-    """The race runs among the calls: (position, {option: value})."""
+def study_calls(calls: list[list[str]]) -> list[tuple[int, dict[str, str], list[str]]]:
+    """The calls of finetune_known_task.py: (position, {option: value}, [every --set value])."""
     found = []
-    for i, call in enumerate(calls):
-        if call.startswith("results/finetune-known-task/finetune_known_task.py"):
-            words = call.split()
-            found.append((i, {word: words[j + 1] for j, word in enumerate(words) if word.startswith("--")}))
+    for i, argv in enumerate(calls):
+        if argv[0] == "results/finetune-known-task/finetune_known_task.py":
+            options = {argv[j]: argv[j + 1] for j in range(1, len(argv) - 1) if argv[j].startswith("--")}
+            settings = [argv[j + 1] for j in range(1, len(argv) - 1) if argv[j] == "--set"]
+            found.append((i, options, settings))
     return found
 
 
-def test_two_workers_run_every_job_once_and_race_only_distilled_students_on_the_race_terms(tmp_path):
-    """Two workers started together, from a relative claims folder, share the 33 jobs (3 distillations, 3
-    measurements of the starts, 27 race runs) without running any twice; each (student, task, seed) races once,
-    after its student's distillation, in the student's branch, on the race's terms (602,112 steps, the closest
-    task's gates, 5 episodes per point); the list puts PointNav's nine runs before any other task's."""
+def races(calls):
+    return [(i, options, settings) for i, options, settings in study_calls(calls) if "--baseline-seeds" not in options]
+
+
+def test_two_workers_run_every_job_once_and_race_only_distilled_students_on_g_terms(tmp_path):
+    """Two workers started together, from a relative claims folder, share the 31 jobs (3 distillations, 21 race runs,
+    7 measurements of the starts) without running any twice; each (student, task, seed) races once, after its
+    student's distillation, in the student's folder for the task, on G's terms (602,112 steps, learngenes at 1x,
+    rotations frozen, 5 episodes per point); Escape from the low start (Incline's instruction) before PointNav (the
+    bounded goal, Patrol's gates), where the DivMorph student itself runs as the comparator; each start is measured
+    after a run of its folder, on the same terms."""
     ended, calls = run_workers(tmp_path)
-    assert [number for number, _, _ in ended] == list(range(33))  # each job once
+    assert [number for number, _, _ in ended] == list(range(31))  # each job once
     assert all(status == 0 for _, _, status in ended)
     race_tasks = [job.split()[2] for _, job, _ in ended if job.startswith("race ")]
-    assert race_tasks[:9] == ["PointNav"] * 9 and "PointNav" not in race_tasks[9:]
+    assert race_tasks == ["Escape"] * 9 + ["PointNav"] * 12
 
-    distilled = {call.split()[-1]: i for i, call in enumerate(calls) if call.startswith("distilled ")}
+    distilled = {argv[1]: i for i, argv in enumerate(calls) if argv[0] == "distilled"}
     assert set(distilled) == STUDENTS
     runs = races(calls)
-    assert len({(options["--arms"], options["--task"], options["--seeds"]) for _, options in runs}) == len(runs) == 27
+    assert len({(options["--arms"], options["--task"], options["--seeds"]) for _, options, _ in runs}) == len(runs) == 21
+    assert {options["--arms"] for _, options, _ in runs if options["--task"] == "PointNav"} == STUDENTS | {"divmorph"}
     work = tmp_path / "work"
-    for i, options in runs:
+    first_run = {}
+    for i, options, settings in runs:
         student, task = options["--arms"], options["--task"]
-        assert distilled[student] < i
-        assert options["--source"] == f"{work}/ablate-{student}" and options["--out"] == f"{work}/race600/{task}-{student}"
+        if student == "divmorph":
+            assert options["--source"] == f"{tmp_path}/results/cpu100"
+        else:
+            assert distilled[student] < i and options["--source"] == f"{work}/ablate-{student}"
+        assert options["--out"] == f"{work}/race/{task}-{student}"
         assert options["--steps"] == "602112" and options["--eval-every"] == "200704"
-    assert all(
-        "--set transfer.eval_episodes=5 --set transfer.task_gates=closest" in call
-        for call in calls
-        if call.startswith("results/finetune-known-task/finetune_known_task.py")
-    )
+        assert all(term in settings for term in G_TERMS)
+        if task == "Escape":
+            assert "transfer.task_gates=instruction" in settings and INCLINE in settings and "goal_range=10" not in settings
+        else:
+            assert "transfer.task_gates=closest" in settings and "goal_range=10" in settings and INCLINE not in settings
+        if options["--seeds"] == "0":
+            first_run[options["--out"]] = (i, settings)
+    starts = [(i, options, settings) for i, options, settings in study_calls(calls) if "--baseline-seeds" in options]
+    assert {options["--out"] for _, options, _ in starts} == set(first_run) and len(starts) == 7
+    for i, options, settings in starts:
+        assert options["--baseline-seeds"] == "5" and "--report" in calls[i]
+        assert first_run[options["--out"]][0] < i and first_run[options["--out"]][1] == settings
 
 
 def test_a_failed_distillation_skips_its_students_jobs_and_the_others_finish(tmp_path):
     """The decoder ablation's distillation fails: the workers still finish, the log gives its exit status, none of
-    that student's jobs calls anything, and the other two students' 18 race runs all run."""
+    that student's jobs calls anything, and the other students' 15 race runs (DivMorph's three included) all run."""
     ended, calls = run_workers(tmp_path, FAIL_DISTILL="no-kdiv-decoder")
     statuses = {job: status for _, job, status in ended}
     assert statuses["distill no-kdiv-decoder"] == 1 and statuses["race no-kdiv-decoder Escape 2"] == 1
+    assert statuses["starts no-kdiv-decoder PointNav"] == 1
     assert statuses["race no-kdiv-transformer Escape 2"] == 0
-    assert {options["--arms"] for _, options in races(calls)} == STUDENTS - {"no-kdiv-decoder"}
-    assert len(races(calls)) == 18
-    assert not any("no-kdiv-decoder" in call for call in calls if not call.startswith("-m divmorph.cli"))
+    assert {options["--arms"] for _, options, _ in races(calls)} == (STUDENTS - {"no-kdiv-decoder"}) | {"divmorph"}
+    assert len(races(calls)) == 15
+    assert not any("no-kdiv-decoder" in " ".join(argv) for argv in calls if argv[:2] != ["-m", "divmorph.cli"])

@@ -1,32 +1,32 @@
 #!/usr/bin/env bash
-# The paper's ablations in the 600k transfer race (issue 42; results/transfer-pointnav/race-600k-rule.md,
-# the 16:49 addendum and the last one).
+# The paper's ablations in the 600k transfer race, without the learning-rate confound (issue 67 item 4; the reading:
+# results/transfer-recipes/rule.md, the 14:10 addendum).
 #
 # Each ablated student -- no diversion in the Transformer, none in the decoder, free (not Cayley-orthogonal)
 # square factors -- is distilled like the cpu100 DivMorph student (`divmorph distill --students <name>` in a
-# branch of results/cpu100: the same teachers, profile, seed and 1M DAgger steps), its many-draw starts are
-# measured (results/novel-task-gates/novel_task_gates.py), and it races on the DivMorph arm's terms (results/finetune-known-task/finetune_known_task.py:
-# the closest training task's gates, the race's rates, 602,112 steps, 20 training robots x 5 episodes at every
-# 200,704 steps), PointNav's nine runs first, then Escape's, then Exploration's.
+# branch of results/cpu100: the same teachers, profile, seed and 1M DAgger steps) and races under G's terms (the
+# fixed-gate rule at the dense student's rate: learngenes at 1x, rotations frozen, the undiverted part at 1x;
+# results/finetune-known-task/finetune_known_task.py, 602,112 steps, 20 training robots x 5 episodes at every
+# 200,704 steps): Escape from the low start (told Incline's instruction) first, then bounded-goal PointNav
+# (goal_range 10, Patrol's gates), where the DivMorph student itself runs the same terms as their comparator.
+# Each race folder's start is then measured: 5 evaluation seeds x 3 episodes, told what its runs are told.
 #
 # The jobs are a list in order of priority, worked by any number of workers. A worker takes the first job that
-# nobody has claimed and that can start -- a student's starts and races wait until it is distilled, and meanwhile
-# the worker takes later jobs rather than leave its core idle -- and claims it by creating its folder under CLAIMS
-# (mkdir is atomic), so two workers never run the same job. Every job resumes from its last checkpoint or skips what
-# is finished, so after an interruption start the workers again with a fresh CLAIMS folder. A student whose
-# distillation fails is marked (ablate-<name>/FAILED, cleared when it distils again) and its jobs are skipped with a
-# message. One worker per core:
+# nobody has claimed and that can start -- a student's races wait until it is distilled, a start until its race
+# folder's first seed has finished -- and meanwhile takes later jobs rather than leave its core idle; it claims a
+# job by creating its folder under CLAIMS (mkdir is atomic), so two workers never run the same job. Every job
+# resumes from its last checkpoint or skips what is finished, so after an interruption start the workers again with
+# a fresh CLAIMS folder. A student whose distillation fails is marked (ablate-<name>/FAILED, cleared when it distils
+# again) and its jobs are skipped with a message. One worker per core:
 #
-#     git worktree add /work/wt-abl e61a1b2    # the commit the race's students are distilled and raced with
-#     for i in 1 2; do CODE=/work/wt-abl WORK=/work nohup bash results/transfer-pointnav/ablation_race.sh /work/claims-1 >> ablation.log 2>&1 & done
+#     git worktree add /work/wt-abl 41912bd    # the commit the race's students are distilled and raced with
+#     for i in 1 2; do CODE=/work/wt-abl WORK=/work/abl-race nohup bash results/transfer-pointnav/ablation_race.sh /work/claims-1 >> ablation.log 2>&1 & done
 #
-# Results (per task, when its runs have finished; models are not kept):
+# Results: python results/transfer-recipes/collect.py --from $WORK/race/* (then read.py, confirm.py).
 #
-#     python tools/pack_transfer_runs.py results/transfer-pointnav/runs-600k $WORK/race600/PointNav-no-orthogonality=PointNav-no-orthogonality
-#
-# Environment: CODE (the checkout whose code runs; default: this one), WORK (where the branches, starts and races
+# Environment: CODE (the checkout whose code runs; default: this one), WORK (where the branches, races and starts
 # go; default: runs/ablation-race), PY (default: this checkout's .venv/bin/python), POLL (seconds between looks for
-# a student still distilling; default 60).
+# a job that cannot start yet; default 60).
 set -u
 CLAIMS=${1:?usage: ablation_race.sh CLAIMS_FOLDER}
 REPO=$(cd "$(dirname "$0")/../.." && pwd)
@@ -34,23 +34,27 @@ CODE=$(cd "${CODE:-$REPO}" && pwd) || exit 1
 WORK=${WORK:-$REPO/runs/ablation-race}
 PY=${PY:-$REPO/.venv/bin/python}
 POLL=${POLL:-60}
-mkdir -p "$CLAIMS" "$WORK/race600" || exit 1
+mkdir -p "$CLAIMS" "$WORK/race" || exit 1
 # absolute, since the jobs run from $CODE
 CLAIMS=$(cd "$CLAIMS" && pwd)
 WORK=$(cd "$WORK" && pwd)
 export PYTHONPATH=$CODE MUJOCO_GL=${MUJOCO_GL:-egl} HF_HUB_OFFLINE=1 TRANSFORMERS_OFFLINE=1
 cd "$CODE" || exit 1
 
-STUDENTS=(no-orthogonality no-kdiv-transformer no-kdiv-decoder)
-# the distillations first: the longest jobs, on which everything else waits
+STUDENTS=(no-kdiv-transformer no-kdiv-decoder no-orthogonality)
+# the distillations first: the longest jobs, on which the races wait
 JOBS=()
 for student in "${STUDENTS[@]}"; do JOBS+=("distill $student"); done
-for student in "${STUDENTS[@]}"; do JOBS+=("starts $student"); done
-for task in PointNav Escape Exploration; do
-    for student in "${STUDENTS[@]}"; do
-        for seed in 0 1 2; do JOBS+=("race $student $task $seed"); done
-    done
+for student in "${STUDENTS[@]}"; do
+    for seed in 0 1 2; do JOBS+=("race $student Escape $seed"); done
 done
+for student in divmorph "${STUDENTS[@]}"; do
+    for seed in 0 1 2; do JOBS+=("race $student PointNav $seed"); done
+done
+for task in Escape PointNav; do
+    for student in "${STUDENTS[@]}"; do JOBS+=("starts $student $task"); done
+done
+JOBS+=("starts divmorph PointNav")
 
 # distill STUDENT: DAgger into the ablated student, in its own branch of results/cpu100
 distill() {
@@ -63,41 +67,54 @@ distill() {
     }
 }
 
+# the run a student's transfers start from: the DivMorph student's own, or the ablated student's branch
+source_run() {
+    if [ "$1" = divmorph ]; then echo "$CODE/results/cpu100"; else echo "$WORK/ablate-$1"; fi
+}
+
 distilled() {
-    [ -f "$WORK/ablate-$1/students/$1/done.json" ]
+    [ "$1" = divmorph ] || [ -f "$WORK/ablate-$1/students/$1/done.json" ]
 }
 
 failed() {
-    [ -f "$WORK/ablate-$1/FAILED" ] && ! distilled "$1"
+    [ "$1" != divmorph ] && [ -f "$WORK/ablate-$1/FAILED" ] && ! distilled "$1"
 }
 
-# ready JOB...: the job can start now (a distillation always can; the others once their student is distilled,
-# or has failed, which they report)
+# ready JOB...: the job can start now (a distillation always can; a race once its student is distilled, or has
+# failed, which it reports; a start once its race folder's first seed has finished: the report needs a finished run)
 ready() {
-    [ "$1" = distill ] || distilled "$2" || failed "$2"
+    case $1 in
+        distill) return 0 ;;
+        race) distilled "$2" || failed "$2" ;;
+        starts) failed "$2" || [ -f "$WORK/race/$3-$2/transfer/$3/$2/seed-0/done.json" ] ;;
+    esac
 }
 
-# starts STUDENT: its mean return over many draws, told each novel task's instruction and the closest task's
-starts() {
-    failed "$1" && { echo "not run: $1 failed to distil"; return 1; }
-    [ -f "$WORK/starts-$1/finished" ] && return 0
-    "$PY" results/novel-task-gates/novel_task_gates.py --run "$WORK/ablate-$1" --out "$WORK/starts-$1" --students "$1" --eval-seeds 0 1 2 3 4 &&
-        touch "$WORK/starts-$1/finished"
+# terms TASK: the race's settings on the task (one array element per argument: the instruction has spaces)
+terms() {
+    TERMS=(--task "$1" --steps 602112 --eval-every 200704 --set transfer.eval_episodes=5
+        --set transfer.learngene_lr_scale=1 --set transfer.rotation_lr_scale=0)
+    case $1 in
+        Escape) TERMS+=(--set transfer.task_gates=instruction
+            --set "transfer.instructions.Escape=Walk forward as fast as possible up a ten degree incline.") ;;
+        PointNav) TERMS+=(--set goal_range=10 --set transfer.task_gates=closest) ;;
+    esac
 }
 
-# race STUDENT TASK SEED: one run of the race, in a branch shared by the student's three seeds on the task
+# race STUDENT TASK SEED: one run, in a branch shared by the student's three seeds on the task
 race() {
     failed "$1" && { echo "not run: $1 failed to distil"; return 1; }
-    local out=$WORK/race600/$2-$1
-    # the seeds' workers would otherwise race to create the same branch
-    (
-        flock 9 || exit 1
-        [ -f "$out/run.json" ] || "$PY" -c "import sys; from pathlib import Path; from divmorph.pipeline.branch import branch; \
-branch(Path(sys.argv[1]), Path(sys.argv[2]), ('teachers', 'distill'), command='python results/finetune-known-task/finetune_known_task.py')" \
-            "$WORK/ablate-$1" "$out"
-    ) 9> "$WORK/race600/.branch-lock" || return
-    "$PY" results/finetune-known-task/finetune_known_task.py --source "$WORK/ablate-$1" --task "$2" --steps 602112 --eval-every 200704 \
-        --set transfer.eval_episodes=5 --set transfer.task_gates=closest --arms "$1" --seeds "$3" --out "$out"
+    terms "$2"
+    "$PY" results/finetune-known-task/finetune_known_task.py --source "$(source_run "$1")" "${TERMS[@]}" \
+        --arms "$1" --seeds "$3" --out "$WORK/race/$2-$1"
+}
+
+# starts STUDENT TASK: the student's many-draw start in its race folder (5 evaluation seeds x 3 episodes)
+starts() {
+    failed "$1" && { echo "not run: $1 failed to distil"; return 1; }
+    terms "$2"
+    "$PY" results/finetune-known-task/finetune_known_task.py --source "$(source_run "$1")" "${TERMS[@]}" \
+        --arms "$1" --seeds 0 --out "$WORK/race/$2-$1" --baseline-seeds 5 --report
 }
 
 # Scan the list from the top after every job, so a job that becomes ready goes before lower-priority ones.
