@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The paper's ablations in the 600k transfer race, without the learning-rate confound (issue 67 item 4; the reading:
-# results/transfer-recipes/rule.md, the 14:10 addendum).
+# results/transfer-recipes/rule.md, the 13:50 addendum).
 #
 # Each ablated student -- no diversion in the Transformer, none in the decoder, free (not Cayley-orthogonal)
 # square factors -- is distilled like the cpu100 DivMorph student (`divmorph distill --students <name>` in a
