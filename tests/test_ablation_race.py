@@ -1,4 +1,4 @@
-"""The ablation race's job list (``results/transfer-pointnav/ablation_race.sh``), worked by two workers at once with a stand-in Python."""
+"""The ablation race's job list (``results/transfer-ablations/ablation_race.sh``), worked by two workers at once with a stand-in Python."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[1] / "results" / "transfer-pointnav" / "ablation_race.sh"
+SCRIPT = Path(__file__).resolve().parents[1] / "results" / "transfer-ablations" / "ablation_race.sh"
 #: a study's script of results/: the evidence's suite (`make test-results`), not the library's
 pytestmark = pytest.mark.shipped_results
 STUDENTS = {"no-kdiv-transformer", "no-kdiv-decoder", "no-orthogonality"}

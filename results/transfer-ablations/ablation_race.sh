@@ -20,9 +20,9 @@
 # again) and its jobs are skipped with a message. One worker per core:
 #
 #     git worktree add /work/wt-abl 41912bd    # the commit the race's students are distilled and raced with
-#     for i in 1 2; do CODE=/work/wt-abl WORK=/work/abl-race nohup bash results/transfer-pointnav/ablation_race.sh /work/claims-1 >> ablation.log 2>&1 & done
+#     for i in 1 2; do CODE=/work/wt-abl WORK=/work/abl-race nohup bash results/transfer-ablations/ablation_race.sh /work/claims-1 >> ablation.log 2>&1 & done
 #
-# Results: python results/transfer-recipes/collect.py --from $WORK/race/* (then read.py, confirm.py).
+# Results: python results/transfer-ablations/collect.py --from $WORK/race, then read.py (README.md says what they show).
 #
 # Environment: CODE (the checkout whose code runs; default: this one), WORK (where the branches, races and starts
 # go; default: runs/ablation-race), PY (default: this checkout's .venv/bin/python), POLL (seconds between looks for

@@ -1,0 +1,186 @@
+"""Read the ablation race by its rule (``../transfer-recipes/rule.md``, the 13:50 addendum): each student's last
+evaluation against its many-draw start, with its KL per update; ``reading.md`` (also the table of
+``README.md``) and ``ablations.png``.
+
+    python results/transfer-ablations/read.py
+
+Rows: the three ablated students and, as their comparators, the DivMorph student under the same terms -- on
+Escape from the low start its G-L runs of ``../transfer-recipes/`` (start: ``../novel-task-gates/``, told
+Incline's instruction), on bounded-goal PointNav its runs in this race. Intervals: 95% bootstrap over robot x
+seed pairs for the gain (the race's reading), t over seeds for the stochastic training return.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+
+from divmorph.pipeline.figures import save_png  # noqa: E402
+from divmorph.pipeline.metrics import robot_interval  # noqa: E402
+
+HERE = Path(__file__).resolve().parent
+RESULTS = HERE.parent
+TASKS = {"Escape": "Escape, low start (Incline's gates)", "PointNav": "PointNav, goal bounded at 10 m (Patrol's gates)"}
+STUDENTS = {
+    "divmorph": "DivMorph (comparator)",
+    "no-kdiv-transformer": "no diversion in the Transformer",
+    "no-kdiv-decoder": "no diversion in the decoder",
+    "no-orthogonality": "no orthogonality (free square factors)",
+}
+#: the part each ablation leaves undiverted: what it names if it learns where DivMorph does not
+PARTS = {
+    "no-kdiv-transformer": "the Transformer's fixed selection",
+    "no-kdiv-decoder": "the decoder's fixed selection",
+    "no-orthogonality": "the Cayley square factors",
+}
+#: MetaMorph⚗'s median approx. KL per update on Escape at its nominal rate (``../transfer-recipes/``, G's section)
+DENSE_KL = 0.012
+#: MetaMorph⚗'s many-draw start on Escape: a start at or above it leaves no room a student is known to climb into
+ROOM = 5.2
+WINDOW = 30
+#: Student's t 97.5% quantiles by degrees of freedom (the seeds' interval; scipy is not a dependency)
+T975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571}
+MARKER = "<!-- transfer-ablations-reading -->"
+
+
+def runs(task: str, student: str, here: Path = HERE) -> tuple[pd.DataFrame, pd.DataFrame, pd.Series]:
+    """``(curves, training log, start per robot)`` of a student on a task; empty frames when it has no runs."""
+    if task == "Escape" and student == "divmorph":  # G-L of ../transfer-recipes: the same terms, run before this race
+        curves = pd.read_csv(RESULTS / "transfer-recipes" / "curves.csv.gz")
+        training = pd.read_csv(RESULTS / "transfer-recipes" / "training.csv.gz")
+        curves, training = curves[curves.variant == "GL-Escape"], training[training.variant == "GL-Escape"]
+        told = pd.read_csv(RESULTS / "novel-task-gates" / "returns.csv.gz")
+        told = told[(told.task == "Escape") & (told.model == "divmorph") & (told.instruction_of == "Incline")]
+        return curves, training, told.groupby("robot")["return"].mean()
+    if not (here / "curves.csv.gz").is_file():  # nothing collected yet
+        return pd.DataFrame(), pd.DataFrame(), pd.Series(dtype=float)
+    curves, training = pd.read_csv(here / "curves.csv.gz"), pd.read_csv(here / "training.csv.gz")
+    starts = pd.read_csv(here / "starts.csv") if (here / "starts.csv").is_file() else pd.DataFrame(columns=["task", "student", "robot", "return"])
+    mine = starts[(starts.task == task) & (starts.student == student)]
+    return (
+        curves[(curves.task == task) & (curves.student == student)],
+        training[(training.task == task) & (training.student == student)],
+        mine.set_index("robot")["return"],
+    )
+
+
+def gains(curves: pd.DataFrame, start: pd.Series) -> np.ndarray:
+    """Per (seed, robot) on the training robots: the last evaluation minus the robot's many-draw start."""
+    train = curves[curves.split == "train"]
+    last = train[train.timesteps == train.timesteps.max()].set_index("robot")
+    return (last["return"] - start.reindex(last.index)).dropna().to_numpy()
+
+
+def t_interval(values: np.ndarray) -> tuple[float, float]:
+    if len(values) < 2:
+        return np.nan, np.nan
+    half = T975[len(values) - 1] * values.std(ddof=1) / np.sqrt(len(values))
+    return values.mean() - half, values.mean() + half
+
+
+def stochastic(training: pd.DataFrame) -> np.ndarray:
+    """Per seed: mean stochastic training return of the last ``WINDOW`` updates minus the first ``WINDOW``."""
+    out = []
+    for _, run in training.sort_values("timesteps").groupby("seed"):
+        returns = run.training_return.to_numpy()
+        out.append(returns[-WINDOW:].mean() - returns[:WINDOW].mean())
+    return np.array(out)
+
+
+def by_the_rule(task: str, student: str, start: float, reading: str, kl: pd.Series) -> str:
+    """The rule's verdict for a row (Escape names a part; PointNav is reported beside, deciding nothing)."""
+    if task != "Escape":
+        return "reported beside (PointNav decides nothing by itself)"
+    if start >= ROOM:
+        return f"no reading: starts at or above MetaMorph⚗'s start ({ROOM})"
+    if not DENSE_KL / 2 <= kl.median() <= 2 * DENSE_KL or kl.max() > 0.1:
+        return f"no reading: KL per update off MetaMorph⚗'s ({DENSE_KL})"
+    if student == "divmorph":
+        return "the block (G-L)" if reading != "learns" else "DivMorph learns: no block to name"
+    return f"names {PARTS[student]}" if reading == "learns" else "does not free it"
+
+
+def row(task: str, student: str, here: Path = HERE) -> tuple[str, tuple[np.ndarray, np.ndarray]] | None:
+    """A table row and the mean curve (start at step 0) of a student on a task; ``None`` without finished runs
+    or a measured start."""
+    curves, training, start = runs(task, student, here)
+    if curves.empty or start.empty:
+        return None
+    gain = gains(curves, start)
+    lo, hi = robot_interval(gain)
+    reading = "learns" if lo > 0 else "loses" if hi < 0 else "neither, within noise"
+    train = curves[curves.split == "train"]
+    robots = sorted(set(train.robot) & set(start.index))
+    mean = train[train.robot.isin(robots) & (train.timesteps > 0)].groupby("timesteps")["return"].mean()
+    steps = np.concatenate([[0.0], mean.index.to_numpy(float)])
+    curve = np.concatenate([[start.reindex(robots).mean()], mean.to_numpy()])
+    noisy = stochastic(training)
+    noisy_lo, noisy_hi = t_interval(noisy)
+    held = curves[curves.split == "novel"].pivot_table(index=["seed", "robot"], columns="timesteps", values="return")
+    kl = training.approx_kl
+    medians = training.groupby("seed").approx_kl.median()
+    text = (
+        f"| {TASKS[task]} | {STUDENTS[student]} | {curves.seed.nunique()} | {curve[0]:.1f} | {curve[-1]:.1f} "
+        f"| {gain.mean():+.1f} [{lo:+.1f}, {hi:+.1f}] | {reading} "
+        f"| {noisy.mean():+.1f} [{noisy_lo:+.1f}, {noisy_hi:+.1f}] "
+        f"| {held.iloc[:, 0].mean():.1f} -> {held.iloc[:, -1].mean():.1f} "
+        f"| {kl.median():.4f} ({medians.min():.4f}-{medians.max():.4f}) / {kl.max():.3f} "
+        f"| {by_the_rule(task, student, curve[0], reading, kl)} |"
+    )
+    return text, (steps, curve)
+
+
+def figure(means: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]], path: Path) -> None:
+    fig, axes = plt.subplots(1, len(means), figsize=(5.4 * len(means), 3.9), squeeze=False)
+    colors = dict(zip(STUDENTS, plt.get_cmap("tab10").colors))
+    for ax, (task, curves) in zip(axes[0], means.items()):
+        for student, (steps, curve) in curves.items():
+            ax.plot(steps / 1e3, curve, marker="o", lw=2.2 if student == "divmorph" else 1.4, color=colors[student], label=STUDENTS[student])
+        ax.set_title(TASKS[task], fontsize=9)
+        ax.set_xlabel("env steps on the task (thousands)")
+        ax.set_ylabel("deterministic return (mean over robots, seeds)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.suptitle("The ablated students under fixed gates at the dense rate (3 seeds x 602,112 steps; step 0 = many-draw start)", fontsize=9)
+    fig.tight_layout()
+    save_png(fig, path)
+    plt.close(fig)
+
+
+def main(here: Path = HERE) -> str:
+    lines = [
+        "| task | student | seeds | start | last | last - start [95% CI] | reading | stochastic training return, last - "
+        "first 30 updates [95% CI] | held-out robots: step 0 -> last | approx. KL per update: median (per seed) / largest | by the rule |",
+        "|---|---|---:|---:|---:|---|---|---|---|---|---|",
+    ]
+    means: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
+    for task in TASKS:
+        for student in STUDENTS:
+            found = row(task, student, here)
+            if found is None:
+                lines.append(f"| {TASKS[task]} | {STUDENTS[student]} | not run | | | | | | | | |")
+                continue
+            lines.append(found[0])
+            means.setdefault(task, {})[student] = found[1]
+    table = "\n".join(lines)
+    (here / "reading.md").write_text(table + "\n")
+    readme = here / "README.md"
+    if readme.is_file() and readme.read_text().count(MARKER.replace("<!-- ", "<!-- /")) == 1:
+        text = readme.read_text()
+        head, rest = text.split(MARKER + "\n", 1)
+        _, tail = rest.split(MARKER.replace("<!-- ", "<!-- /"), 1)
+        readme.write_text(f"{head}{MARKER}\n{table}\n{MARKER.replace('<!-- ', '<!-- /')}{tail}")
+    if means:
+        figure(means, here / "ablations.png")
+    print(table)
+    return table
+
+
+if __name__ == "__main__":
+    main()

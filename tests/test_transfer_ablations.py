@@ -1,0 +1,78 @@
+"""The ablation race's tables and reading (``results/transfer-ablations/collect.py``, ``read.py``) on a made-up race."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+STUDY = Path(__file__).resolve().parents[1] / "results" / "transfer-ablations"
+#: a study's scripts of results/: the evidence's suite (`make test-results`), not the library's
+pytestmark = pytest.mark.shipped_results
+ROBOTS = [f"robot-{i}" for i in range(12)]
+
+
+def load(name: str):
+    spec = importlib.util.spec_from_file_location(f"transfer_ablations_{name}", STUDY / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def make_race(race: Path, student: str, task: str, climb: float, kl: float) -> None:
+    """Three finished seeds of a student on a task that start at 1.0 (per robot) and end ``climb`` higher, with
+    updates of approximate KL ``kl``, and its many-draw start in ``baseline.json``."""
+    rng = np.random.default_rng(len(student))
+    branch = race / f"{task}-{student}"
+    for seed in range(3):
+        run = branch / "transfer" / task / student / f"seed-{seed}"
+        (run / "logs" / "run-1").mkdir(parents=True)
+        rows = [
+            (steps, split, robot, episode, 1.0 + climb * steps / 600_000 + rng.normal(0, 0.1))
+            for steps in (0, 300_000, 600_000)
+            for split in ("train", "novel")
+            for robot in ROBOTS
+            for episode in range(2)
+        ]
+        pd.DataFrame(rows, columns=["timesteps", "split", "robot", "episode", "return"]).to_csv(run / "eval.csv", index=False)
+        updates = np.arange(2048, 600_001, 2048)
+        pd.DataFrame(
+            {"time/total_timesteps": updates, "rollout/ep_rew_mean": np.linspace(1, 1 + climb, len(updates)), "train/approx_kl": kl}
+        ).to_csv(run / "logs" / "run-1" / "progress.csv", index=False)
+        (run / "done.json").write_text("{}")
+    starts = {str(s): {robot: 1.0 + rng.normal(0, 0.05) for robot in ROBOTS} for s in range(5)}
+    (branch / "baseline.json").write_text(json.dumps({student: starts}))
+
+
+def test_the_reading_names_a_part_only_where_an_ablated_student_learns_escape_at_the_dense_kl(tmp_path):
+    """Made-up Escape runs: the decoder ablation climbs by 2 at MetaMorph⚗'s KL per update, the Transformer
+    ablation stays flat at it, the orthogonality ablation climbs by 2 at a KL 5x too large. The rule names the
+    decoder, says the Transformer's does not free the block, gives the third no reading; the table goes into
+    the README between its markers, and the figure is written."""
+    race = tmp_path / "race"
+    make_race(race, "no-kdiv-decoder", "Escape", climb=2.0, kl=0.012)
+    make_race(race, "no-kdiv-transformer", "Escape", climb=0.0, kl=0.012)
+    make_race(race, "no-orthogonality", "Escape", climb=2.0, kl=0.06)
+    out = tmp_path / "study"
+    out.mkdir()
+    load("collect").collect(race, out)
+    starts = pd.read_csv(out / "starts.csv")
+    assert set(starts.student) == {"no-kdiv-decoder", "no-kdiv-transformer", "no-orthogonality"} and (starts.eval_seeds == 5).all()
+    (out / "README.md").write_text("before\n<!-- transfer-ablations-reading -->\nold\n<!-- /transfer-ablations-reading -->\nafter\n")
+
+    table = load("read").main(out)
+    rows = {line.split(" | ")[1]: line for line in table.splitlines()[2:] if line.startswith("| Escape")}
+    decoder = rows["no diversion in the decoder"]
+    assert "| learns |" in decoder and "names the decoder's fixed selection" in decoder
+    assert "neither, within noise" in rows["no diversion in the Transformer"]
+    assert "does not free it" in rows["no diversion in the Transformer"]
+    assert "no reading: KL per update off" in rows["no orthogonality (free square factors)"]
+    assert "the block (G-L)" in rows["DivMorph (comparator)"]  # the shipped G-L runs of ../transfer-recipes
+    assert all("not run" in line for line in table.splitlines() if line.startswith("| PointNav"))
+    readme = (out / "README.md").read_text()
+    assert readme.startswith("before\n") and readme.endswith("after\n") and "old" not in readme and table in readme
+    assert (out / "ablations.png").stat().st_size > 10_000
