@@ -19,7 +19,8 @@ INCLINE = "transfer.instructions.Escape=Walk forward as fast as possible up a te
 G_TERMS = ["transfer.eval_episodes=5", "transfer.learngene_lr_scale=1", "transfer.rotation_lr_scale=0"]
 
 # Logs each call (its arguments as JSON) and makes the files the real calls make: `divmorph branch` a run.json,
-# `divmorph distill` (after a moment) the student's done.json -- or fails, for the student named in FAIL_DISTILL --,
+# `divmorph distill` (after a moment) the student's done.json -- or fails, for the student named in FAIL_DISTILL, or
+# is stopped by SIGTERM, for STOP_DISTILL's --,
 # and a race run its seed's done.json.
 STAND_IN = f"""#!{sys.executable}
 import json, os, sys, time
@@ -37,6 +38,8 @@ elif argv[:3] == ["-m", "divmorph.cli", "distill"]:
     time.sleep(0.5)
     if student == os.environ.get("FAIL_DISTILL"):
         sys.exit(1)
+    if student == os.environ.get("STOP_DISTILL"):
+        sys.exit(143)  # what `divmorph distill` returns when SIGTERM stops it
     done = work / f"ablate-{{student}}" / "students" / student
     done.mkdir(parents=True, exist_ok=True)
     (done / "done.json").touch()
@@ -145,3 +148,25 @@ def test_a_failed_distillation_skips_its_students_jobs_and_the_others_finish(tmp
     assert {options["--arms"] for _, options, _ in races(calls)} == (STUDENTS - {"no-kdiv-decoder"}) | {"divmorph"}
     assert len(races(calls)) == 15
     assert not any("no-kdiv-decoder" in " ".join(argv) for argv in calls if argv[:2] != ["-m", "divmorph.cli"])
+
+
+def test_a_stopped_distillation_stops_its_worker_without_marking_the_student_failed(tmp_path):
+    """SIGTERM stops the first distillation (exit 143, as `divmorph distill` returns): its worker stops with that
+    status after logging it, and the student is not marked failed (so a restarted race distils it on, rather than
+    skipping its races)."""
+    python = tmp_path / "python"
+    python.write_text(STAND_IN)
+    python.chmod(python.stat().st_mode | stat.S_IEXEC)
+    (tmp_path / "work").mkdir()
+    env = {**os.environ, "WORK": str(tmp_path / "work"), "PY": str(python), "CODE": str(tmp_path), "POLL": "0.1"}
+    worker = subprocess.run(
+        ["bash", str(SCRIPT), "claims"],
+        cwd=tmp_path,
+        env={**env, "STOP_DISTILL": "no-kdiv-transformer"},
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert worker.returncode == 143
+    assert "ends job 0 (exit 143): distill no-kdiv-transformer" in worker.stdout and " starts job 1" not in worker.stdout
+    assert not (tmp_path / "work" / "ablate-no-kdiv-transformer" / "FAILED").exists()

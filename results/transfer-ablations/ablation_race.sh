@@ -15,9 +15,10 @@
 # nobody has claimed and that can start -- a student's races wait until it is distilled, a start until its race
 # folder's first seed has finished -- and meanwhile takes later jobs rather than leave its core idle; it claims a
 # job by creating its folder under CLAIMS (mkdir is atomic), so two workers never run the same job. Every job
-# resumes from its last checkpoint or skips what is finished, so after an interruption start the workers again with
-# a fresh CLAIMS folder. A student whose distillation fails is marked (ablate-<name>/FAILED, cleared when it distils
-# again) and its jobs are skipped with a message. One worker per core:
+# resumes from its last checkpoint or skips what is finished; a job stopped by Ctrl-C or SIGTERM stops its worker, so
+# after an interruption start the workers again with a fresh CLAIMS folder. A student whose distillation fails
+# (any other exit) is marked (ablate-<name>/FAILED, cleared when it distils again) and its jobs are skipped with a
+# message. One worker per core:
 #
 #     git worktree add /work/wt-abl 41912bd    # the commit the race's students are distilled and raced with
 #     for i in 1 2; do CODE=/work/wt-abl WORK=/work/abl-race nohup bash results/transfer-ablations/ablation_race.sh /work/claims-1 >> ablation.log 2>&1 & done
@@ -62,9 +63,14 @@ distill() {
     rm -f "$WORK/ablate-$1/FAILED"
     "$PY" -m divmorph.cli distill --run "$WORK/ablate-$1" --no-progress --students "$1" || {
         local status=$?
-        touch "$WORK/ablate-$1/FAILED"
+        stopped $status || touch "$WORK/ablate-$1/FAILED"
         return $status
     }
+}
+
+# stopped STATUS: the job was stopped by Ctrl-C or SIGTERM (the race is being stopped), not failed
+stopped() {
+    [ "$1" = 130 ] || [ "$1" = 143 ]
 }
 
 # the run a student's transfers start from: the DivMorph student's own, or the ablated student's branch
@@ -129,6 +135,8 @@ while :; do
         ${JOBS[$i]}
         status=$?
         echo "[$(date -u '+%F %T')] worker $$ ends job $i (exit $status): ${JOBS[$i]}"
+        # a stopped job stops its worker too: a fresh CLAIMS folder resumes the list
+        stopped $status && exit $status
         continue 2
     done
     [ $unclaimed = 0 ] && break
