@@ -21,7 +21,7 @@ G_TERMS = ["transfer.eval_episodes=5", "transfer.learngene_lr_scale=1", "transfe
 # Logs each call (its arguments as JSON) and makes the files the real calls make: `divmorph branch` a run.json,
 # `divmorph distill` (after a moment) the student's done.json -- or fails, for the student named in FAIL_DISTILL, or
 # is stopped by SIGTERM, for STOP_DISTILL's --,
-# and a race run its seed's done.json.
+# and a race run its seed's source.json.
 STAND_IN = f"""#!{sys.executable}
 import json, os, sys, time
 from pathlib import Path
@@ -49,7 +49,7 @@ elif argv[0] == "results/finetune-known-task/finetune_known_task.py" and "--base
     option = {{argv[i]: argv[i + 1] for i in range(1, len(argv) - 1) if argv[i].startswith("--")}}
     seed = Path(option["--out"]) / "transfer" / option["--task"] / option["--arms"] / f"seed-{{option['--seeds']}}"
     seed.mkdir(parents=True, exist_ok=True)
-    (seed / "done.json").touch()
+    (seed / "source.json").touch()
 """
 
 
@@ -101,7 +101,7 @@ def test_two_workers_run_every_job_once_and_race_only_distilled_students_on_g_te
     student's distillation, in the student's folder for the task, on G's terms (602,112 steps, learngenes at 1x,
     rotations frozen, 5 episodes per point); Escape from the low start (Incline's instruction) before PointNav (the
     bounded goal, Patrol's gates), where the DivMorph student itself runs as the comparator; each start is measured
-    after a run of its folder, on the same terms."""
+    once a run of its folder has begun, on the same terms."""
     ended, calls = run_workers(tmp_path)
     assert [number for number, _, _ in ended] == list(range(31))  # each job once
     assert all(status == 0 for _, _, status in ended)
@@ -133,7 +133,7 @@ def test_two_workers_run_every_job_once_and_race_only_distilled_students_on_g_te
     starts = [(i, options, settings) for i, options, settings in study_calls(calls) if "--baseline-seeds" in options]
     assert {options["--out"] for _, options, _ in starts} == set(first_run) and len(starts) == 7
     for i, options, settings in starts:
-        assert options["--baseline-seeds"] == "5" and "--report" in calls[i]
+        assert options["--baseline-seeds"] == "5" and "--baseline-only" in calls[i]
         assert first_run[options["--out"]][0] < i and first_run[options["--out"]][1] == settings
 
 
@@ -169,4 +169,4 @@ def test_a_stopped_distillation_stops_its_worker_without_marking_the_student_fai
     )
     assert worker.returncode == 143
     assert "ends job 0 (exit 143): distill no-kdiv-transformer" in worker.stdout and " starts job 1" not in worker.stdout
-    assert not (tmp_path / "work" / "ablate-no-kdiv-transformer" / "FAILED").exists()
+    assert not (tmp_path / "work" / "FAILED-no-kdiv-transformer").exists()

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
+import signal
 from pathlib import Path
 
 import pytest
@@ -85,3 +87,49 @@ def test_the_many_draw_start_is_measured_with_the_instruction_the_runs_are_told(
     found = study.evaluate_baselines(args, load_profile("demo", overrides=configured))
     assert model.told == [expected, expected]
     assert found == {"divmorph": {"0": {"a": 1.0, "b": 3.0}, "1": {"a": 1.0, "b": 3.0}}}
+
+
+def _fake_study(study, monkeypatch, tmp_path, run_calls):
+    """The study on a made-up run folder: the model, robots and profile stand-ins; transfer_run records its calls."""
+    import divmorph.pipeline.robots
+    import divmorph.pretrained
+    from divmorph.pipeline.config import load_profile
+
+    monkeypatch.setattr(divmorph.pretrained, "load_pretrained", lambda path: _RecordingModel())
+    monkeypatch.setattr(divmorph.pipeline.robots, "transfer_eval_robots", lambda profile, split: ["a", "b"])
+    monkeypatch.setattr(study, "recorded_profile", lambda path, overrides: load_profile("demo"))
+    monkeypatch.setattr(study, "branch", lambda *args, **kwargs: (tmp_path / "run.json").write_text("{}"))
+
+    class Run:
+        def run(self):
+            run_calls.append(1)
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    monkeypatch.setattr(study, "transfer_run", lambda *args, **kwargs: Run())
+    seed = tmp_path / "transfer" / "Escape" / "divmorph" / "seed-0"
+    seed.mkdir(parents=True)
+    (seed / "source.json").write_text(json.dumps({"arm": "divmorph", "seed": 0, "source": "student"}))
+    return ["--out", str(tmp_path), "--task", "Escape", "--arms", "divmorph", "--seeds", "0"]
+
+
+def test_baseline_only_measures_the_starts_and_starts_no_run(tmp_path, monkeypatch):
+    """``--baseline-seeds 2 --baseline-only`` (the ablation race's start jobs) writes baseline.json and neither
+    trains nor reports (broken once by ignoring the flag: a run starts)."""
+    study, calls, previous = load_study(), [], signal.getsignal(signal.SIGTERM)
+    try:
+        study.main([*_fake_study(study, monkeypatch, tmp_path, calls), "--baseline-seeds", "2", "--baseline-only"])
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert calls == [] and set(json.loads((tmp_path / "baseline.json").read_text())["divmorph"]) == {"0", "1"}
+
+
+def test_sigterm_stops_a_run_as_ctrl_c_does(tmp_path, monkeypatch):
+    """SIGTERM during a run reaches it as KeyboardInterrupt, on which a transfer run saves a checkpoint (a session's
+    end or a `kill` then loses no training; broken once with SIGTERM ignored instead: no interrupt)."""
+    study, calls, previous = load_study(), [], signal.getsignal(signal.SIGTERM)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            study.main(_fake_study(study, monkeypatch, tmp_path, calls))
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert calls == [1]

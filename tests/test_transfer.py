@@ -302,6 +302,27 @@ def test_rotation_lr_scale_turns_the_square_factors_that_much_slower_and_moves_t
     assert all(moved[0.1][n] == pytest.approx(moved[1.0][n], rel=1e-5, abs=1e-9) for n in others), "the other factors' steps changed"
 
 
+@pytest.mark.parametrize("scale", [0.0, 1.0])
+def test_rotation_lr_scale_0_fixes_the_free_square_factors_of_a_student_without_orthogonality(scale):
+    """The ``no-orthogonality`` ablation's square factors are free matrices: at ``rotation_lr_scale`` 0 they
+    stay exactly, as a DivMorph student's Cayley rotations do (the ablation race's terms), at 1 the selected
+    units' columns move; the tall factors move either way (break: ignore the scale for free square factors
+    -> they move at 0)."""
+    model, venv = distilled_like_student(seed=7, policy_kwargs={**TINY_DIVMORPH, "orthogonal": False})
+    obs = venv.reset()
+    gates = model.policy.get_gates(obs)
+    selection = UnitSelection.from_gates(gates.morphology.numpy(), gates.task.numpy())
+    prepare_transfer(model.policy, selection, learngene_scale=1.0, rotation_scale=scale)
+    layers = diverted_actor_layers(model.policy)
+    assert layers and not any(layer.orthogonal for layer in layers)
+    before = [snapshot(layer) for layer in layers]
+    one_ppo_like_step(model, obs)
+    after = [snapshot(layer) for layer in layers]
+    squares_moved = sum((a["square"] - b["square"]).abs().sum().item() for a, b in zip(after, before))
+    assert (squares_moved == 0) == (scale == 0.0)
+    assert sum((a["tall"] - b["tall"]).abs().sum().item() for a, b in zip(after, before)) > 0
+
+
 def test_rotation_rate_scales_freeze_a_freely_fine_tuned_students_rotations_only():
     """The ``divmorph-finetuned`` arm with ``rotation_lr_scale=0`` (issue 67 (a)): every Cayley
     generator stays exactly where it was, every other parameter moves as before (break: an empty

@@ -40,9 +40,13 @@ def make_race(race: Path, student: str, task: str, climb: float, kl: float) -> N
         ]
         pd.DataFrame(rows, columns=["timesteps", "split", "robot", "episode", "return"]).to_csv(run / "eval.csv", index=False)
         updates = np.arange(2048, 600_001, 2048)
-        pd.DataFrame(
+        log = pd.DataFrame(
             {"time/total_timesteps": updates, "rollout/ep_rew_mean": np.linspace(1, 1 + climb, len(updates)), "train/approx_kl": kl}
-        ).to_csv(run / "logs" / "run-1" / "progress.csv", index=False)
+        )
+        log.to_csv(run / "logs" / "run-1" / "progress.csv", index=False)
+        # resumed from a checkpoint 20 updates back: those updates are logged again, by the attempt that counts
+        (run / "logs" / "run-2").mkdir()
+        log.iloc[-20:].assign(**{"train/approx_kl": kl * 1.5}).to_csv(run / "logs" / "run-2" / "progress.csv", index=False)
         (run / "done.json").write_text("{}")
     starts = {str(s): {robot: 1.0 + rng.normal(0, 0.05) for robot in ROBOTS} for s in range(5)}
     (branch / "baseline.json").write_text(json.dumps({student: starts}))
@@ -50,7 +54,8 @@ def make_race(race: Path, student: str, task: str, climb: float, kl: float) -> N
 
 def test_the_reading_names_a_part_only_where_an_ablated_student_learns_escape_at_the_dense_kl(tmp_path):
     """Made-up Escape runs: the decoder ablation climbs by 2 at MetaMorph⚗'s KL per update, the Transformer
-    ablation stays flat at it, the orthogonality ablation climbs by 2 at a KL 5x too large. The rule names the
+    ablation stays flat at it, the orthogonality ablation climbs by 2 at a KL 5x too large (each seed resumed once:
+    the updates after its checkpoint are counted once, by the last attempt). The rule names the
     decoder, says the Transformer's does not free the block, gives the third no reading; the table goes into
     the README between its markers, and the figure is written."""
     race = tmp_path / "race"
@@ -62,7 +67,12 @@ def test_the_reading_names_a_part_only_where_an_ablated_student_learns_escape_at
     load("collect").collect(race, out)
     starts = pd.read_csv(out / "starts.csv")
     assert set(starts.student) == {"no-kdiv-decoder", "no-kdiv-transformer", "no-orthogonality"} and (starts.eval_seeds == 5).all()
-    (out / "README.md").write_text("before\n<!-- transfer-ablations-reading -->\nold\n<!-- /transfer-ablations-reading -->\nafter\n")
+    training = pd.read_csv(out / "training.csv.gz")
+    assert not training.duplicated(["student", "seed", "timesteps"]).any() and len(training) == 3 * 3 * 292
+    assert (training[training.timesteps > 292 * 2048 - 20 * 2048].approx_kl > 0.0121).all()  # the resumed attempt's
+    (out / "README.md").write_text(
+        "before\n<!-- transfer-ablations-reading -->\nSTALE TABLE\n<!-- /transfer-ablations-reading -->\nafter\n"
+    )
 
     table = load("read").main(out)
     rows = {line.split(" | ")[1]: line for line in table.splitlines()[2:] if line.startswith("| Escape")}
@@ -73,6 +83,7 @@ def test_the_reading_names_a_part_only_where_an_ablated_student_learns_escape_at
     assert "no reading: KL per update off" in rows["no orthogonality (free square factors)"]
     assert "the block (G-L)" in rows["DivMorph (comparator)"]  # the shipped G-L runs of ../transfer-recipes
     assert all("not run" in line for line in table.splitlines() if line.startswith("| PointNav"))
+    assert table.endswith("By the rule: the decoder's fixed selection holds the fixed-gate block.")
     readme = (out / "README.md").read_text()
-    assert readme.startswith("before\n") and readme.endswith("after\n") and "old" not in readme and table in readme
+    assert readme.startswith("before\n") and readme.endswith("after\n") and "STALE TABLE" not in readme and table in readme
     assert (out / "ablations.png").stat().st_size > 10_000

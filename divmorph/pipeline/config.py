@@ -224,7 +224,8 @@ class TransferConfig:
     #: every generator entry by about the rate at once and each turns two whole singular
     #: directions, so at 1.0 the rotations can dominate an update where the policy is far from its
     #: training (measured: ``docs/claims/transfer.md``). It also applies to ``divmorph-finetuned``
-    #: (every Cayley generator at this multiple of its rate)
+    #: (every Cayley generator at this multiple of its rate) and to the free square factors of the
+    #: ``no-orthogonality`` ablation (0: every square factor fixed, orthogonal or not)
     rotation_lr_scale: float = 1.0
     #: where the task gates of the arms that start from a DivMorph student come from (fixed in the
     #: DivMorph-way arms, the start of ``divmorph-finetuned``'s): ``instruction`` (the novel task's own

@@ -31,6 +31,7 @@ from __future__ import annotations
 import argparse
 import fcntl
 import platform
+import signal
 import time
 from pathlib import Path
 
@@ -282,6 +283,10 @@ def report(args: argparse.Namespace) -> None:
     print("\n".join(lines))
 
 
+def stop_as_interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt  # a transfer run saves what it has learnt since its last checkpoint on it
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--source", type=Path, default=Path("results/cpu100"), help="the run whose teachers and students are fine-tuned")
@@ -298,6 +303,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--set", action="append", default=[], metavar="KEY=VALUE", help="a profile setting for the runs (a variant: give it its own --out)"
     )
+    parser.add_argument("--baseline-only", action="store_true", help="with --baseline-seeds: only measure the starts (no run, no report)")
     parser.add_argument("--baseline-from", type=Path, default=None, help="with --compare: a folder whose baseline.json the variants share")
     parser.add_argument(
         "--compare",
@@ -307,12 +313,16 @@ def main(argv: list[str] | None = None) -> None:
     )
     args = parser.parse_args(argv)
     th.set_num_threads(1)
+    # SIGTERM (a `kill`, a session's end) stops a run as Ctrl-C does: at a checkpoint, exit status 130
+    signal.signal(signal.SIGTERM, stop_as_interrupt)
     if args.compare:
         compare(args)
         return
     if args.baseline_seeds:
         # the starts are measured in the envs the runs train in (``--set goal_range=...`` included)
         evaluate_baselines(args, recorded_profile(args.out / "run.json", overrides(args)))
+        if args.baseline_only:
+            return
     if not args.report:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         # one process per core may start on the same --out at once: the first branches it, the others wait

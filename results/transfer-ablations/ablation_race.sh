@@ -13,11 +13,11 @@
 #
 # The jobs are a list in order of priority, worked by any number of workers. A worker takes the first job that
 # nobody has claimed and that can start -- a student's races wait until it is distilled, a start until its race
-# folder's first seed has finished -- and meanwhile takes later jobs rather than leave its core idle; it claims a
+# folder's first seed has begun -- and meanwhile takes later jobs rather than leave its core idle; it claims a
 # job by creating its folder under CLAIMS (mkdir is atomic), so two workers never run the same job. Every job
 # resumes from its last checkpoint or skips what is finished; a job stopped by Ctrl-C or SIGTERM stops its worker, so
 # after an interruption start the workers again with a fresh CLAIMS folder. A student whose distillation fails
-# (any other exit) is marked (ablate-<name>/FAILED, cleared when it distils again) and its jobs are skipped with a
+# (any other exit) is marked ($WORK/FAILED-<name>, cleared when it distils again) and its jobs are skipped with a
 # message. One worker per core:
 #
 #     git worktree add /work/wt-abl 41912bd    # the commit the race's students are distilled and raced with
@@ -59,11 +59,17 @@ JOBS+=("starts divmorph PointNav")
 
 # distill STUDENT: DAgger into the ablated student, in its own branch of results/cpu100
 distill() {
-    [ -f "$WORK/ablate-$1/run.json" ] || "$PY" -m divmorph.cli branch --from results/cpu100 --out "$WORK/ablate-$1" || return
-    rm -f "$WORK/ablate-$1/FAILED"
+    if [ ! -f "$WORK/ablate-$1/run.json" ]; then
+        "$PY" -m divmorph.cli branch --from results/cpu100 --out "$WORK/ablate-$1" || {
+            local status=$?
+            stopped $status || touch "$WORK/FAILED-$1"
+            return $status
+        }
+    fi
+    rm -f "$WORK/FAILED-$1"
     "$PY" -m divmorph.cli distill --run "$WORK/ablate-$1" --no-progress --students "$1" || {
         local status=$?
-        stopped $status || touch "$WORK/ablate-$1/FAILED"
+        stopped $status || touch "$WORK/FAILED-$1"
         return $status
     }
 }
@@ -83,16 +89,16 @@ distilled() {
 }
 
 failed() {
-    [ "$1" != divmorph ] && [ -f "$WORK/ablate-$1/FAILED" ] && ! distilled "$1"
+    [ "$1" != divmorph ] && [ -f "$WORK/FAILED-$1" ] && ! distilled "$1"
 }
 
 # ready JOB...: the job can start now (a distillation always can; a race once its student is distilled, or has
-# failed, which it reports; a start once its race folder's first seed has finished: the report needs a finished run)
+# failed, which it reports; a start once its race folder's first seed has begun: it says what the runs are told)
 ready() {
     case $1 in
         distill) return 0 ;;
         race) distilled "$2" || failed "$2" ;;
-        starts) failed "$2" || [ -f "$WORK/race/$3-$2/transfer/$3/$2/seed-0/done.json" ] ;;
+        starts) failed "$2" || [ -f "$WORK/race/$3-$2/transfer/$3/$2/seed-0/source.json" ] ;;
     esac
 }
 
@@ -120,7 +126,7 @@ starts() {
     failed "$1" && { echo "not run: $1 failed to distil"; return 1; }
     terms "$2"
     "$PY" results/finetune-known-task/finetune_known_task.py --source "$(source_run "$1")" "${TERMS[@]}" \
-        --arms "$1" --seeds 0 --out "$WORK/race/$2-$1" --baseline-seeds 5 --report
+        --arms "$1" --seeds 0 --out "$WORK/race/$2-$1" --baseline-seeds 5 --baseline-only
 }
 
 # Scan the list from the top after every job, so a job that becomes ready goes before lower-priority ones.

@@ -17,6 +17,8 @@ from pathlib import Path
 
 import pandas as pd
 
+from divmorph.pipeline.files import log_file, read_progress
+
 HERE = Path(__file__).resolve().parent
 LOGGED = {
     "time/total_timesteps": "timesteps",
@@ -32,10 +34,12 @@ def collect(race: Path, out: Path = HERE) -> None:
         for done in sorted((branch / "transfer").glob("*/*/seed-*/done.json")):
             run = done.parent
             task, student, seed = run.parent.parent.name, run.parent.name, int(run.name.split("-")[1])
-            frame = pd.read_csv(run / "eval.csv").groupby(["timesteps", "split", "robot"], as_index=False)["return"].mean()
+            frame = pd.read_csv(log_file(run / "eval.csv")).groupby(["timesteps", "split", "robot"], as_index=False)["return"].mean()
             curves.append(frame.assign(task=task, student=student, seed=seed))
-            log = pd.concat(pd.read_csv(p) for p in sorted((run / "logs").glob("run-*/progress.csv")))
+            log = pd.DataFrame(read_progress(run))
             log = log[[c for c in LOGGED if c in log]].rename(columns=LOGGED).dropna(subset=["approx_kl"])
+            # a resumed attempt repeats the updates after its checkpoint: the last attempt's count
+            log = log.drop_duplicates(subset="timesteps", keep="last")
             training.append(log.assign(task=task, student=student, seed=seed))
             print(f"{run}: {len(frame)} curve rows, {len(log)} updates")
         baseline = branch / "baseline.json"

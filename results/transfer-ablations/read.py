@@ -106,9 +106,9 @@ def by_the_rule(task: str, student: str, start: float, reading: str, kl: pd.Seri
     return f"names {PARTS[student]}" if reading == "learns" else "does not free it"
 
 
-def row(task: str, student: str, here: Path = HERE) -> tuple[str, tuple[np.ndarray, np.ndarray]] | None:
-    """A table row and the mean curve (start at step 0) of a student on a task; ``None`` without finished runs
-    or a measured start."""
+def row(task: str, student: str, here: Path = HERE) -> tuple[str, tuple[np.ndarray, np.ndarray], str] | None:
+    """A table row, the mean curve (start at step 0) and the rule's verdict of a student on a task; ``None``
+    without finished runs or a measured start."""
     curves, training, start = runs(task, student, here)
     if curves.empty or start.empty:
         return None
@@ -125,15 +125,32 @@ def row(task: str, student: str, here: Path = HERE) -> tuple[str, tuple[np.ndarr
     held = curves[curves.split == "novel"].pivot_table(index=["seed", "robot"], columns="timesteps", values="return")
     kl = training.approx_kl
     medians = training.groupby("seed").approx_kl.median()
+    verdict = by_the_rule(task, student, curve[0], reading, kl)
     text = (
         f"| {TASKS[task]} | {STUDENTS[student]} | {curves.seed.nunique()} | {curve[0]:.1f} | {curve[-1]:.1f} "
         f"| {gain.mean():+.1f} [{lo:+.1f}, {hi:+.1f}] | {reading} "
         f"| {noisy.mean():+.1f} [{noisy_lo:+.1f}, {noisy_hi:+.1f}] "
         f"| {held.iloc[:, 0].mean():.1f} -> {held.iloc[:, -1].mean():.1f} "
         f"| {kl.median():.4f} ({medians.min():.4f}-{medians.max():.4f}) / {kl.max():.3f} "
-        f"| {by_the_rule(task, student, curve[0], reading, kl)} |"
+        f"| {verdict} |"
     )
-    return text, (steps, curve)
+    return text, (steps, curve), verdict
+
+
+def conclusion(verdicts: dict[str, str]) -> str:
+    """The rule's answer from the ablated students' Escape verdicts (``{student: verdict}``)."""
+    missing = [STUDENTS[s] for s in PARTS if s not in verdicts]
+    if missing:
+        return f"By the rule: not yet ({', '.join(missing)}: not run)."
+    named = [PARTS[s] for s, verdict in verdicts.items() if verdict.startswith("names")]
+    unread = [STUDENTS[s] for s, verdict in verdicts.items() if verdict.startswith("no reading")]
+    if named:
+        held = named[0] if len(named) == 1 else ", ".join(named[:-1]) + " and " + named[-1]
+        alone = " (each alone enough to hold it)" if len(named) > 1 else ""
+        return f"By the rule: {held} holds the fixed-gate block{alone}."
+    if unread:
+        return f"By the rule: no part named; no reading for {', '.join(unread)}."
+    return "By the rule: none learns -- no single diverted part holds the block (the fixed selection in both parts together, or what distillation put there)."
 
 
 def figure(means: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]], path: Path) -> None:
@@ -160,6 +177,7 @@ def main(here: Path = HERE) -> str:
         "|---|---|---:|---:|---:|---|---|---|---|---|---|",
     ]
     means: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
+    verdicts: dict[str, str] = {}
     for task in TASKS:
         for student in STUDENTS:
             found = row(task, student, here)
@@ -168,7 +186,9 @@ def main(here: Path = HERE) -> str:
                 continue
             lines.append(found[0])
             means.setdefault(task, {})[student] = found[1]
-    table = "\n".join(lines)
+            if task == "Escape" and student in PARTS:
+                verdicts[student] = found[2]
+    table = "\n".join(lines) + "\n\n" + conclusion(verdicts)
     (here / "reading.md").write_text(table + "\n")
     readme = here / "README.md"
     if readme.is_file() and readme.read_text().count(MARKER.replace("<!-- ", "<!-- /")) == 1:

@@ -76,6 +76,8 @@ def factor_parameter_scales(
     rate of the slower of the two, times ``rotation_scale``: Adam moves every entry by about the
     rate at once, and each rotates two whole singular directions weighted by their singular values,
     so at one rate for all the rotations move the function far more than the other factors do.
+    A free square factor (a student without orthogonality) moves its units' columns at their rates
+    times ``rotation_scale`` too, so that ``rotation_scale=0`` fixes every square factor alike.
     """
     scales: dict[nn.Parameter, th.Tensor] = {
         layer.singular_values: unit.clone(),
@@ -85,7 +87,7 @@ def factor_parameter_scales(
         rows, cols = _upper_indices(layer.rank, th.device("cpu"))
         scales[layer.square_skew] = th.minimum(unit[rows], unit[cols]) * float(rotation_scale)
     else:
-        scales[layer.square] = unit.expand_as(layer.square).clone()
+        scales[layer.square] = unit.expand_as(layer.square) * float(rotation_scale)
     if layer.bias is not None:
         scales[layer.bias] = th.full_like(layer.bias, bias_scale, device="cpu")
     return scales
