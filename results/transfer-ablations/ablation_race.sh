@@ -20,8 +20,8 @@
 # (any other exit) is marked ($WORK/FAILED-<name>, cleared when it distils again) and its jobs are skipped with a
 # message. One worker per core:
 #
-#     git worktree add /work/wt-abl 41912bd    # the commit the race's students are distilled and raced with
-#     for i in 1 2; do CODE=/work/wt-abl WORK=/work/abl-race nohup bash results/transfer-ablations/ablation_race.sh /work/claims-1 >> ablation.log 2>&1 & done
+#     git worktree add /work/wt-abl 3c9855a    # the commit the race is run with (its distillations began at 41912bd: the same distillation code)
+#     for i in 1 2; do CODE=/work/wt-abl WORK=/work/abl-race PY=$PWD/.venv/bin/python nohup bash /work/wt-abl/results/transfer-ablations/ablation_race.sh /work/abl-race/claims-1 >> ablation.log 2>&1 & done
 #
 # Results: python results/transfer-ablations/collect.py --from $WORK/race, then read.py (README.md says what they show).
 #
