@@ -189,6 +189,19 @@ def interval(samples: np.ndarray, confidence: float = CONFIDENCE) -> tuple[float
     return float(lo), float(hi)
 
 
+#: Student's t 97.5% quantiles by degrees of freedom (scipy is not a dependency)
+_T975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571}
+
+
+def seed_interval(values: np.ndarray) -> tuple[float, float]:
+    """95% t interval of the mean of a value per seed (2 to 6 seeds; ``nan`` for fewer than two)."""
+    values = np.asarray(values, float)
+    if len(values) < 2:
+        return np.nan, np.nan
+    half = _T975[len(values) - 1] * values.std(ddof=1) / np.sqrt(len(values))
+    return values.mean() - half, values.mean() + half
+
+
 def robot_interval(values: np.ndarray) -> tuple[float, float]:
     """95% bootstrap interval of the mean of per-robot values (robots resampled with replacement)."""
     return interval(bootstrap_curves(np.asarray(values, float)[None, :, None])[:, 0])

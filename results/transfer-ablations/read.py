@@ -22,7 +22,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from divmorph.pipeline.figures import save_png  # noqa: E402
-from divmorph.pipeline.metrics import robot_interval  # noqa: E402
+from divmorph.pipeline.metrics import robot_interval, seed_interval  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE.parent
@@ -44,8 +44,6 @@ DENSE_KL = 0.012
 #: MetaMorph⚗'s many-draw start on Escape: a start at or above it leaves no room a student is known to climb into
 ROOM = 5.2
 WINDOW = 30
-#: Student's t 97.5% quantiles by degrees of freedom (the seeds' interval; scipy is not a dependency)
-T975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571}
 MARKER = "<!-- transfer-ablations-reading -->"
 
 
@@ -75,13 +73,6 @@ def gains(curves: pd.DataFrame, start: pd.Series) -> np.ndarray:
     train = curves[curves.split == "train"]
     last = train[train.timesteps == train.timesteps.max()].set_index("robot")
     return (last["return"] - start.reindex(last.index)).dropna().to_numpy()
-
-
-def t_interval(values: np.ndarray) -> tuple[float, float]:
-    if len(values) < 2:
-        return np.nan, np.nan
-    half = T975[len(values) - 1] * values.std(ddof=1) / np.sqrt(len(values))
-    return values.mean() - half, values.mean() + half
 
 
 def stochastic(training: pd.DataFrame) -> np.ndarray:
@@ -121,7 +112,7 @@ def row(task: str, student: str, here: Path = HERE) -> tuple[str, tuple[np.ndarr
     steps = np.concatenate([[0.0], mean.index.to_numpy(float)])
     curve = np.concatenate([[start.reindex(robots).mean()], mean.to_numpy()])
     noisy = stochastic(training)
-    noisy_lo, noisy_hi = t_interval(noisy)
+    noisy_lo, noisy_hi = seed_interval(noisy)
     held = curves[curves.split == "novel"].pivot_table(index=["seed", "robot"], columns="timesteps", values="return")
     kl = training.approx_kl
     medians = training.groupby("seed").approx_kl.median()

@@ -34,7 +34,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from divmorph.pipeline.figures import save_png  # noqa: E402
-from divmorph.pipeline.metrics import robot_interval, steps_to_hold  # noqa: E402
+from divmorph.pipeline.metrics import robot_interval, seed_interval, steps_to_hold  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE.parent
@@ -58,8 +58,6 @@ LABELS = {
 #: one colour per arm in every panel (a task without one of this study's arms keeps the others' colours)
 COLORS = dict(zip(ARMS, plt.get_cmap("tab10").colors))
 DRAWS, WINDOW = 2000, 30
-#: Student's t 97.5% quantiles by degrees of freedom (the seeds' interval; scipy is not a dependency)
-T975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571}
 
 
 def race_folder(task: str, arm: str) -> Path:
@@ -147,13 +145,6 @@ def stochastic(task: str, arm: str) -> np.ndarray:
     return np.array(gains)
 
 
-def t_interval(values: np.ndarray) -> tuple[float, float]:
-    if len(values) < 2:
-        return np.nan, np.nan
-    half = T975[len(values) - 1] * values.std(ddof=1) / np.sqrt(len(values))
-    return values.mean() - half, values.mean() + half
-
-
 def fmt_steps(value: float) -> str:
     return "never" if np.isinf(value) else "step 0" if value == 0 else f"{value / 1e3:.0f}k"
 
@@ -194,7 +185,7 @@ def task_rows(task: str, rng: np.random.Generator) -> tuple[list[str], dict[str,
             lo, hi = np.percentile(ratios, [2.5, 97.5], method="nearest")
             readings.append(f"{fmt_steps(mine)}: {fmt_ratio(ratio(own, mine))} [{fmt_ratio(lo)}, {fmt_ratio(hi)}]")
         noisy = stochastic(task, arm)
-        noisy_lo, noisy_hi = t_interval(noisy)
+        noisy_lo, noisy_hi = seed_interval(noisy)
         held_out = curves(task, arm, "novel").pivot_table(index=["seed", "robot"], columns="timesteps", values="return")
         held_gain = (held_out.iloc[:, -1] - held_out.iloc[:, 0]).to_numpy()
         held_lo, held_hi = robot_interval(held_gain)
