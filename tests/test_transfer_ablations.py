@@ -57,8 +57,10 @@ def test_the_reading_names_a_part_only_where_an_ablated_student_learns_escape_at
     ablation stays flat at it, the orthogonality ablation climbs by 2 at a KL 5x too large (each seed resumed once:
     the updates after its checkpoint are counted once, by the last attempt). The rule names the
     decoder, says the Transformer's does not free the block, gives the third no reading; the table goes into
-    the README between its markers, and the figure is written."""
+    the README between its markers, and the figure is written. The DivMorph student, raced alike, stays flat: the
+    block."""
     race = tmp_path / "race"
+    make_race(race, "divmorph", "Escape", climb=0.0, kl=0.012)
     make_race(race, "no-kdiv-decoder", "Escape", climb=2.0, kl=0.012)
     make_race(race, "no-kdiv-transformer", "Escape", climb=0.0, kl=0.012)
     make_race(race, "no-orthogonality", "Escape", climb=2.0, kl=0.06)
@@ -66,9 +68,11 @@ def test_the_reading_names_a_part_only_where_an_ablated_student_learns_escape_at
     out.mkdir()
     load("collect").collect(race, out)
     starts = pd.read_csv(out / "starts.csv")
-    assert set(starts.student) == {"no-kdiv-decoder", "no-kdiv-transformer", "no-orthogonality"} and (starts.eval_seeds == 5).all()
+    assert (
+        set(starts.student) == {"divmorph", "no-kdiv-decoder", "no-kdiv-transformer", "no-orthogonality"} and (starts.eval_seeds == 5).all()
+    )
     training = pd.read_csv(out / "training.csv.gz")
-    assert not training.duplicated(["student", "seed", "timesteps"]).any() and len(training) == 3 * 3 * 292
+    assert not training.duplicated(["student", "seed", "timesteps"]).any() and len(training) == 4 * 3 * 292
     assert (training[training.timesteps > 292 * 2048 - 20 * 2048].approx_kl > 0.0121).all()  # the resumed attempt's
     (out / "README.md").write_text(
         "before\n<!-- transfer-ablations-reading -->\nSTALE TABLE\n<!-- /transfer-ablations-reading -->\nafter\n"
@@ -81,9 +85,22 @@ def test_the_reading_names_a_part_only_where_an_ablated_student_learns_escape_at
     assert "neither, within noise" in rows["no diversion in the Transformer"]
     assert "does not free it" in rows["no diversion in the Transformer"]
     assert "no reading: KL per update off" in rows["no orthogonality (free square factors)"]
-    assert "the block (G-L)" in rows["DivMorph (comparator)"]  # the shipped G-L runs of ../transfer-recipes
+    assert "| neither, within noise |" in rows["DivMorph (comparator)"] and rows["DivMorph (comparator)"].endswith("| the block |")
     assert all("not run" in line for line in table.splitlines() if line.startswith("| PointNav"))
     assert table.endswith("By the rule: the decoder's fixed selection holds the fixed-gate block.")
     readme = (out / "README.md").read_text()
     assert readme.startswith("before\n") and readme.endswith("after\n") and "STALE TABLE" not in readme and table in readme
     assert (out / "ablations.png").stat().st_size > 10_000
+
+
+def test_no_part_is_named_where_the_divmorph_student_itself_learns_escape(tmp_path):
+    """Made-up Escape runs where the DivMorph student, raced alike, climbs by 2 at the dense KL: there is no block for
+    an ablation to free, so the decoder ablation's climb names nothing, and the conclusion says why."""
+    race = tmp_path / "race"
+    for student, climb in [("divmorph", 2.0), ("no-kdiv-decoder", 2.0), ("no-kdiv-transformer", 0.0), ("no-orthogonality", 0.0)]:
+        make_race(race, student, "Escape", climb=climb, kl=0.012)
+    out = tmp_path / "study"
+    out.mkdir()
+    load("collect").collect(race, out)
+    table = load("read").main(out)
+    assert table.endswith("By the rule: no part named; the DivMorph student itself: DivMorph learns: no block to name.")

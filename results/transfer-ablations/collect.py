@@ -1,9 +1,9 @@
-"""Gather the ablation race's finished runs (not tracked) into the small tables ``read.py`` reads.
+"""Gather the ablation race's finished runs into the small tables ``read.py`` reads.
 
-    python results/transfer-ablations/collect.py --from /work/abl-race/race
+    python results/transfer-ablations/collect.py
 
-``--from`` is the race's folder (``ablation_race.sh``'s ``$WORK/race``), one branch per task and student,
-``<Task>-<student>/``. Writes ``curves.csv.gz`` (each run's mean deterministic return per robot at each
+``--from`` is a race's folder, one branch per task and student, ``<Task>-<student>/``: by default the runs and
+starts ``ablation_race.sh`` kept (``kept/race``: each run's logs, not its model). Writes ``curves.csv.gz`` (each run's mean deterministic return per robot at each
 evaluation), ``training.csv.gz`` (each PPO update's stochastic training return and approximate KL) and
 ``starts.csv`` (each student's many-draw start per robot: the mean over the evaluation seeds of its folder's
 ``baseline.json``, told what its runs are told).
@@ -61,7 +61,7 @@ def collect(race: Path, out: Path = HERE) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--from", dest="race", type=Path, required=True, help="the race's folder ($WORK/race of ablation_race.sh)")
+    parser.add_argument("--from", dest="race", type=Path, default=HERE / "kept" / "race", help="a race's folder (default: the kept runs)")
     collect(parser.parse_args().race)
 
 
