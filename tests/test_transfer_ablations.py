@@ -104,3 +104,25 @@ def test_no_part_is_named_where_the_divmorph_student_itself_learns_escape(tmp_pa
     load("collect").collect(race, out)
     table = load("read").main(out)
     assert table.endswith("By the rule: no part named; the DivMorph student itself: DivMorph learns: no block to name.")
+
+
+KEPT = STUDY / "kept" / "students"
+
+
+@pytest.mark.parametrize("name", sorted(p.name for p in KEPT.iterdir()) if KEPT.is_dir() else [])
+def test_a_kept_student_is_the_student_it_is_named_for_distilled_400k_steps(name, official_cache):
+    """Each student the race kept loads by its path, with its statistics and its run's robots; its policy is built
+    as ``STUDENTS[name]`` builds it from the settings kept beside it (the ablation's switch included); it was
+    distilled for 400k DAgger steps, as those settings say; and it acts on a training robot."""
+    from divmorph.pipeline.provenance import recorded_profile
+    from divmorph.pipeline.students import STUDENTS
+    from divmorph.pretrained import load_pretrained
+
+    profile = recorded_profile(KEPT / name / "run.json")
+    assert profile.distill.n_timesteps == 400_000
+    student = load_pretrained(KEPT / name / "student")
+    assert isinstance(student.model.policy, STUDENTS[name].policy) and student.normalizer is not None
+    assert student.model.policy_kwargs.items() >= STUDENTS[name].policy_kwargs(profile).items()
+    assert 400_000 <= student.model.num_timesteps < 400_000 + 8 * 256
+    (row,) = student.evaluate(student.robots[:1], task="FT", episodes=1, seed=0, max_episode_steps=50)
+    assert np.isfinite(row["return"]) and row["length"] > 0
