@@ -12,10 +12,12 @@
 # (goal_range 10, Patrol's gates). Each race folder's start is then measured: 5 evaluation seeds x 3 episodes,
 # told what its runs are told.
 #
-# What outlives the machine: a finished student (its model, statistics and logs) and a finished run's or start's
-# small files (done.json, source.json, the packed eval.csv and progress logs; baseline.json) are copied into KEEP, a
-# tracked folder, as the job ends; a later session's job finds them there and restores the student or skips the
-# run. A distillation cannot resume across machines (its aggregated dataset is ~1 GB), so it must finish within one.
+# What outlives the machine: a finished student (its model, statistics and logs) is copied into KEPT_STUDENTS, and a
+# finished run's or start's small files (done.json, source.json, the packed eval.csv and progress logs;
+# baseline.json) into KEEP, a tracked folder, as the job ends; a later session's job finds them there and restores
+# the student or skips the run. A distillation cannot resume across machines (its aggregated dataset is ~1 GB), so
+# it must finish within one. The four students (3.4 MB) would take the tracked files over their 24 MiB limit: they
+# live in commit 63b877b, not in the tree (README.md: how to take them out of it).
 #
 # The jobs are a list in order of priority, worked by any number of workers. A worker takes the first job that
 # nobody has claimed and that can start -- a student's races wait until it is distilled, a start until its race
@@ -27,14 +29,16 @@
 # message. One worker per core:
 #
 #     git worktree add /work/wt-abl <commit>    # the commit the race is run with (README.md names it)
-#     for i in 1 2; do CODE=/work/wt-abl WORK=/work/abl-race KEEP=$PWD/results/transfer-ablations/kept PY=$PWD/.venv/bin/python nohup bash /work/wt-abl/results/transfer-ablations/ablation_race.sh /work/abl-race/claims-1 >> ablation.log 2>&1 & done
+#     mkdir -p /work/abl-students && git archive 63b877b results/transfer-ablations/kept/students | tar -x --strip-components=4 -C /work/abl-students
+#     for i in 1 2; do CODE=/work/wt-abl WORK=/work/abl-race KEEP=$PWD/results/transfer-ablations/kept KEPT_STUDENTS=/work/abl-students PY=$PWD/.venv/bin/python nohup bash /work/wt-abl/results/transfer-ablations/ablation_race.sh /work/abl-race/claims-1 >> ablation.log 2>&1 & done
 #
 # Results: python results/transfer-ablations/collect.py --from results/transfer-ablations/kept/race, then read.py
 # (README.md says what they show).
 #
 # Environment: CODE (the checkout whose code runs; default: this one), WORK (where the branches, races and starts
-# go; default: runs/ablation-race), KEEP (the tracked folder of finished students and runs; default: this checkout's
-# results/transfer-ablations/kept), PY (default: this checkout's .venv/bin/python), POLL (seconds between looks for a
+# go; default: runs/ablation-race), KEEP (the tracked folder of finished runs; default: this checkout's
+# results/transfer-ablations/kept), KEPT_STUDENTS (the folder of finished students; default: KEEP/students), PY
+# (default: this checkout's .venv/bin/python), POLL (seconds between looks for a
 # job that cannot start yet; default 60).
 set -u
 CLAIMS=${1:?usage: ablation_race.sh CLAIMS_FOLDER}
@@ -49,6 +53,8 @@ mkdir -p "$CLAIMS" "$WORK/race" "$KEEP" || exit 1
 CLAIMS=$(cd "$CLAIMS" && pwd)
 WORK=$(cd "$WORK" && pwd)
 KEEP=$(cd "$KEEP" && pwd)
+KEPT_STUDENTS=${KEPT_STUDENTS:-$KEEP/students}
+mkdir -p "$KEPT_STUDENTS" && KEPT_STUDENTS=$(cd "$KEPT_STUDENTS" && pwd) || exit 1
 DISTILL_STEPS=400000
 export PYTHONPATH=$CODE MUJOCO_GL=${MUJOCO_GL:-egl} HF_HUB_OFFLINE=1 TRANSFORMERS_OFFLINE=1
 cd "$CODE" || exit 1
@@ -75,7 +81,7 @@ student_dir() {
 # distill STUDENT: DAgger into the student, in its own branch of results/cpu100 (teachers only); a student kept by
 # an earlier session is restored instead, and a new one kept
 distill() {
-    local branch=$WORK/distill-$1 kept=$KEEP/students/$1 status
+    local branch=$WORK/distill-$1 kept=$KEPT_STUDENTS/$1 status
     if [ ! -f "$branch/run.json" ]; then
         "$PY" -m divmorph.cli branch --from results/cpu100 --out "$branch" --stages teachers || {
             status=$?
@@ -98,15 +104,16 @@ distill() {
     [ -f "$kept/student/done.json" ] || keep_student "$1"
 }
 
-# keep_student STUDENT: its model, statistics, done marker and packed logs, and its branch's settings, into KEEP
+# keep_student STUDENT: its model, statistics, done marker and packed logs, and its branch's settings, into
+# KEPT_STUDENTS
 keep_student() {
-    local from stage=$KEEP/students/.staging-$1
+    local from stage=$KEPT_STUDENTS/.staging-$1
     from=$(student_dir "$1")
     rm -rf "$stage" && mkdir -p "$stage/student" || return
     cp "$WORK/distill-$1/run.json" "$WORK/distill-$1/robot_sets.json" "$stage/" || return
     cp "$from/model.zip" "$from/vecnormalize.pkl" "$from/done.json" "$stage/student/" || return
     pack_logs "$from" "$stage/student" || return
-    rm -rf "$KEEP/students/$1" && mv "$stage" "$KEEP/students/$1"
+    rm -rf "${KEPT_STUDENTS:?}/$1" && mv "$stage" "$KEPT_STUDENTS/$1"
 }
 
 # pack_logs FROM TO: FROM's logs/run-*/progress.csv as TO's logs/run-*/progress.csv.gz
