@@ -22,7 +22,8 @@ G_TERMS = ["transfer.eval_episodes=5", "transfer.learngene_lr_scale=1", "transfe
 # Logs each call (its arguments as JSON) and makes the files the real calls make: `divmorph branch` a run.json and
 # robot_sets.json, `divmorph distill` (after a moment) the student's model, statistics, log and done.json -- or
 # fails, for the student named in FAIL_DISTILL, or is stopped by SIGTERM, for STOP_DISTILL's --, a race run its
-# --out's run.json, its seed's source.json, eval.csv, log and done.json, and a start baseline.json.
+# --out's run.json, its seed's source.json, eval.csv, log and done.json, a start baseline.json, and the packer the
+# packed form of each finished run.
 STAND_IN = f"""#!{sys.executable}
 import json, os, sys, time
 from pathlib import Path
@@ -50,6 +51,15 @@ elif argv[:3] == ["-m", "divmorph.cli", "distill"]:
         (done / name).write_text(student)
     with open(work / "calls.log", "a") as log:
         log.write(json.dumps(["distilled", student]) + "\\n")
+elif argv[0] == "tools/pack_transfer_runs.py":  # the packed form of each finished run, and the variant's table
+    folder, variant = argv[2].rsplit("=", 1)
+    for done in Path(folder).glob("transfer/*/*/seed-*/done.json"):
+        target = Path(argv[1]) / variant / done.parent.relative_to(folder)
+        target.mkdir(parents=True, exist_ok=True)
+        for name in ("done.json", "source.json"):
+            (target / name).write_text((done.parent / name).read_text())
+        (target / "eval.csv.gz").write_text("packed")
+    (Path(argv[1]) / f"training-{{variant}}.csv.gz").write_text("packed")
 elif argv[0] == "results/finetune-known-task/finetune_known_task.py":
     seed = Path(option["--out"]) / "transfer" / option["--task"] / option["--arms"] / f"seed-{{option['--seeds']}}"
     if "--baseline-seeds" in argv:
@@ -124,7 +134,7 @@ def test_two_workers_run_every_job_once_and_race_only_distilled_students_on_g_te
     Escape from the low start (Incline's instruction) before PointNav (the bounded goal, Patrol's gates); each start
     is measured once a run of its folder has begun, on the same terms. What is finished is kept: each student
     (model, statistics, packed log, its branch's settings), each run's small files (its model left behind), each
-    start."""
+    start. Runs are kept as tools/pack_transfer_runs.py packs them: no model, no full log."""
     ended, calls = run_workers(tmp_path)
     assert [number for number, _, _ in ended] == list(range(36))  # each job once
     assert all(status == 0 for _, _, status in ended)
@@ -155,12 +165,8 @@ def test_two_workers_run_every_job_once_and_race_only_distilled_students_on_g_te
         if options["--seeds"] == "0":
             first_run[options["--out"]] = (i, settings)
         run = kept / "race" / f"{task}-{student}" / "transfer" / task / student / f"seed-{options['--seeds']}"
-        assert sorted(p.relative_to(run).as_posix() for p in run.rglob("*") if p.is_file()) == [
-            "done.json",
-            "eval.csv.gz",
-            "logs/run-1/progress.csv.gz",
-            "source.json",
-        ]
+        assert sorted(p.relative_to(run).as_posix() for p in run.rglob("*") if p.is_file()) == ["done.json", "eval.csv.gz", "source.json"]
+        assert (kept / "race" / f"training-{task}-{student}.csv.gz").is_file()
     starts = [(i, options, settings) for i, options, settings in study_calls(calls) if "--baseline-seeds" in options]
     assert {options["--out"] for _, options, _ in starts} == set(first_run) and len(starts) == 8
     for i, options, settings in starts:

@@ -44,7 +44,13 @@ def make_race(race: Path, student: str, task: str, climb: float, kl: float) -> N
         pd.DataFrame(rows, columns=["timesteps", "split", "robot", "episode", "return"]).to_csv(run / "eval.csv", index=False)
         updates = np.arange(2048, 600_001, 2048)
         log = pd.DataFrame(
-            {"time/total_timesteps": updates, "rollout/ep_rew_mean": np.linspace(1, 1 + climb, len(updates)), "train/approx_kl": kl}
+            {
+                "time/total_timesteps": updates,
+                "rollout/ep_rew_mean": np.linspace(1, 1 + climb, len(updates)),
+                "train/approx_kl": kl,
+                "train/clip_fraction": 0.1,
+                "train/explained_variance": 0.8,
+            }
         )
         log.to_csv(run / "logs" / "run-1" / "progress.csv", index=False)
         # resumed from a checkpoint 20 updates back: those updates are logged again, by the attempt that counts
@@ -107,6 +113,36 @@ def test_no_part_is_named_where_the_divmorph_student_itself_learns_escape(tmp_pa
     load("collect").collect(race, out)
     table = load("read").main(out)
     assert table.endswith("By the rule: no part named; the DivMorph student itself: DivMorph learns: no block to name.")
+
+
+def test_a_race_packed_as_it_is_kept_reads_as_the_race_itself(tmp_path):
+    """The race's runs kept as ``tools/pack_transfer_runs.py`` packs them (evaluations with returns to 0.01, the
+    updates in a table beside the race folders; no logs) give the reading the full runs give, to its printed
+    digits; a kept run whose updates are missing from its table is an error that names it, not a row without KL."""
+    race = tmp_path / "race"
+    for student, climb in [("divmorph", 0.0), ("no-kdiv-decoder", 2.0), ("no-kdiv-transformer", 0.0), ("no-orthogonality", 0.0)]:
+        make_race(race, student, "Escape", climb=climb, kl=0.012)
+    kept = tmp_path / "kept"
+    pack = importlib.util.spec_from_file_location("pack_transfer_runs", STUDY.parents[1] / "tools" / "pack_transfer_runs.py")
+    packer = importlib.util.module_from_spec(pack)
+    pack.loader.exec_module(packer)
+    for branch in sorted(race.iterdir()):
+        packer.pack(kept, branch, branch.name)
+        (kept / branch.name / "baseline.json").write_text((branch / "baseline.json").read_text())
+    assert not list(kept.rglob("progress.csv*"))
+    tables = {}
+    for name, folder in [("full", race), ("kept", kept)]:
+        out = tmp_path / f"read-{name}"
+        out.mkdir()
+        load("collect").collect(folder, out)
+        tables[name] = load("read").main(out)
+    assert tables["kept"] == tables["full"] and "names the decoder's fixed selection" in tables["kept"]
+
+    table = kept / "training-Escape-divmorph.csv.gz"
+    rows = pd.read_csv(table)
+    rows[rows.seed != 1].to_csv(table, index=False)
+    with pytest.raises(SystemExit, match="seed-1: finished, but neither its logs nor"):
+        load("collect").collect(kept, tmp_path / "read-kept")
 
 
 #: the commit that holds the race's four distilled students (not in the tree: they would take it over 24 MiB)

@@ -13,8 +13,8 @@
 # told what its runs are told.
 #
 # What outlives the machine: a finished student (its model, statistics and logs) is copied into KEPT_STUDENTS, and a
-# finished run's or start's small files (done.json, source.json, the packed eval.csv and progress logs;
-# baseline.json) into KEEP, a tracked folder, as the job ends; a later session's job finds them there and restores
+# finished run's or start's small files (done.json, source.json, its evaluations and a table of its updates, packed
+# by tools/pack_transfer_runs.py; baseline.json) into KEEP, a tracked folder, as the job ends; a later session's job finds them there and restores
 # the student or skips the run. A distillation cannot resume across machines (its aggregated dataset is ~1 GB), so
 # it must finish within one. The four students (3.4 MB) would take the tracked files over their 24 MiB limit: they
 # live in commit 63b877b, not in the tree (README.md: how to take them out of it).
@@ -126,15 +126,12 @@ pack_logs() {
     done
 }
 
-# keep_run TASK STUDENT SEED: a finished run's small files into KEEP (its model stays behind)
+# keep_run TASK STUDENT: the race folder's finished runs, packed into KEEP as tools/pack_transfer_runs.py packs a
+# race (each run's evaluations, returns to 0.01, and done/source json; its updates' training return, KL, clip
+# fraction and explained variance in KEEP/race/training-TASK-STUDENT.csv.gz; models and full logs stay behind).
+# One packer at a time: two workers finishing seeds of one student would both rewrite its training table.
 keep_run() {
-    local from=$WORK/race/$1-$2/transfer/$1/$2/seed-$3 to=$KEEP/race/$1-$2/transfer/$1/$2/seed-$3
-    [ -f "$from/done.json" ] || return 0
-    rm -rf "$to.staging" && mkdir -p "$to.staging" || return
-    cp "$from/done.json" "$from/source.json" "$to.staging/" || return
-    if [ -f "$from/eval.csv" ]; then gzip -c "$from/eval.csv" > "$to.staging/eval.csv.gz"; else cp "$from/eval.csv.gz" "$to.staging/"; fi || return
-    pack_logs "$from" "$to.staging" || return
-    rm -rf "$to" && mv "$to.staging" "$to"
+    flock "$WORK/pack.lock" "$PY" tools/pack_transfer_runs.py "$KEEP/race" "$WORK/race/$1-$2=$1-$2"
 }
 
 # stopped STATUS: the job was stopped by Ctrl-C or SIGTERM (the race is being stopped), not failed
@@ -189,7 +186,7 @@ race() {
     terms "$2"
     "$PY" results/finetune-known-task/finetune_known_task.py --source "$(source_run "$1")" "${TERMS[@]}" \
         --arms "$1" --seeds "$3" --out "$WORK/race/$2-$1" || return
-    keep_run "$2" "$1" "$3"
+    keep_run "$2" "$1"
 }
 
 # starts STUDENT TASK: the student's many-draw start in its race folder (5 evaluation seeds x 3 episodes; skipped
