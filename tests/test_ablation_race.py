@@ -51,6 +51,10 @@ elif argv[:3] == ["-m", "divmorph.cli", "distill"]:
         (done / name).write_text(student)
     with open(work / "calls.log", "a") as log:
         log.write(json.dumps(["distilled", student]) + "\\n")
+elif argv[0] == "tools/pack_logs.py":  # each plain log under the folder gzipped in its place
+    for log in Path(argv[2]).rglob("progress.csv"):
+        log.with_name("progress.csv.gz").write_text(log.read_text())
+        log.unlink()
 elif argv[0] == "tools/pack_transfer_runs.py":  # the packed form of each finished run, and the variant's table
     folder, variant = argv[2].rsplit("=", 1)
     for done in Path(folder).glob("transfer/*/*/seed-*/done.json"):

@@ -104,26 +104,16 @@ distill() {
     [ -f "$kept/student/done.json" ] || keep_student "$1"
 }
 
-# keep_student STUDENT: its model, statistics, done marker and packed logs, and its branch's settings, into
-# KEPT_STUDENTS
+# keep_student STUDENT: its model, statistics, done marker and logs (packed by tools/pack_logs.py), and its branch's
+# settings, into KEPT_STUDENTS
 keep_student() {
     local from stage=$KEPT_STUDENTS/.staging-$1
     from=$(student_dir "$1")
     rm -rf "$stage" && mkdir -p "$stage/student" || return
     cp "$WORK/distill-$1/run.json" "$WORK/distill-$1/robot_sets.json" "$stage/" || return
-    cp "$from/model.zip" "$from/vecnormalize.pkl" "$from/done.json" "$stage/student/" || return
-    pack_logs "$from" "$stage/student" || return
+    cp -r "$from/model.zip" "$from/vecnormalize.pkl" "$from/done.json" "$from/logs" "$stage/student/" || return
+    "$PY" tools/pack_logs.py --write "$stage/student" || return
     rm -rf "${KEPT_STUDENTS:?}/$1" && mv "$stage" "$KEPT_STUDENTS/$1"
-}
-
-# pack_logs FROM TO: FROM's logs/run-*/progress.csv as TO's logs/run-*/progress.csv.gz
-pack_logs() {
-    local log dir
-    for log in "$1"/logs/run-*/progress.csv; do
-        [ -f "$log" ] || continue
-        dir=$2/logs/$(basename "$(dirname "$log")")
-        mkdir -p "$dir" && gzip -c "$log" > "$dir/progress.csv.gz" || return
-    done
 }
 
 # keep_run TASK STUDENT: the race folder's finished runs, packed into KEEP as tools/pack_transfer_runs.py packs a
