@@ -145,6 +145,21 @@ def test_a_race_packed_as_it_is_kept_reads_as_the_race_itself(tmp_path):
         load("collect").collect(kept, tmp_path / "read-kept")
 
 
+def test_every_kept_run_reads_with_its_updates_and_at_the_race_terms(tmp_path):
+    """The runs the race has kept so far (``kept/race``) collect whole: each with its evaluations at the race's
+    points (0 and every 200,704 steps to 602,112) on 20 training and 20 held-out robots, and its ~294 updates."""
+    kept = STUDY / "kept" / "race"
+    if not any(kept.glob("*/transfer/*/*/seed-*/done.json")):
+        pytest.skip("no race run kept yet")
+    load("collect").collect(kept, tmp_path)
+    curves, training = pd.read_csv(tmp_path / "curves.csv.gz"), pd.read_csv(tmp_path / "training.csv.gz")
+    for (task, student, seed), run in curves.groupby(["task", "student", "seed"]):
+        assert sorted(run.timesteps.unique()) == [0, 200_704, 401_408, 602_112], (task, student, seed)
+        assert run.groupby("split").robot.nunique().to_dict() == {"novel": 20, "train": 20}
+        updates = training[(training.task == task) & (training.student == student) & (training.seed == seed)]
+        assert len(updates) >= 290 and updates.approx_kl.notna().all()
+
+
 #: the commit that holds the race's four distilled students (not in the tree: they would take it over 24 MiB)
 STUDENTS_COMMIT = "63b877b"
 KEPT = "results/transfer-ablations/kept/students"
