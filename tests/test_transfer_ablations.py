@@ -145,19 +145,59 @@ def test_a_race_packed_as_it_is_kept_reads_as_the_race_itself(tmp_path):
         load("collect").collect(kept, tmp_path / "read-kept")
 
 
-def test_every_kept_run_reads_with_its_updates_and_at_the_race_terms(tmp_path):
-    """The runs the race has kept so far (``kept/race``) collect whole: each with its evaluations at the race's
-    points (0 and every 200,704 steps to 602,112) on 20 training and 20 held-out robots, and its ~294 updates."""
-    kept = STUDY / "kept" / "race"
-    if not any(kept.glob("*/transfer/*/*/seed-*/done.json")):
+#: the commit whose tree holds every run and start the race kept (``kept/race``); collect's tables replaced it in
+#: the tree, which it would take over 24 MiB beside them
+RACE_COMMIT = None
+KEPT_RACE = "results/transfer-ablations/kept/race"
+
+
+def archived(commit: str | None, path: str, folder: Path) -> Path:
+    """``path`` taken out of ``commit`` into ``folder`` as the README says (skips where the history is absent)."""
+    if commit is None:
+        pytest.skip(f"{path} is in no commit yet")
+    archive = subprocess.run(["git", "archive", commit, path], cwd=STUDY.parents[1], capture_output=True)
+    if archive.returncode != 0:
+        pytest.skip(f"commit {commit} is not in this checkout's history")
+    with tarfile.open(fileobj=io.BytesIO(archive.stdout)) as tar:
+        tar.extractall(folder, filter="data")
+    return folder / path
+
+
+@pytest.fixture(scope="module")
+def kept_race(tmp_path_factory) -> Path:
+    """The race's kept runs and starts: in the tree while it runs, afterwards taken out of their commit."""
+    if (STUDY / "kept" / "race").is_dir():
+        return STUDY / "kept" / "race"
+    return archived(RACE_COMMIT, KEPT_RACE, tmp_path_factory.mktemp("race"))
+
+
+def test_every_kept_run_reads_with_its_updates_and_at_the_race_terms(kept_race, tmp_path):
+    """The runs the race has kept (``kept/race``) collect whole: each with its evaluations at the race's points (0
+    and every 200,704 steps to 602,112) on 20 training and 20 held-out robots, and its ~294 updates."""
+    if not any(kept_race.glob("*/transfer/*/*/seed-*/done.json")):
         pytest.skip("no race run kept yet")
-    load("collect").collect(kept, tmp_path)
+    load("collect").collect(kept_race, tmp_path)
     curves, training = pd.read_csv(tmp_path / "curves.csv.gz"), pd.read_csv(tmp_path / "training.csv.gz")
     for (task, student, seed), run in curves.groupby(["task", "student", "seed"]):
         assert sorted(run.timesteps.unique()) == [0, 200_704, 401_408, 602_112], (task, student, seed)
         assert run.groupby("split").robot.nunique().to_dict() == {"novel": 20, "train": 20}
         updates = training[(training.task == task) & (training.student == student) & (training.seed == seed)]
         assert len(updates) >= 290 and updates.approx_kl.notna().all()
+
+
+def test_the_shipped_tables_and_reading_are_what_the_kept_race_collects_to(kept_race, tmp_path):
+    """Once the race has ended, its shipped tables (``curves.csv.gz``, ``training.csv.gz``, ``starts.csv``) hold
+    all 24 runs and 8 starts, are what its kept runs collect to, and ``reading.md`` is what ``read.py`` reads
+    from them."""
+    if not (STUDY / "curves.csv.gz").is_file():
+        pytest.skip("the race has not ended: its tables are not collected yet")
+    load("collect").collect(kept_race, tmp_path)
+    for name in ["curves.csv.gz", "training.csv.gz", "starts.csv"]:
+        pd.testing.assert_frame_equal(pd.read_csv(tmp_path / name), pd.read_csv(STUDY / name), obj=name)
+    curves, starts = pd.read_csv(STUDY / "curves.csv.gz"), pd.read_csv(STUDY / "starts.csv")
+    assert curves.groupby(["task", "student"]).seed.nunique().to_dict() == {key: 3 for key in starts.groupby(["task", "student"]).groups}
+    assert len(starts.groupby(["task", "student"])) == 8
+    assert load("read").main(tmp_path) + "\n" == (STUDY / "reading.md").read_text()
 
 
 #: the commit that holds the race's four distilled students (not in the tree: they would take it over 24 MiB)
@@ -168,14 +208,7 @@ KEPT = "results/transfer-ablations/kept/students"
 @pytest.fixture(scope="module")
 def kept_students(tmp_path_factory) -> Path:
     """The four students, taken out of their commit as the README says (skips where the history is absent)."""
-    repo = STUDY.parents[1]
-    archive = subprocess.run(["git", "archive", STUDENTS_COMMIT, KEPT], cwd=repo, capture_output=True)
-    if archive.returncode != 0:
-        pytest.skip(f"the students' commit {STUDENTS_COMMIT} is not in this checkout's history")
-    folder = tmp_path_factory.mktemp("students")
-    with tarfile.open(fileobj=io.BytesIO(archive.stdout)) as tar:
-        tar.extractall(folder, filter="data")
-    return folder / KEPT
+    return archived(STUDENTS_COMMIT, KEPT, tmp_path_factory.mktemp("students"))
 
 
 @pytest.mark.parametrize("name", ["divmorph", "no-kdiv-transformer", "no-kdiv-decoder", "no-orthogonality"])
