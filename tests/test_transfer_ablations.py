@@ -95,6 +95,14 @@ def test_the_reading_names_a_part_only_where_an_ablated_student_learns_escape_at
     assert "does not free it" in rows["no diversion in the Transformer"]
     assert "no reading: KL per update off" in rows["no orthogonality (free square factors)"]
     assert "| neither, within noise |" in rows["DivMorph (comparator)"] and rows["DivMorph (comparator)"].endswith("| the block |")
+    # against the comparator, paired by robot: the decoder ablation gains ~2 more, the Transformer's no more
+    against = {
+        student: [float(x) for x in line.split(" | ")[7].replace("[", "").replace("]", "").replace(",", "").split()]
+        for student, line in rows.items()
+        if "comparator" not in student
+    }
+    assert 1.5 < against["no diversion in the decoder"][0] and against["no diversion in the decoder"][1] > 0
+    assert against["no diversion in the Transformer"][1] <= 0 <= against["no diversion in the Transformer"][2]
     assert all("not run" in line for line in table.splitlines() if line.startswith("| PointNav"))
     assert table.endswith("By the rule: the decoder's fixed selection holds the fixed-gate block.")
     readme = (out / "README.md").read_text()
@@ -113,6 +121,22 @@ def test_no_part_is_named_where_the_divmorph_student_itself_learns_escape(tmp_pa
     load("collect").collect(race, out)
     table = load("read").main(out)
     assert table.endswith("By the rule: no part named; the DivMorph student itself: DivMorph learns: no block to name.")
+
+
+def test_two_named_parts_are_read_as_holding_the_block_together():
+    """Where two ablated students each learn and the comparator does not, each part is needed for the block (without
+    either, the student learns): the conclusion says they hold it together, not that either alone does."""
+    read = load("read")
+    verdicts = {
+        "divmorph": "the block",
+        "no-kdiv-transformer": "names the Transformer's fixed selection",
+        "no-kdiv-decoder": "does not free it",
+        "no-orthogonality": "names the Cayley square factors",
+    }
+    assert read.conclusion(verdicts) == (
+        "By the rule: the Transformer's fixed selection and the Cayley square factors hold the fixed-gate block together "
+        "(without any one of them the student learns)."
+    )
 
 
 def test_a_race_packed_as_it_is_kept_reads_as_the_race_itself(tmp_path):
