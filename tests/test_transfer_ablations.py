@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib.util
 import io
 import json
+import re
 import subprocess
 import tarfile
 from pathlib import Path
@@ -141,8 +142,8 @@ def test_two_named_parts_are_read_as_holding_the_block_together():
 
 def test_a_race_packed_as_it_is_kept_reads_as_the_race_itself(tmp_path):
     """The race's runs kept as ``tools/pack_transfer_runs.py`` packs them (evaluations with returns to 0.01, the
-    updates in a table beside the race folders; no logs) give the reading the full runs give, to its printed
-    digits; a kept run whose updates are missing from its table is an error that names it, not a row without KL."""
+    updates in a table beside the race folders; no logs) give the reading the full runs give: the same words, and
+    each number within one unit of its last printed digit (Escape's returns print to 0.01); a kept run whose updates are missing from its table is an error that names it, not a row without KL."""
     race = tmp_path / "race"
     for student, climb in [("divmorph", 0.0), ("no-kdiv-decoder", 2.0), ("no-kdiv-transformer", 0.0), ("no-orthogonality", 0.0)]:
         make_race(race, student, "Escape", climb=climb, kl=0.012)
@@ -160,7 +161,11 @@ def test_a_race_packed_as_it_is_kept_reads_as_the_race_itself(tmp_path):
         out.mkdir()
         load("collect").collect(folder, out)
         tables[name] = load("read").main(out)
-    assert tables["kept"] == tables["full"] and "names the decoder's fixed selection" in tables["kept"]
+    number = r"[+-]?\d+\.\d+"
+    assert re.sub(number, "#", tables["kept"]) == re.sub(number, "#", tables["full"])
+    kept_numbers, full_numbers = (np.array(re.findall(number, tables[name]), float) for name in ["kept", "full"])
+    assert np.abs(kept_numbers - full_numbers).max() <= 0.0101
+    assert "names the decoder's fixed selection" in tables["kept"]
 
     table = kept / "training-Escape-divmorph.csv.gz"
     rows = pd.read_csv(table)

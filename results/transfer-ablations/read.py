@@ -43,6 +43,8 @@ DENSE_KL = 0.012
 #: MetaMorph⚗'s many-draw start on Escape: a start at or above it leaves no room a student is known to climb into
 ROOM = 5.2
 WINDOW = 30
+#: decimals the table prints returns with: Escape's are ~1, PointNav's ~200
+DECIMALS = {"Escape": 2, "PointNav": 1}
 MARKER = "<!-- transfer-ablations-reading -->"
 
 
@@ -89,7 +91,8 @@ def against_comparator(task: str, student: str, here: Path = HERE) -> str:
         return "comparator not run"
     difference = (per_robot_gain(mine[0], mine[2]) - per_robot_gain(theirs[0], theirs[2])).dropna().to_numpy()
     lo, hi = robot_interval(difference)
-    return f"{difference.mean():+.1f} [{lo:+.1f}, {hi:+.1f}]"
+    d = DECIMALS[task]
+    return f"{difference.mean():+.{d}f} [{lo:+.{d}f}, {hi:+.{d}f}]"
 
 
 def stochastic(training: pd.DataFrame) -> np.ndarray:
@@ -134,11 +137,12 @@ def row(task: str, student: str, here: Path = HERE) -> tuple[str, tuple[np.ndarr
     kl = training.approx_kl
     medians = training.groupby("seed").approx_kl.median()
     verdict = by_the_rule(task, student, curve[0], reading, kl)
+    d = DECIMALS[task]
     text = (
-        f"| {TASKS[task]} | {STUDENTS[student]} | {curves.seed.nunique()} | {curve[0]:.1f} | {curve[-1]:.1f} "
-        f"| {gain.mean():+.1f} [{lo:+.1f}, {hi:+.1f}] | {reading} | {against_comparator(task, student, here)} "
-        f"| {noisy.mean():+.1f} [{noisy_lo:+.1f}, {noisy_hi:+.1f}] "
-        f"| {held.iloc[:, 0].mean():.1f} -> {held.iloc[:, -1].mean():.1f} "
+        f"| {TASKS[task]} | {STUDENTS[student]} | {curves.seed.nunique()} | {curve[0]:.{d}f} | {curve[-1]:.{d}f} "
+        f"| {gain.mean():+.{d}f} [{lo:+.{d}f}, {hi:+.{d}f}] | {reading} | {against_comparator(task, student, here)} "
+        f"| {noisy.mean():+.{d}f} [{noisy_lo:+.{d}f}, {noisy_hi:+.{d}f}] "
+        f"| {held.iloc[:, 0].mean():.{d}f} -> {held.iloc[:, -1].mean():.{d}f} "
         f"| {kl.median():.4f} ({medians.min():.4f}-{medians.max():.4f}) / {kl.max():.3f} "
         f"| {verdict} |"
     )
