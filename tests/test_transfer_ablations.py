@@ -176,7 +176,7 @@ def test_a_race_packed_as_it_is_kept_reads_as_the_race_itself(tmp_path):
 
 #: the commit whose tree holds every run and start the race kept (``kept/race``); collect's tables replaced it in
 #: the tree, which it would take over 24 MiB beside them
-RACE_COMMIT = None
+RACE_COMMIT = "454a95b"
 KEPT_RACE = "results/transfer-ablations/kept/race"
 
 
