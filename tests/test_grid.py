@@ -60,12 +60,17 @@ def test_bad_arms_seeds_and_missing_stages_give_clear_errors(tmp_path, capsys):
     assert "no data for figure 'ablation'" in capsys.readouterr().err
 
 
+def _ray_is_connected() -> bool:
+    ray = sys.modules.get("ray")
+    return ray is not None and ray.is_initialized()
+
+
 def test_a_ray_address_that_does_not_answer_fails_fast(tmp_path, capsys):
     base = _base(write_profiles(tmp_path), tmp_path / "run")
-    start = time.perf_counter()
+    # the address is probed before Ray connects: the error, not a hang in ray.init (what "fast" stands for)
     assert cli(["transfer", *base, "--arms", "scratch", "--backend", "ray", "--address", "127.0.0.1:9"]) == 2
-    assert time.perf_counter() - start < 15
     assert "Ray address '127.0.0.1:9' does not answer" in capsys.readouterr().err
+    assert not _ray_is_connected()
     assert cli(["transfer", *base, "--arms", "scratch", "--backend", "ray", "--address", "nonsense"]) == 2
     assert "is not host:port" in capsys.readouterr().err
 
