@@ -4,7 +4,8 @@
 root, where ``python -m rl_zoo3.train --conf-file zoo_configs/ppo.yml`` finds it, and is shipped
 inside the package as ``sb3_divmorph/zoo_configs/`` by mapping that package onto the root folder:
 one copy of each file, in wheels and editable installs alike (``sb3_divmorph.zoo`` finds it with
-``importlib.resources``).
+``importlib.resources``). ``examples/`` ships the same way, as ``divmorph.examples``, so a pip user
+runs ``python -m divmorph.examples.distill_dagger`` where a checkout runs ``python examples/distill_dagger.py``.
 """
 
 from setuptools import find_namespace_packages, find_packages, setup
@@ -16,6 +17,7 @@ setup(
         # code, but setuptools counts them as packages whose files it ships, so they are named as such
         *find_namespace_packages(include=["unimal_envs.assets", "unimal_envs.data", "unimal_envs.data.*"]),
         "sb3_divmorph.zoo_configs",
+        "divmorph.examples",
     ],
-    package_dir={"sb3_divmorph.zoo_configs": "zoo_configs"},
+    package_dir={"sb3_divmorph.zoo_configs": "zoo_configs", "divmorph.examples": "examples"},
 )

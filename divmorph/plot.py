@@ -15,6 +15,7 @@ none, from SB3 ``progress.csv`` logs (``rollout/ep_rew_mean`` against ``time/tot
 from __future__ import annotations
 
 import argparse
+import csv
 import sys
 from pathlib import Path
 
@@ -33,17 +34,17 @@ def learning_curve(folder: str | Path, window: int = 10) -> tuple[np.ndarray, np
     :param window: episodes per moving average of the Monitor returns (1 = raw).
     :raises PlotError: the folder does not exist or holds neither kind of file.
     """
-    import pandas as pd
-
     folder = Path(folder)
     if not folder.is_dir():
         raise PlotError(f"no such folder: {folder}")
     monitors = sorted(folder.rglob("*monitor.csv"))
     if monitors:
-        frames = [pd.read_csv(f, skiprows=1) for f in monitors]  # line 1: the Monitor's JSON header
-        episodes = pd.concat(frames).sort_values("t")
-        steps = episodes["l"].cumsum().to_numpy(dtype=float)
-        returns = episodes["r"].to_numpy(dtype=float)
+        # line 1 of a Monitor file is its JSON header; then one row per episode (r, l, t)
+        episodes = sorted(
+            ((float(row["t"]), float(row["l"]), float(row["r"])) for f in monitors for row in csv.DictReader(f.read_text().splitlines()[1:])),
+        )
+        steps = np.cumsum([length for _, length, _ in episodes]).astype(float)
+        returns = np.array([value for _, _, value in episodes], dtype=float)
         if window > 1 and len(returns) >= window:
             returns = np.convolve(returns, np.ones(window) / window, mode="valid")
             steps = steps[window - 1 :]
@@ -51,11 +52,18 @@ def learning_curve(folder: str | Path, window: int = 10) -> tuple[np.ndarray, np
         return steps, returns, f"{len(monitors)} Monitor file(s), {len(episodes)} episodes{smoothing}"
     logs = sorted({*folder.rglob("progress.csv"), *folder.rglob("progress.csv.gz")})  # (a recorded run ships them packed)
     if logs:
-        table = pd.concat([pd.read_csv(f) for f in logs]).dropna(subset=["rollout/ep_rew_mean"])
-        table = table.sort_values("time/total_timesteps")
+        from divmorph.pipeline.files import read_csv_rows  # (the pipeline's imports only when a stage is read)
+
+        # SB3 logs the episode return only after the first episodes have ended: rows without it are skipped
+        points = sorted(
+            (float(row["time/total_timesteps"]), float(row["rollout/ep_rew_mean"]))
+            for f in logs
+            for row in read_csv_rows(f)
+            if row.get("rollout/ep_rew_mean") not in (None, "")
+        )
         return (
-            table["time/total_timesteps"].to_numpy(dtype=float),
-            table["rollout/ep_rew_mean"].to_numpy(dtype=float),
+            np.array([step for step, _ in points], dtype=float),
+            np.array([value for _, value in points], dtype=float),
             f"{len(logs)} progress.csv log(s): rollout/ep_rew_mean, mean of SB3's last 100 episodes",
         )
     raise PlotError(

@@ -307,10 +307,8 @@ def best_robots(saved: SavedModel, env_id: str, n: int = 5, split: str = "train"
     :param split: ``train``, ``novel`` or ``ood``.
     :raises PretrainedError: the model is not a stage of an evaluated run, or the evaluation has no rows for it.
     """
-    import pandas as pd
-
+    from divmorph.pipeline.files import log_file, read_csv_rows
     from divmorph.pipeline.folders import evaluation_label
-    from divmorph.pipeline.files import log_file
 
     task = env_id.split("-")[1]
     found = evaluation_label(saved.model.parent)
@@ -321,19 +319,25 @@ def best_robots(saved: SavedModel, env_id: str, n: int = 5, split: str = "train"
     recorded = log_file(path)
     if recorded is None:
         raise PretrainedError(f"{run} has no evaluation ({path}); run `divmorph evaluate --run {run}` first")
-    means = robot_means(pd.read_csv(recorded), label, task, split, seed)
-    if means.empty:
+    means = robot_means(read_csv_rows(recorded), label, task, split, seed)
+    if not means:
         raise PretrainedError(f"{recorded} has no {split} rows of {label} on {task}")
-    return [(str(robot), float(value)) for robot, value in means.head(n).items()]
+    return means[:n]
 
 
-def robot_means(returns: Any, model: str, task: str, split: str = "train", seed: int | None = None) -> Any:
-    """Each robot's mean return of one model on one task and split in an evaluation's
-    ``returns.csv`` (a DataFrame), best first (``seed``: one transfer run's rows only)."""
-    mine = returns[(returns.model == model) & (returns.task == task) & (returns.split == split)]
-    if seed is not None and "seed" in mine:
-        mine = mine[mine.seed == seed]
-    return mine.groupby("morphology")["return"].mean().sort_values(ascending=False)
+def robot_means(rows: list[dict[str, str]], model: str, task: str, split: str = "train", seed: int | None = None) -> list[tuple[str, float]]:
+    """Each robot's mean return of one model on one task and split, from the rows of an evaluation's
+    ``returns.csv`` (:func:`divmorph.pipeline.files.read_csv_rows`): ``[(robot, mean)]``, best first
+    (``seed``: one transfer run's rows only; a robot's ties keep the file's order)."""
+    returns: dict[str, list[float]] = {}
+    for row in rows:
+        if row["model"] != model or row["task"] != task or row["split"] != split:
+            continue
+        if seed is not None and "seed" in row and (row["seed"] == "" or int(float(row["seed"])) != seed):
+            continue
+        returns.setdefault(row["morphology"], []).append(float(row["return"]))
+    means = [(robot, float(np.mean(values))) for robot, values in returns.items()]
+    return sorted(means, key=lambda pair: -pair[1])
 
 
 def check_archive(model: Path) -> None:

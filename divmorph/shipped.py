@@ -130,7 +130,10 @@ class _SourceFiles:
                 with urllib.request.urlopen(self.source, timeout=60) as response, open(self._download, "wb") as out:  # noqa: S310
                     shutil.copyfileobj(response, out)
             except (urllib.error.URLError, OSError, ValueError) as error:
-                raise ShippedModelsError(f"could not download {self.source}: {error}") from None
+                raise ShippedModelsError(
+                    f"could not download {self.source}: {error}. Without a network, give --source a clone of the divmorph "
+                    "repository (its results/ folder holds the models) or a .tar.gz archive of one"
+                ) from None
             return self._archive(self._download)
         path = Path(self.source).expanduser()
         if path.is_dir():

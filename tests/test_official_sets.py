@@ -241,3 +241,14 @@ def test_a_run_records_a_held_out_set_that_is_not_fetched_here_instead_of_failin
     assert len(record["train"]["robots"]) == 100 and "fetch --sets test" in record["novel"]["not_on_this_machine"]
     with pytest.raises(MorphologyError, match="unimals100-test"):
         robot_set_record(load_profile("gpu", overrides={"train_set": "unimals100-test"}))
+
+
+def test_an_unreachable_source_says_how_to_fetch_offline(tmp_path):
+    """Offline, the download error names ``--source`` and the archive to bring (break: the bare
+    "could not download URL: <reason>" message -> fails)."""
+    with pytest.raises(O.FetchError) as raised:
+        O.fetch("http://127.0.0.1:9/unimals.tar.gz", ["train"], cache=tmp_path / "cache")  # port 9: nothing answers
+    said = str(raised.value)
+    assert "could not download http://127.0.0.1:9/unimals.tar.gz" in said
+    assert "--source PATH" in said and O.PINNED_COMMIT in said and "Universal-Morphology-Control" in said
+    assert not (tmp_path / "cache" / "unimals100-train").exists()

@@ -226,3 +226,26 @@ def test_the_zero_shot_page_quotes_its_results_file():
             assert quoted == [train, held_out], (task, model, cell, row)
             checked += 1
     assert checked == 20
+
+
+#: a figure with its interval, as the claims tables print them: ``573 [446, 709]``, ``+0.26 [+0.04, +0.54]``, ``91% [77, 106]``
+_FIGURE = re.compile(r"[-+]?[\d,.]+%? \[[-+]?[\d,.]+%?, [-+]?[\d,.]+%?\]")
+
+
+@pytest.mark.parametrize("table", ["README.md", "docs/claims/index.md"])
+def test_every_headline_figure_is_the_one_on_its_claim_page(table):
+    """Each figure with an interval in a claims table (README's, the claims index) is written, digit for
+    digit, on the claim page its row links to: one number per claim (break: change 573 [446, 709] to
+    573 [448, 708] in the README -> fails)."""
+    text = (REPO / table).read_text()
+    rows = [line for line in text.splitlines() if line.startswith("|")]
+    checked = 0
+    for row in rows:
+        link = re.search(r"\]\((?:docs/claims/)?(\w+)\.md\)", row)
+        if link is None:
+            continue
+        page = " ".join((REPO / "docs" / "claims" / f"{link.group(1)}.md").read_text().split())  # a figure may wrap
+        for figure in _FIGURE.findall(row):
+            assert figure in page, f"{table}: {figure!r} is not on docs/claims/{link.group(1)}.md"
+            checked += 1
+    assert checked >= 4, checked

@@ -76,3 +76,9 @@ def test_an_archive_is_fetched_and_a_changed_file_is_refused_with_nothing_instal
     with pytest.raises(ShippedModelsError, match="has no results/cpu100/"):
         fetch_models("cpu100", empty, cache=tmp_path / "other", force=True)
     shutil.rmtree(cache)
+
+
+def test_an_unreachable_models_source_says_what_to_give_instead(tmp_path):
+    """Offline, a URL source fails naming what ``--source`` takes instead (break: the bare "could not download" -> fails)."""
+    with pytest.raises(ShippedModelsError, match=r"could not download .*give --source a clone of the divmorph repository"):
+        fetch_models("cpu100", "http://127.0.0.1:9/divmorph.tar.gz", cache=tmp_path / "models")

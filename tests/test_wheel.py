@@ -16,12 +16,14 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 
 
-def _run(command: list[str], cwd: Path, site: Path, timeout: int = 300, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+def _run(
+    command: list[str], cwd: Path, site: Path, timeout: int = 300, env: dict[str, str] | None = None, path: str | None = None
+) -> subprocess.CompletedProcess:
     # Only the installed copy on the path (not this checkout); one torch thread (small models, busy CPUs).
     merged = {
         **os.environ,
         **(env or {}),
-        "PYTHONPATH": str(site),
+        "PYTHONPATH": path or str(site),
         "MUJOCO_GL": "egl",
         "OMP_NUM_THREADS": "1",
         "HF_HUB_OFFLINE": "1",
@@ -82,6 +84,8 @@ def installed(tmp_path_factory) -> tuple[Path, Path]:
         "divmorph/shipped_models.json",
         "divmorph/cli/__init__.py",
         "divmorph/pipeline/transfer.py",
+        "divmorph/examples/distill_dagger.py",
+        "divmorph/examples/transfer.py",
     }
     assert shipped <= names, shipped - names
     for split in ("train", "novel"):  # the 200 generated robots, each with its metadata
@@ -162,6 +166,32 @@ def test_installed_rl_zoo_trains_with_the_shipped_entries_and_record_films_it(in
     assert train.returncode == 0, train.stderr[-3000:]
     run = elsewhere / "logs" / "ppo" / "Unimal-FT-v0_1"
     assert (run / "Unimal-FT-v0.zip").is_file() and (run / "Unimal-FT-v0" / "vecnormalize.pkl").is_file()
+    # the README's enjoy command replays it (rl_zoo3.enjoy imports requests: the [zoo] extra brings it)
+    enjoy = _run(
+        [
+            sys.executable,
+            "-m",
+            "rl_zoo3.enjoy",
+            "--algo",
+            "ppo",
+            "--env",
+            "Unimal-FT-v0",
+            "--gym-packages",
+            "unimal_envs",
+            "sb3_divmorph",
+            "-f",
+            "logs",
+            "--exp-id",
+            "1",
+            "-n",
+            "20",
+            "--no-render",
+        ],
+        elsewhere,
+        site,
+    )
+    assert enjoy.returncode == 0, enjoy.stderr[-3000:]
+    assert "Loading" in enjoy.stdout + enjoy.stderr
 
     video = elsewhere / "ft.mp4"
     record = _run(
@@ -189,23 +219,120 @@ def test_installed_rl_zoo_trains_with_the_shipped_entries_and_record_films_it(in
     assert frames.shape[1:] == (64, 64, 3) and 2 <= len(frames) <= 11
 
 
+def _plain_install(folder: Path) -> Path:
+    """A ``sitecustomize`` that hides every package the base install does not bring (the extras'
+    rl_zoo3, pandas, requests, Ray, MuJoCo Warp... and what only they need), as a plain
+    ``pip install divmorph`` leaves them out; put it first on ``PYTHONPATH``."""
+    import importlib.metadata as metadata
+
+    from packaging.requirements import Requirement
+
+    def closure(name: str) -> set[str]:
+        seen: set[str] = set()
+        stack = [name]
+        while stack:
+            dist = stack.pop().lower().replace("_", "-")
+            if dist in seen:
+                continue
+            seen.add(dist)
+            try:
+                requires = metadata.requires(dist) or []
+            except metadata.PackageNotFoundError:
+                continue
+            for text in requires:
+                requirement = Requirement(text)
+                if requirement.marker is None or requirement.marker.evaluate({"extra": ""}):
+                    stack.append(requirement.name)
+        return seen
+
+    base = closure("divmorph")
+    extras = set().union(*(closure(r.name) for r in map(Requirement, metadata.requires("divmorph") or []) if r.marker is not None))
+    hidden = {
+        module
+        for module, dists in metadata.packages_distributions().items()
+        if all(d.lower().replace("_", "-") in extras - base for d in dists)
+    }
+    assert {"pandas", "rl_zoo3", "requests", "ray"} <= hidden, hidden
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "sitecustomize.py").write_text(
+        "import sys\n"
+        f"HIDDEN = {sorted(hidden)!r}\n"
+        "class _PlainInstall:\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        "        if name.split('.')[0] in HIDDEN:\n"
+        "            raise ModuleNotFoundError(f'No module named {name!r} (a plain install)', name=name)\n"
+        "sys.meta_path.insert(0, _PlainInstall())\n"
+    )
+    return folder
+
+
+def test_a_plain_install_runs_every_command_that_needs_no_extra(installed, tmp_path):
+    """Without the extras (no pandas, rl_zoo3, requests, Ray, Warp), ``divmorph record`` with no ``--robot``
+    films the run's best training robot, ``divmorph plot`` draws the run's logs and each command's
+    ``--help`` answers (break: import pandas in ``divmorph.pretrained.best_robots`` -> "No module named 'pandas'")."""
+    import csv
+
+    from test_usability import tiny_model
+
+    site, elsewhere = installed
+    plain = _plain_install(tmp_path / "plain")
+    run = tmp_path / "run"
+    teacher = run / "teachers" / "FT"
+    tiny_model(teacher, steps=64)
+    (run / "run.json").write_text('{"configuration": {}}')
+    (run / "robot_sets.json").write_text('{"train": {"set": "train", "robots": ["train-000", "train-001"]}}')
+    (run / "evaluate").mkdir()
+    with open(run / "evaluate" / "returns.csv", "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["model", "task", "split", "morphology", "episode", "return", "length", "seed"])
+        writer.writerows([["teacher", "FT", "train", "train-000", 0, 5.0, 10, ""], ["teacher", "FT", "train", "train-001", 0, 9.0, 10, ""]])
+    path = os.pathsep.join([str(plain), str(site)])
+    divmorph = [sys.executable, str(site / "bin" / "divmorph")]
+    hidden = _run([sys.executable, "-c", "import pandas"], elsewhere, site, env={}, path=path)
+    assert hidden.returncode != 0 and "a plain install" in hidden.stderr  # the stand-in hides what it should
+    video = tmp_path / "best.gif"
+    args = [str(teacher), "--steps", "6", "--width", "32", "--height", "32", "--no-progress", "--out", str(video)]
+    filmed = _run([*divmorph, "record", *args], elsewhere, site, path=path)
+    assert filmed.returncode == 0, filmed.stderr[-3000:]
+    assert "no --robot: filming train-001" in filmed.stdout and video.is_file()
+    plotted = _run([*divmorph, "plot", str(teacher), "--out", str(tmp_path / "curve.png")], elsewhere, site, path=path)
+    assert plotted.returncode == 0, plotted.stderr[-3000:]
+    assert (tmp_path / "curve.png").is_file()
+    for command in ("pipeline", "teachers", "distill", "transfer", "evaluate", "report", "export", "record", "plot", "fetch-models"):
+        helped = _run([*divmorph, command, "--help"], elsewhere, site, path=path)
+        assert helped.returncode == 0 and "usage:" in helped.stdout, (command, helped.stderr[-2000:])
+
+
 def test_the_installed_packages_declare_their_type_hints(installed):
     site, _ = installed
     assert all((site / package / "py.typed").is_file() for package in ("sb3_divmorph", "unimal_envs", "divmorph"))
 
 
-def test_the_readmes_first_python_example_runs_from_the_wheel(installed):
-    """The README's first Python block (an env and ``PPO("DivMorphPolicy", env)``) runs from the installed
-    wheel in a folder outside the checkout, with nothing fetched (break: drop the policy aliases'
-    registration in ``sb3_divmorph/__init__.py`` -> "Policy DivMorphPolicy unknown")."""
+def test_the_readmes_first_python_example_runs_from_the_wheel(installed, official_sets):
+    """The README's first Python block (the official training robots, ``PPO("DivMorphPolicy", env)``) runs
+    from the installed wheel in a folder outside the checkout, after the robot fetch it names, and says
+    what it trained (break: drop the policy aliases' registration in ``sb3_divmorph/__init__.py`` ->
+    "Policy DivMorphPolicy unknown")."""
     import re
 
     site, elsewhere = installed
-    block = re.findall(r"```python\n(.*?)```", (REPO / "README.md").read_text(), flags=re.S)[0]
+    readme = (REPO / "README.md").read_text()
+    block = re.findall(r"```python\n(.*?)```", readme, flags=re.S)[0]
     assert 'PPO("DivMorphPolicy", env' in block and "results/" not in block
-    done = _run([sys.executable, "-c", block + "\nprint('trained', model.num_timesteps)"], elsewhere, site)
+    assert 'morphologies="unimals100-train"' in block and "torch.set_num_threads(1)" in block
+    assert "python -m unimal_envs.morphology fetch" in readme.split(block)[0]  # the fetch is named before the block
+    done = _run([sys.executable, "-c", block], elsewhere, site, env={"UNIMAL_DATA": str(official_sets)})
     assert done.returncode == 0, done.stderr[-3000:]
-    assert re.search(r"^trained \d+", done.stdout, flags=re.M), done.stdout
+    assert re.search(r"^DivMorph trained 128 steps on Escape over 100 official training robots", done.stdout, flags=re.M), done.stdout
+
+
+def test_the_examples_run_from_the_wheel(installed):
+    """A pip user reaches the examples as ``python -m divmorph.examples.NAME`` (break: drop the
+    ``divmorph.examples`` mapping in setup.py -> "No module named divmorph.examples")."""
+    site, elsewhere = installed
+    for name in ("distill_dagger", "load_run_model", "transfer", "export_actor"):
+        helped = _run([sys.executable, "-m", f"divmorph.examples.{name}", "--help"], elsewhere, site)
+        assert helped.returncode == 0 and "usage:" in helped.stdout, (name, helped.stderr[-2000:])
 
 
 @pytest.mark.shipped_results

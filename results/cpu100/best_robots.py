@@ -15,9 +15,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import pandas as pd
-
-from divmorph.pipeline.files import log_file
+from divmorph.pipeline.files import log_file, read_csv_rows
 from divmorph.pretrained import robot_means
 
 TRAINING_TASKS = ("FT", "VT", "Incline", "Obstacle", "Patrol")
@@ -31,10 +29,10 @@ SHIPPED = {
 }
 
 
-def best_robots(returns: pd.DataFrame, model: str, task: str, n: int) -> tuple[pd.Series, float]:
+def best_robots(returns: list[dict[str, str]], model: str, task: str, n: int) -> tuple[list[tuple[str, float]], float]:
     """The ``n`` training robots with the highest mean return of ``model`` on ``task``, and its mean over all."""
     means = robot_means(returns, model, task, "train")
-    return means.head(n), float(means.mean())
+    return means[:n], sum(value for _, value in means) / max(len(means), 1)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -45,7 +43,7 @@ def main(argv: list[str] | None = None) -> None:
     path = log_file(args.run / "evaluate" / "returns.csv")
     if path is None:
         raise SystemExit(f"{args.run} has no evaluate/returns.csv; run `divmorph evaluate --run {args.run}` first")
-    returns = pd.read_csv(path)
+    returns = read_csv_rows(path)
     lines = [
         f"# Robots each shipped model does well on: `{args.run}`",
         "",
@@ -60,13 +58,13 @@ def main(argv: list[str] | None = None) -> None:
         "|---|---|---:|---|---|",
     ]
     for model, (folder, name) in SHIPPED.items():
-        for task in [t for t in TRAINING_TASKS if t in set(returns[returns.model == model].task)]:
+        for task in [t for t in TRAINING_TASKS if t in {row["task"] for row in returns if row["model"] == model}]:
             top, mean = best_robots(returns, model, task, args.top)
             stage = args.run / folder.format(task=task)
-            if top.empty or not (stage / "model.zip").is_file():
+            if not top or not (stage / "model.zip").is_file():
                 continue
             command = f"`divmorph record {stage} --robot best" + ("" if "{task}" in folder else f" --task {task}") + "`"
-            robots = ", ".join(f"`{robot}` ({value:,.0f})" for robot, value in top.items())
+            robots = ", ".join(f"`{robot}` ({value:,.0f})" for robot, value in top)
             lines.append(f"| {name} | {task} | {mean:,.0f} | {robots} | {command} |")
     lines.append("")
     (args.run / "best-robots.md").write_text("\n".join(lines))

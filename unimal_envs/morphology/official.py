@@ -130,7 +130,12 @@ def _download(url: str, target: Path, progress: bool) -> None:
                     print(f"  downloaded {done / 2**20:.1f} MiB", flush=True)
                     last = time.monotonic()
     except (urllib.error.URLError, OSError, ValueError) as err:
-        raise FetchError(f"could not download {url}: {err}") from None
+        raise FetchError(
+            f"could not download {url}: {err}. Without a network, fetch from a copy: the archive of the "
+            f"MasterXiong/Universal-Morphology-Control repository at commit {PINNED_COMMIT} (that URL's .tar.gz, "
+            "downloaded elsewhere), a checkout of it, or a folder holding train/ and test/ (each with xml/ and metadata/): "
+            "`python -m unimal_envs.morphology fetch --source PATH`"
+        ) from None
     if expected is not None and done != int(expected):
         raise FetchError(f"download of {url} is truncated: got {done} of {expected} bytes")
 
