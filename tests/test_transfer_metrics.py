@@ -14,6 +14,9 @@ from divmorph.pipeline.metrics import (
     final_level,
     level_for,
     mean_curve,
+    paired_run_interval,
+    robot_interval,
+    run_interval,
     steps_to_hold,
     task_metrics_from_curves,
 )
@@ -98,6 +101,48 @@ def test_metrics_are_means_over_seeds_and_robots_with_bootstrap_intervals():
     narrow = by_arm(task_metrics_from_curves("E", "train", {"x": [run(STEPS + d) for d in (-1, 1)]}))["x"]
     wide = by_arm(task_metrics_from_curves("E", "train", {"x": [run(*(STEPS + d for d in (-50, -20, 20, 50)))]}))["x"]
     assert wide.final_hi - wide.final_lo > 10 * (narrow.final_hi - narrow.final_lo) > 0
+
+
+def race(seed_means: tuple[float, ...], robots: int = 20, noise: float = 0.5, seed: int = 0) -> np.ndarray:
+    """A made-up race: one value per (training run, robot), each run's robots scattered around its own mean."""
+    rng = np.random.default_rng(seed)
+    return np.asarray(seed_means, float)[:, None] + rng.normal(0, noise, (len(seed_means), robots))
+
+
+def test_an_interval_over_training_runs_spans_runs_that_disagree():
+    values = race((0.0, 5.0, 10.0))
+    lo, hi = run_interval(values)
+    # three runs: a draw can take the lowest (or the highest) run three times, and does in more than 2.5% of draws
+    assert lo < 2 and hi > 8, (lo, hi)
+    # the same 60 values taken as independent robots: the runs' disagreement is hidden
+    flat_lo, flat_hi = robot_interval(values.ravel())
+    assert flat_lo > 3 and flat_hi < 7, (flat_lo, flat_hi)
+
+
+def test_an_interval_over_training_runs_is_narrow_when_runs_agree():
+    lo, hi = run_interval(race((5.0, 5.0, 5.0)))
+    assert 4.5 < lo < 5 < hi < 5.5, (lo, hi)
+    # one run: robots only, as over per-robot values
+    single = race((5.0,))
+    assert run_interval(single) == robot_interval(single[0])
+
+
+def test_a_paired_interval_resamples_each_arms_runs_and_pairs_robots():
+    rng = np.random.default_rng(1)
+    robots = rng.normal(0, 50, 20)  # robots differ far more than the arms do: pairing cancels it
+    comparator = robots + race((0.0, 0.0, 0.0), noise=0.1, seed=2)
+    lo, hi = paired_run_interval(robots + race((2.0, 2.0, 2.0), noise=0.1, seed=3), comparator)
+    assert 1.5 < lo < 2 < hi < 2.5, (lo, hi)
+    # the arm's runs disagree: its interval spans them, as an unpaired one does
+    lo, hi = paired_run_interval(robots + race((0.0, 5.0, 10.0), seed=3), comparator)
+    assert lo < 2 and hi > 8, (lo, hi)
+    # a fixed comparator (one row, e.g. a many-draw start) against runs that agree
+    lo, hi = paired_run_interval(robots + race((2.0, 2.0, 2.0), noise=0.1, seed=3), robots[None, :])
+    assert 1.5 < lo < 2 < hi < 2.5, (lo, hi)
+    with pytest.raises(ValueError, match="robots"):
+        paired_run_interval(race((0.0, 1.0)), race((0.0, 1.0), robots=19))
+    with pytest.raises(ValueError, match="missing"):
+        run_interval(np.array([[1.0, np.nan], [2.0, 3.0]]))
 
 
 def test_episodes_are_averaged_per_robot_and_seeds_share_steps_and_robots():

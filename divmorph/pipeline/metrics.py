@@ -170,13 +170,18 @@ def stack_seeds(runs: list[RobotCurves]) -> tuple[np.ndarray, np.ndarray]:
     return grid, values
 
 
+def _counts(rng: np.random.Generator, n: int, draws: int) -> np.ndarray:
+    """(draws, n) how many times each of ``n`` units is drawn in each bootstrap draw (with replacement)."""
+    return rng.multinomial(n, np.full(n, 1 / n), size=draws).astype(float)
+
+
 def bootstrap_curves(values: np.ndarray, draws: int = BOOTSTRAP, seed: int = 0) -> np.ndarray:
     """(draws, T) mean curves of ``values`` (S, R, T) with seeds and robots resampled independently,
     each with replacement (a fixed generator: the same intervals on every call)."""
     n_seeds, n_robots, _ = values.shape
     rng = np.random.default_rng(seed)
-    seed_counts = rng.multinomial(n_seeds, np.full(n_seeds, 1 / n_seeds), size=draws).astype(float)
-    robot_counts = rng.multinomial(n_robots, np.full(n_robots, 1 / n_robots), size=draws).astype(float)
+    seed_counts = _counts(rng, n_seeds, draws)
+    robot_counts = _counts(rng, n_robots, draws)
     return np.einsum("bs,br,srt->bt", seed_counts, robot_counts, values) / (n_seeds * n_robots)
 
 
@@ -205,6 +210,41 @@ def seed_interval(values: np.ndarray) -> tuple[float, float]:
 def robot_interval(values: np.ndarray) -> tuple[float, float]:
     """95% bootstrap interval of the mean of per-robot values (robots resampled with replacement)."""
     return interval(bootstrap_curves(np.asarray(values, float)[None, :, None])[:, 0])
+
+
+def _runs_by_robots(values: np.ndarray) -> np.ndarray:
+    """``values`` as a complete (seeds, robots) float array (a row per training run, a column per robot)."""
+    values = np.asarray(values, float)
+    if values.ndim != 2 or not values.size:
+        raise ValueError(f"expected a non-empty (seeds, robots) array, got shape {values.shape}")
+    if np.isnan(values).any():
+        # a missing (seed, robot) cell would change the number of robots a draw averages per seed
+        raise ValueError("a (seeds, robots) array with missing values: keep the robots every seed has")
+    return values
+
+
+def run_interval(values: np.ndarray, draws: int = BOOTSTRAP, seed: int = 0) -> tuple[float, float]:
+    """95% interval of the mean of ``values`` (S training runs, R robots): a two-way bootstrap resampling
+    runs and, independently, robots (:func:`bootstrap_curves`). The training run is the unit that varies:
+    a run's robots share its policy, so they are not S x R independent draws. One run: robots only."""
+    values = _runs_by_robots(values)
+    return interval(bootstrap_curves(values[:, :, None], draws, seed)[:, 0])
+
+
+def paired_run_interval(values: np.ndarray, comparator: np.ndarray, draws: int = BOOTSTRAP, seed: int = 0) -> tuple[float, float]:
+    """95% interval of ``mean(values) - mean(comparator)``, each (its own runs, the same R robots in the same
+    order): each draw resamples the runs of each side independently (different training runs) and the robots
+    once for both (the difference is paired by robot). A fixed comparator (e.g. a start) is a single row."""
+    values, comparator = _runs_by_robots(values), _runs_by_robots(comparator)
+    if values.shape[1] != comparator.shape[1]:
+        raise ValueError(f"the two sides have {values.shape[1]} and {comparator.shape[1]} robots: pair them by robot first")
+    rng = np.random.default_rng(seed)
+    # the draws of ``values`` are :func:`run_interval`'s own (the same generator order), the comparator's runs come last
+    mine, robots, theirs = _counts(rng, len(values), draws), _counts(rng, values.shape[1], draws), _counts(rng, len(comparator), draws)
+    n_robots = values.shape[1]
+    means = np.einsum("bs,br,sr->b", mine, robots, values) / (len(values) * n_robots)
+    means -= np.einsum("bs,br,sr->b", theirs, robots, comparator) / (len(comparator) * n_robots)
+    return interval(means)
 
 
 def level_for(zero_shots: Mapping[str, float], finals: Mapping[str, float], fraction: float = EFFICIENCY_FRACTION) -> float | None:

@@ -35,6 +35,7 @@ from divmorph.pipeline.branch import branch
 from divmorph.pipeline.folders import transfer_folder
 from divmorph.pipeline.provenance import recorded_profile
 from divmorph.pipeline.files import log_file, read_progress
+from divmorph.pipeline.metrics import paired_run_interval, run_interval
 from divmorph.pipeline.transfer import transfer_run
 
 ARMS = ("divmorph", "distilled")
@@ -50,11 +51,10 @@ def variants(warmup: int, critic_scale: float) -> dict[str, dict[str, float]]:
     }
 
 
-def bootstrap_ci(values: np.ndarray, seed: int = 0, draws: int = 2000) -> tuple[float, float]:
-    """95% percentile interval of the mean of ``values`` (one value per robot x seed)."""
-    rng = np.random.default_rng(seed)
-    means = rng.choice(values, size=(draws, len(values))).mean(axis=1)
-    return float(np.percentile(means, 2.5)), float(np.percentile(means, 97.5))
+def by_run(values: pd.Series) -> np.ndarray:
+    """Seeds x robots (robots every seed has) from values indexed by (robot, seed): an interval resamples the
+    training runs and the robots within them (a run's robots share its policy: not independent draws)."""
+    return values.unstack("robot").dropna(axis=1).to_numpy()
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -115,7 +115,7 @@ def write_report(args: argparse.Namespace, seconds: float) -> None:
         f"{time.strftime('%Y-%m-%d')}; {seconds / 60:.0f} min for the runs this call trained.",
         "",
         "Mean deterministic return on the run's training robots (3 episodes per robot, averaged per robot), mean over "
-        "robots x seeds with a 95% bootstrap interval; step 0 is the student before any update (the same for both variants "
+        "robots x seeds with a 95% bootstrap interval over training runs (seeds) and robots; step 0 is the student before any update (the same for both variants "
         "but for the seed's evaluation noise).",
         "",
         "| arm | critic | "
@@ -127,19 +127,27 @@ def write_report(args: argparse.Namespace, seconds: float) -> None:
         for variant in names:
             cells = []
             for s in steps:
-                values = data[(data.arm == arm) & (data.variant == variant) & (data.timesteps == s)]["return"].to_numpy()
-                low, high = bootstrap_ci(values)
+                values = by_run(
+                    data[(data.arm == arm) & (data.variant == variant) & (data.timesteps == s)].set_index(["robot", "seed"])["return"]
+                )
+                low, high = run_interval(values)
                 cells.append(f"{values.mean():.1f} [{low:.1f}, {high:.1f}]")
             first = data[(data.arm == arm) & (data.variant == variant) & (data.timesteps == steps[0])].set_index(["robot", "seed"])
             last = data[(data.arm == arm) & (data.variant == variant) & (data.timesteps == steps[-1])].set_index(["robot", "seed"])
-            change = (last["return"] - first["return"]).dropna().to_numpy()
-            low, high = bootstrap_ci(change)
+            change = by_run(last["return"] - first["return"])
+            low, high = run_interval(change)
             baseline = data[(data.arm == arm) & (data.variant == names[0]) & (data.timesteps == steps[-1])].set_index(["robot", "seed"])
-            paired = (last["return"] - baseline["return"]).dropna().to_numpy()
-            p_low, p_high = bootstrap_ci(paired)
+            own, other = last["return"].unstack("robot"), baseline["return"].unstack("robot")
+            robots = own.columns.intersection(other.columns)
+            own, other = own[robots].dropna(axis=1), other[robots].dropna(axis=1)
+            robots = own.columns.intersection(other.columns)
+            own, other = own[robots].to_numpy(), other[robots].to_numpy()
+            paired = own.mean() - other.mean()
+            # the first variant against itself is 0 by construction: its runs are not resampled against themselves
+            p_low, p_high = (0.0, 0.0) if variant == names[0] else paired_run_interval(own, other)
             lines.append(
                 f"| {arm} | {variant} | " + " | ".join(cells) + f" | {change.mean():+.1f} [{low:+.1f}, {high:+.1f}] "
-                f"| {paired.mean():+.1f} [{p_low:+.1f}, {p_high:+.1f}] | {explained_variance(args, variant, arm):.2f} |"
+                f"| {paired:+.1f} [{p_low:+.1f}, {p_high:+.1f}] | {explained_variance(args, variant, arm):.2f} |"
             )
     lines += [
         "",

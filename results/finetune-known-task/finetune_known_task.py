@@ -42,7 +42,7 @@ import yaml
 
 from divmorph.pipeline.branch import branch
 from divmorph.pipeline.folders import transfer_folder
-from divmorph.pipeline.metrics import robot_interval
+from divmorph.pipeline.metrics import run_interval
 from divmorph.pipeline.provenance import recorded_profile
 from divmorph.pipeline.files import is_done, log_file, read_progress
 from divmorph.pipeline.transfer import transfer_run
@@ -157,6 +157,12 @@ def changes(out: Path, task: str, arm: str, seeds: list[int]) -> pd.Series:
     return pd.concat(parts, axis=1).stack().rename("change")
 
 
+def by_run(values: pd.Series) -> np.ndarray:
+    """Seeds x robots (robots every seed has) from values indexed by robot and seed: intervals resample the training
+    runs and the robots within them, not robot x seed pairs (a run's robots share its policy)."""
+    return values.unstack(0).dropna(axis=1).to_numpy()  # the first level is the robot
+
+
 def compare(args: argparse.Namespace) -> None:
     """A table of variants (``LABEL=FOLDER``, the first the reference) for one arm: the change under
     fine-tuning and its difference from the reference's, paired per robot and seed."""
@@ -172,16 +178,16 @@ def compare(args: argparse.Namespace) -> None:
         if mine.empty:
             lines.append(f"| {label} | 0 | – | – |")
             continue
-        lo, hi = robot_interval(mine.to_numpy())
+        lo, hi = run_interval(by_run(mine))
         paired = (mine - reference).dropna().to_numpy()
-        plo, phi = robot_interval(paired) if paired.size else (np.nan, np.nan)
+        plo, phi = run_interval(by_run((mine - reference).dropna())) if paired.size else (np.nan, np.nan)
         against = baseline_changes(Path(folder), args.task, arm, args.seeds)
         if against.empty and args.baseline_from is not None:  # the starting model is the same in every variant
             import shutil
 
             shutil.copy(args.baseline_from / BASELINE, Path(folder) / BASELINE)
             against = baseline_changes(Path(folder), args.task, arm, args.seeds)
-        blo, bhi = robot_interval(against.to_numpy()) if not against.empty else (np.nan, np.nan)
+        blo, bhi = run_interval(by_run(against)) if not against.empty else (np.nan, np.nan)
         lines.append(
             f"| {label} | {mine.index.get_level_values(1).nunique()} | {mine.mean():+.0f} [{lo:+.0f}, {hi:+.0f}] | "
             f"{paired.mean():+.0f} [{plo:+.0f}, {phi:+.0f}] | "
@@ -213,7 +219,7 @@ def report(args: argparse.Namespace) -> None:
         (__doc__ or "").split("\n\n")[1].replace("\n", " "),
         "",
         f"{args.steps:,} env steps per run, evaluations every {args.eval_every:,} on the run's curve robots "
-        f"({overrides(args)['transfer.eval_episodes']} deterministic episodes each, averaged per robot); mean over robots x seeds with a 95% bootstrap interval; the change is paired "
+        f"({overrides(args)['transfer.eval_episodes']} deterministic episodes each, averaged per robot); mean over robots x seeds with a 95% bootstrap interval over training runs and robots; the change is paired "
         "per robot and seed.",
         "",
         "| model | seeds | " + " | ".join(f"{s / 1000:.0f}k" for s in steps) + " | change 0 -> last [95% CI] |",
@@ -225,13 +231,13 @@ def report(args: argparse.Namespace) -> None:
             continue
         cells = []
         for s in steps:
-            values = mine[mine.timesteps == s]["return"].to_numpy()
-            lo, hi = robot_interval(values)
+            values = by_run(mine[mine.timesteps == s].set_index(["robot", "seed"])["return"])
+            lo, hi = run_interval(values)
             cells.append(f"{values.mean():.0f} [{lo:.0f}, {hi:.0f}]")
         first = mine[mine.timesteps == steps[0]].set_index(["robot", "seed"])["return"]
         last = mine[mine.timesteps == steps[-1]].set_index(["robot", "seed"])["return"]
-        change = (last - first).dropna().to_numpy()
-        lo, hi = robot_interval(change)
+        change = (last - first).dropna()
+        lo, hi = run_interval(by_run(change))
         lines.append(f"| {label} | {mine.seed.nunique()} | " + " | ".join(cells) + f" | {change.mean():+.0f} [{lo:+.0f}, {hi:+.0f}] |")
     import json
 
@@ -249,8 +255,8 @@ def report(args: argparse.Namespace) -> None:
             if arm not in saved or data[data.arm == arm].empty:
                 continue
             per_seed = {k: np.mean(list(v.values())) for k, v in saved[arm].items()}
-            change = baseline_changes(args.out, args.task, arm, args.seeds).to_numpy()
-            lo, hi = robot_interval(change)
+            change = baseline_changes(args.out, args.task, arm, args.seeds)
+            lo, hi = run_interval(by_run(change))
             last = data[(data.arm == arm) & (data.timesteps == steps[-1])]["return"].mean()
             seeds_text = ", ".join(f"{per_seed[k]:.0f}" for k in sorted(per_seed, key=int))
             lines.append(

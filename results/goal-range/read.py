@@ -20,7 +20,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from divmorph.pipeline.figures import save_png  # noqa: E402
-from divmorph.pipeline.metrics import robot_interval  # noqa: E402
+from divmorph.pipeline.metrics import paired_run_interval, robot_interval, run_interval  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE.parent
@@ -77,9 +77,23 @@ def gain(curve: pd.DataFrame, start: pd.Series) -> pd.Series:
     return (last - start.reindex(last.index.get_level_values(0)).to_numpy()).dropna()
 
 
+def by_run(change: pd.Series) -> pd.DataFrame:
+    """Seeds x robots (robots every seed has): the unit an interval resamples is the training run, and robots within it."""
+    return change.unstack("robot").dropna(axis=1)
+
+
 def cell(values: np.ndarray, digits: int = 0) -> str:
-    lo, hi = robot_interval(values)
+    """Mean [95% CI]: over training runs and robots for a (seeds, robots) array, over robots for per-robot values."""
+    lo, hi = run_interval(values) if values.ndim == 2 else robot_interval(values)
     return f"{values.mean():+.{digits}f} [{lo:+.{digits}f}, {hi:+.{digits}f}]"
+
+
+def paired_cell(values: pd.DataFrame, comparator: pd.DataFrame) -> str:
+    """Mean difference [95% CI] of two arms' (seeds, robots) gains, paired by robot, each arm's runs resampled apart."""
+    robots = values.columns.intersection(comparator.columns)
+    values, comparator = values[robots].to_numpy(), comparator[robots].to_numpy()
+    lo, hi = paired_run_interval(values, comparator)
+    return f"{values.mean() - comparator.mean():+.0f} [{lo:+.0f}, {hi:+.0f}]"
 
 
 def main() -> None:
@@ -97,9 +111,9 @@ def main() -> None:
             if curve.empty or start is None:
                 lines.append(f"| {label} | {goal} | – | – | not run | – |")
                 continue
-            change = gain(curve, start)
-            per_robot_gain[(arm, goal)] = change.groupby(level=0).mean()
-            lo, hi = robot_interval(change.to_numpy())
+            change = by_run(gain(curve, start))
+            per_robot_gain[(arm, goal)] = change
+            lo, hi = run_interval(change.to_numpy())
             reading = "learns" if lo > 0 else "loses" if hi < 0 else "neither, within noise"
             last = curve[curve.point == curve.point.max()]["return"].mean()
             lines.append(f"| {label} | {goal} | {start.mean():.0f} | {last:.0f} | {cell(change.to_numpy())} | {reading} |")
@@ -119,11 +133,11 @@ def main() -> None:
     extra = []
     for arm in ARMS:
         if (arm, "raw") in per_robot_gain and (arm, "goal_range 10") in per_robot_gain:
-            diff = (per_robot_gain[(arm, "goal_range 10")] - per_robot_gain[(arm, "raw")]).dropna().to_numpy()
-            extra.append(f"- {ARMS[arm][0]}: gain with the bounded goal minus gain with the raw one, per robot: {cell(diff)}")
+            diff = paired_cell(per_robot_gain[(arm, "goal_range 10")], per_robot_gain[(arm, "raw")])
+            extra.append(f"- {ARMS[arm][0]}: gain with the bounded goal minus gain with the raw one, per robot: {diff}")
     if ("divmorph", "goal_range 10") in per_robot_gain and ("distilled", "goal_range 10") in per_robot_gain:
-        diff = (per_robot_gain[("divmorph", "goal_range 10")] - per_robot_gain[("distilled", "goal_range 10")]).dropna().to_numpy()
-        extra.append(f"- bounded goal: the DivMorph arm's gain minus MetaMorph⚗'s, per robot: {cell(diff)}")
+        diff = paired_cell(per_robot_gain[("divmorph", "goal_range 10")], per_robot_gain[("distilled", "goal_range 10")])
+        extra.append(f"- bounded goal: the DivMorph arm's gain minus MetaMorph⚗'s, per robot: {diff}")
     starts = []
     for arm, (label, _, told, model) in ARMS.items():
         bounded = bounded_starts(arm)

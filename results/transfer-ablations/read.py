@@ -5,9 +5,10 @@ table of ``README.md``) and ``ablations.png``.
     python results/transfer-ablations/read.py
 
 Rows: the three ablated students and their comparator, the DivMorph student distilled and raced alike (400k
-DAgger steps, the same terms). Intervals: 95% bootstrap over robot x seed pairs for the gain (the race's
-reading), over robots for the gain against the comparator's (a check added after the race, not part of its rule),
-t over seeds for the stochastic training return.
+DAgger steps, the same terms). Intervals: 95% bootstrap over training runs (seeds) and robots for the gain (the
+race's reading; its rule named robot x seed pairs, but a run's robots share its policy: the run is the unit that
+varies), and for the gain against the comparator's (each student's runs resampled apart, robots paired; a check
+added after the race, not part of its rule); t over seeds for the stochastic training return.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from divmorph.pipeline.figures import save_png  # noqa: E402
-from divmorph.pipeline.metrics import robot_interval, seed_interval  # noqa: E402
+from divmorph.pipeline.metrics import paired_run_interval, run_interval, seed_interval  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 TASKS = {"Escape": "Escape, low start (Incline's gates)", "PointNav": "PointNav, goal bounded at 10 m (Patrol's gates)"}
@@ -66,33 +67,28 @@ def runs(task: str, student: str, here: Path = HERE) -> tuple[pd.DataFrame, pd.D
     )
 
 
-def gains(curves: pd.DataFrame, start: pd.Series) -> np.ndarray:
-    """Per (seed, robot) on the training robots: the last evaluation minus the robot's many-draw start."""
+def gains(curves: pd.DataFrame, start: pd.Series) -> pd.DataFrame:
+    """Seeds x training robots: the last evaluation minus the robot's many-draw start (robots every seed has)."""
     train = curves[curves.split == "train"]
-    last = train[train.timesteps == train.timesteps.max()].set_index("robot")
-    return (last["return"] - start.reindex(last.index)).dropna().to_numpy()
-
-
-def per_robot_gain(curves: pd.DataFrame, start: pd.Series) -> pd.Series:
-    """Per training robot: the last evaluation, averaged over seeds, minus the robot's many-draw start."""
-    train = curves[curves.split == "train"]
-    last = train[train.timesteps == train.timesteps.max()].groupby("robot")["return"].mean()
-    return (last - start.reindex(last.index)).dropna()
+    last = train[train.timesteps == train.timesteps.max()].pivot_table(index="seed", columns="robot", values="return")
+    return (last - start.reindex(last.columns)).dropna(axis=1)
 
 
 def against_comparator(task: str, student: str, here: Path = HERE) -> str:
     """An ablated student's gain minus the DivMorph comparator's, paired by robot, with its 95% bootstrap interval
-    over robots: whether it learns *more* than the comparator, not only whether it learns. Added after the race
-    (not part of its rule): two students whose intervals fall on either side of 0 can gain the same."""
+    over each one's runs and the robots: whether it learns *more* than the comparator, not only whether it learns.
+    Added after the race (not part of its rule): two students whose intervals fall on either side of 0 can gain the same."""
     if student == "divmorph":
         return "(the comparator)"
     mine, theirs = runs(task, student, here), runs(task, "divmorph", here)
     if theirs[0].empty or theirs[2].empty:
         return "comparator not run"
-    difference = (per_robot_gain(mine[0], mine[2]) - per_robot_gain(theirs[0], theirs[2])).dropna().to_numpy()
-    lo, hi = robot_interval(difference)
+    own, other = gains(mine[0], mine[2]), gains(theirs[0], theirs[2])
+    robots = own.columns.intersection(other.columns)
+    own, other = own[robots].to_numpy(), other[robots].to_numpy()
+    lo, hi = paired_run_interval(own, other)
     d = DECIMALS[task]
-    return f"{difference.mean():+.{d}f} [{lo:+.{d}f}, {hi:+.{d}f}]"
+    return f"{own.mean() - other.mean():+.{d}f} [{lo:+.{d}f}, {hi:+.{d}f}]"
 
 
 def stochastic(training: pd.DataFrame) -> np.ndarray:
@@ -123,8 +119,8 @@ def row(task: str, student: str, here: Path = HERE) -> tuple[str, tuple[np.ndarr
     curves, training, start = runs(task, student, here)
     if curves.empty or start.empty:
         return None
-    gain = gains(curves, start)
-    lo, hi = robot_interval(gain)
+    gain = gains(curves, start).to_numpy()
+    lo, hi = run_interval(gain)
     reading = "learns" if lo > 0 else "loses" if hi < 0 else "neither, within noise"
     train = curves[curves.split == "train"]
     robots = sorted(set(train.robot) & set(start.index))

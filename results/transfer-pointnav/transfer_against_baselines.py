@@ -36,7 +36,7 @@ import numpy as np
 import pandas as pd
 
 from divmorph.pipeline.files import is_done, log_file
-from divmorph.pipeline.metrics import robot_interval, steps_to_hold
+from divmorph.pipeline.metrics import paired_run_interval, robot_interval, run_interval, steps_to_hold
 
 
 def curves(folder: Path, task: str, arm: str) -> pd.DataFrame:
@@ -69,6 +69,19 @@ def last_per_run(frame: pd.DataFrame) -> pd.Series:
 def last_per_robot(frame: pd.DataFrame) -> pd.Series:
     """Each robot's return at its runs' own last evaluations, averaged over the runs (seeds)."""
     return last_per_run(frame).groupby(level="robot").mean()
+
+
+def by_run(values: pd.Series) -> pd.DataFrame:
+    """Seeds x robots (robots every seed has) from values indexed by (robot, seed): intervals resample the training
+    runs and the robots within them, not robot x seed pairs (a run's robots share its policy)."""
+    return values.unstack("robot").dropna(axis=1)
+
+
+def paired(values: pd.DataFrame, comparator: pd.DataFrame) -> tuple[float, float, float]:
+    """``(mean difference, low, high)`` of two (seeds, robots) tables on their common robots, paired by robot."""
+    robots = values.columns.intersection(comparator.columns)
+    values, comparator = values[robots].to_numpy(), comparator[robots].to_numpy()
+    return (values.mean() - comparator.mean(), *paired_run_interval(values, comparator))
 
 
 def start_and_curve(frame: pd.DataFrame, baseline: pd.Series) -> tuple[np.ndarray, np.ndarray]:
@@ -107,7 +120,6 @@ def readings(variants: list, task: str, reference: str, scratch: Path | None) ->
     curve = {label: start_and_curve(frame, start.groupby("robot")["return"].mean()) for label, (start, frame) in found.items()}
     level = curve[reference][1][-1]
     to_level = {label: steps_to_hold(*curve[label], level) for label in found}
-    ref_last = last_per_robot(found[reference][1])
     ref_start = found[reference][0].groupby("robot")["return"].mean()
     digits = 1 if abs(level) < 50 else 0
     lines = [
@@ -121,22 +133,22 @@ def readings(variants: list, task: str, reference: str, scratch: Path | None) ->
     ]
     for label in found:
         steps = to_level[label]
-        gap = (last_per_robot(found[label][1]) - ref_last).dropna()
-        low, high = robot_interval(gap.to_numpy())
-        # a gap at the end that was there before any fine-tuning is the starts', not transfer's
+        mine, theirs = by_run(last_per_run(found[label][1])), by_run(last_per_run(found[reference][1]))
+        gap_mean, low, high = paired(mine, theirs)
+        # a gap at the end that was there before any fine-tuning is the starts' (many draws of fixed models: robots only)
         start_gap = (found[label][0].groupby("robot")["return"].mean() - ref_start).dropna()
         s_low, s_high = robot_interval(start_gap.to_numpy()) if len(start_gap) else (np.nan, np.nan)
         # what fine-tuning added, each from its own many-draw start: the comparison of two arms' learning
-        gain_gap = (gap - start_gap).dropna()
-        g_low, g_high = robot_interval(gain_gap.to_numpy()) if len(gain_gap) else (np.nan, np.nan)
+        own_start = found[label][0].groupby("robot")["return"].mean()
+        gain_mean, g_low, g_high = paired(mine - own_start.reindex(mine.columns), theirs - ref_start.reindex(theirs.columns))
         reference_steps = to_level[reference]
         assert reference_steps is not None  # the reference's last point is its own final return
         reading = "(the reference)" if label == reference else efficiency_reading(steps, reference_steps)
         told = "not reached" if steps is None else f"{steps / 1000:.0f}k"
         lines.append(
             f"| {label} | {told} | {reading} | {start_gap.mean():+.{digits}f} [{s_low:+.{digits}f}, {s_high:+.{digits}f}] "
-            f"| {gap.mean():+.{digits}f} [{low:+.{digits}f}, {high:+.{digits}f}] "
-            f"| {gain_gap.mean():+.{digits}f} [{g_low:+.{digits}f}, {g_high:+.{digits}f}] |"
+            f"| {gap_mean:+.{digits}f} [{low:+.{digits}f}, {high:+.{digits}f}] "
+            f"| {gain_mean:+.{digits}f} [{g_low:+.{digits}f}, {g_high:+.{digits}f}] |"
         )
     if scratch is not None:
         control = curves(scratch, task, "scratch")
@@ -181,10 +193,10 @@ def main() -> None:
         digits = 1 if abs(per_robot.mean()) < 50 else 0  # Escape's returns are a few units
         means = " | ".join(f"{frame[s].mean():.{digits}f}" if s in frame else "-" for s in header)
         last = last_per_run(frame)
-        from_zero = (last - frame[steps[0]]).to_numpy()
-        against = (last - per_robot.reindex(frame.index.get_level_values("robot")).to_numpy()).to_numpy()
-        z_low, z_high = robot_interval(from_zero)
-        a_low, a_high = robot_interval(against)
+        from_zero = by_run(last - frame[steps[0]]).to_numpy()
+        against = by_run(last - per_robot.reindex(frame.index.get_level_values("robot")).to_numpy()).to_numpy()
+        z_low, z_high = run_interval(from_zero)
+        a_low, a_high = run_interval(against)
         runs = frame.index.get_level_values("seed").nunique()
         draws = (
             "its step 0"

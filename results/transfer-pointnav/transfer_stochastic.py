@@ -22,7 +22,7 @@ from pathlib import Path
 import pandas as pd
 import torch as th
 
-from divmorph.pipeline.metrics import robot_interval
+from divmorph.pipeline.metrics import run_interval
 from divmorph.pipeline.provenance import recorded_profile
 from divmorph.pipeline.robots import transfer_eval_robots
 from divmorph.pretrained import load_pretrained
@@ -73,8 +73,9 @@ def report(found: pd.DataFrame) -> str:
     for label, part in found.groupby("variant", sort=False):
         per = part.groupby(["model", "robot"])["return"].mean().unstack("model")
         finals = [c for c in per.columns if c != "start"]
-        change = pd.concat([per[c] - per["start"] for c in finals]).to_numpy()
-        low, high = robot_interval(change)
+        # runs x robots: the interval resamples the runs and the robots within them (not run x robot pairs)
+        change = (per[finals].sub(per["start"], axis=0)).dropna().T.to_numpy()
+        low, high = run_interval(change)
         lines.append(
             f"| {label} | {per['start'].mean():.0f} | {per[finals].mean().mean():.0f} ({len(finals)} runs) | {change.mean():+.0f} [{low:+.0f}, {high:+.0f}] |"
         )

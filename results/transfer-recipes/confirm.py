@@ -11,8 +11,8 @@ Curves: K's, F's and G's from ``curves.csv.gz`` / ``training.csv.gz`` (``collect
 ``../transfer-pointnav/runs-600k/`` (same terms, robots, episodes and budget, nominal rates). A fine-tuned
 arm's step 0 is its many-draw start (``../novel-task-gates/returns.csv.gz``: 5 evaluation seeds x 3 episodes
 per robot), scratch's its own step 0. Intervals: 95% bootstrap over robots and seeds (robots paired across
-arms) for the readings of 3x, over robot x seed pairs for the gain (the race's reading); the stochastic
-training return's over the seeds (t). Held-out robots: the 20 curve robots of the official test split,
+arms) for the readings of 3x, over training runs (seeds) and robots for the gains (a run's robots share its
+policy: not independent draws); the stochastic training return's over the seeds (t). Held-out robots: the 20 curve robots of the official test split,
 against each run's own step-0 evaluation (a single draw).
 
 The two readings of "~3x more sample-efficient":
@@ -34,7 +34,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from divmorph.pipeline.figures import save_png  # noqa: E402
-from divmorph.pipeline.metrics import robot_interval, seed_interval, steps_to_hold  # noqa: E402
+from divmorph.pipeline.metrics import run_interval, seed_interval, steps_to_hold  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE.parent
@@ -169,8 +169,8 @@ def task_rows(task: str, rng: np.random.Generator) -> tuple[list[str], dict[str,
     rows = []
     for arm in data:
         steps, boot, values = draws[arm]
-        gain = (values[:, :, -1] - values[:, :, 0]).ravel()  # per (seed, robot), as the race's reading
-        gain_lo, gain_hi = robot_interval(gain)
+        gain = values[:, :, -1] - values[:, :, 0]  # (seeds, robots)
+        gain_lo, gain_hi = run_interval(gain)
         reading = "learns" if gain_lo > 0 else "loses" if gain_hi < 0 else "neither, within noise"
         readings = []
         for reference in ("scratch", "closest"):
@@ -187,8 +187,8 @@ def task_rows(task: str, rng: np.random.Generator) -> tuple[list[str], dict[str,
         noisy = stochastic(task, arm)
         noisy_lo, noisy_hi = seed_interval(noisy)
         held_out = curves(task, arm, "novel").pivot_table(index=["seed", "robot"], columns="timesteps", values="return")
-        held_gain = (held_out.iloc[:, -1] - held_out.iloc[:, 0]).to_numpy()
-        held_lo, held_hi = robot_interval(held_gain)
+        held_gain = (held_out.iloc[:, -1] - held_out.iloc[:, 0]).unstack("robot").dropna(axis=1).to_numpy()
+        held_lo, held_hi = run_interval(held_gain)
         kl = training_log(task, arm).approx_kl
         rows.append(
             f"| {task} | {LABELS[arm]} | {values.shape[0]} | {means[arm][1][0]:.1f} | {means[arm][1][-1]:.1f} "

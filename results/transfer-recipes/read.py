@@ -21,7 +21,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from divmorph.pipeline.figures import save_png  # noqa: E402
-from divmorph.pipeline.metrics import robot_interval  # noqa: E402
+from divmorph.pipeline.metrics import run_interval  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 GOAL_RANGE = HERE.parent / "goal-range"
@@ -76,6 +76,12 @@ def training_columns(variant: str) -> tuple[str, str]:
     return "; ".join(pairs), f"{log.approx_kl.mean():.3f}"
 
 
+def against(last: pd.Series, start: pd.Series) -> np.ndarray:
+    """Seeds x robots: each run's last evaluation minus the robot's start (robots every seed has), for an
+    interval over training runs and robots (a run's robots share its policy: they are not independent draws)."""
+    return (last.unstack("robot") - start.reindex(last.index.unique("robot")).to_numpy()).dropna(axis=1).to_numpy()
+
+
 def main() -> None:
     table = curves()
     check_starts(table)
@@ -95,8 +101,8 @@ def main() -> None:
         start = starts[arm] if arm is not None else own
         last_step = runs.groupby("seed").timesteps.transform("max")
         last = runs[runs.timesteps == last_step].set_index(["robot", "seed"])["return"]
-        change = (last - start.reindex(last.index.get_level_values(0)).to_numpy()).dropna().to_numpy()
-        lo, hi = robot_interval(change)
+        change = against(last, start)
+        lo, hi = run_interval(change)
         reading = "learns" if lo > 0 else "loses" if hi < 0 else "neither, within noise"
         seeds = runs.seed.nunique()
         stochastic, kl = training_columns(variant)
@@ -108,8 +114,8 @@ def main() -> None:
             f"| {novel} | {stochastic} | {kl} |"
         )
         if arm is None:  # the rule's second reading: above the un-restarted student's start?
-            above = (last - starts["divmorph"].reindex(last.index.get_level_values(0)).to_numpy()).dropna().to_numpy()
-            lo, hi = robot_interval(above)
+            above = against(last, starts["divmorph"])
+            lo, hi = run_interval(above)
             lines.append(
                 f"| {label}: last against the un-restarted start | {seeds} | {starts['divmorph'].mean():.0f} | {last.mean():.0f} "
                 f"| {above.mean():+.0f} [{lo:+.0f}, {hi:+.0f}] | {'useful' if lo > 0 else 'not useful'} | | | |"
