@@ -105,7 +105,7 @@ def main(argv: list[str] | None = None) -> None:
         "",
         f"`python benchmarks/threads.py --load {args.load} --rounds {args.rounds}` on {date.today()}, "
         f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores; median of {args.rounds} fresh processes per cell. "
-        "`DivMorphPolicy` (`preset=\"small\"`) on Escape with 3 robots: one deterministic `predict`, and "
+        '`DivMorphPolicy` (`preset="small"`) on Escape with 3 robots: one deterministic `predict`, and '
         "`PPO(..., n_steps=64, batch_size=64).learn(128)` (the README's example). 'busy' adds the script's own "
         "busy-looping processes (other users' jobs); the load average is read at the end of each block.",
         "",

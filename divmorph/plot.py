@@ -41,7 +41,11 @@ def learning_curve(folder: str | Path, window: int = 10) -> tuple[np.ndarray, np
     if monitors:
         # line 1 of a Monitor file is its JSON header; then one row per episode (r, l, t)
         episodes = sorted(
-            ((float(row["t"]), float(row["l"]), float(row["r"])) for f in monitors for row in csv.DictReader(f.read_text().splitlines()[1:])),
+            (
+                (float(row["t"]), float(row["l"]), float(row["r"]))
+                for f in monitors
+                for row in csv.DictReader(f.read_text().splitlines()[1:])
+            ),
         )
         steps = np.cumsum([length for _, length, _ in episodes]).astype(float)
         returns = np.array([value for _, _, value in episodes], dtype=float)

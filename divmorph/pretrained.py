@@ -325,7 +325,9 @@ def best_robots(saved: SavedModel, env_id: str, n: int = 5, split: str = "train"
     return means[:n]
 
 
-def robot_means(rows: list[dict[str, str]], model: str, task: str, split: str = "train", seed: int | None = None) -> list[tuple[str, float]]:
+def robot_means(
+    rows: list[dict[str, str]], model: str, task: str, split: str = "train", seed: int | None = None
+) -> list[tuple[str, float]]:
     """Each robot's mean return of one model on one task and split, from the rows of an evaluation's
     ``returns.csv`` (:func:`divmorph.pipeline.files.read_csv_rows`): ``[(robot, mean)]``, best first
     (``seed``: one transfer run's rows only; a robot's ties keep the file's order)."""

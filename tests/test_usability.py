@@ -21,7 +21,10 @@ from stable_baselines3.common.vec_env import VecNormalize
 
 import unimal_envs
 from divmorph.cli import main as cli
-from divmorph.pipeline import distill, evaluate, export_all, train_teachers, transfer
+from divmorph.pipeline import export_all, train_teachers
+from divmorph.pipeline.distill import distill
+from divmorph.pipeline.evaluate import evaluate
+from divmorph.pipeline.transfer import transfer
 from divmorph.pipeline.config import PPO_HYPERPARAMETERS, ConfigError, Profile, load_profile, load_profiles
 from divmorph.pipeline.files import atomic_write_json, mark_done, read_done
 from divmorph.pipeline.training import TrainingRun, latest_checkpoint, save_checkpoint
@@ -876,3 +879,39 @@ def test_export_finds_a_robot_by_name_among_the_runs_own_robots(official_train):
         _robot_path("no-such-robot", profile)
     with pytest.raises(ValueError, match="unknown morphology"):
         _robot_path(name)  # without the run: the shipped sets only
+
+
+def test_command_line_mistakes_are_said_before_torch_loads(tmp_path):
+    """An unknown ``--set`` key or task name is refused before the stages (and torch) are imported: the
+    command runs with torch made unimportable and still gives the message (break: move the check after
+    ``import torch`` in ``run_on_folder`` -> "torch is not to be imported")."""
+    import os
+    import subprocess
+    import sys
+
+    (tmp_path / "sitecustomize.py").write_text(
+        "import sys\n"
+        "class _NoTorch:\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        "        if name.split('.')[0] in ('torch', 'stable_baselines3'):\n"
+        "            raise ImportError('torch is not to be imported before the arguments are checked')\n"
+        "sys.meta_path.insert(0, _NoTorch())\n"
+    )
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(Path(__file__).resolve().parents[1])])}
+    cases = {
+        ("--set", "teachers.n_timestep=5000"): "section 'teachers': unknown key(s) ['n_timestep']; valid keys:",
+        ("--set", "nonsense=1"): "unknown key(s) ['nonsense']",
+        ("--set", "teachers"): "--set takes KEY=VALUE",
+        ("--task", "Escpe"): "unknown task(s) 'Escpe' (did you mean 'Escape'?)",
+    }
+    for args, said in cases.items():
+        done = subprocess.run(
+            [sys.executable, "-m", "divmorph.cli", "teachers", "--profile", "demo", "--out", str(tmp_path / "run"), *args],
+            capture_output=True,
+            text=True,
+            env=env,
+            cwd=tmp_path,
+            timeout=120,
+        )
+        assert done.returncode == 2 and said in done.stderr, (args, done.stderr[-2000:])
+    assert not (tmp_path / "run").exists()

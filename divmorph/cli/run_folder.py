@@ -102,6 +102,31 @@ def profile_overrides(args: argparse.Namespace) -> dict:
     return overrides
 
 
+def check_set_keys(texts: list[str]) -> str | None:
+    """What is wrong with the first ``--set KEY=VALUE`` whose form or key name is not a profile's, or
+    ``None`` (light: values are checked with the whole profile, later)."""
+    from divmorph.pipeline.retired import REMOVED_KEYS
+    from divmorph.profile import unknown_override
+
+    for text in texts:
+        key, sep, _ = text.partition("=")
+        if not sep or not key.strip():
+            return f"--set takes KEY=VALUE (e.g. teachers.n_timesteps=5000), got {text!r}"
+        mistake = unknown_override(key.strip(), REMOVED_KEYS)
+        if mistake is not None:
+            return f"--set {text}: {mistake}"
+    return None
+
+
+def check_task_names(args: argparse.Namespace) -> str | None:
+    """What is wrong with the command's ``--task`` names that are no task's, or ``None`` (which tasks
+    suit the command is checked with the profile, later)."""
+    from divmorph.profile import unknown_tasks
+
+    tasks = getattr(args, "task", None) or getattr(args, "eval_tasks", None) or []
+    return unknown_tasks(list(tasks))
+
+
 class Terminated(KeyboardInterrupt):
     """SIGTERM, raised where Ctrl-C raises KeyboardInterrupt, so that both stop a command the same way."""
 
@@ -152,6 +177,12 @@ def run_on_folder(args: argparse.Namespace, work: Work, reads_a_run: bool = Fals
     :param trains: ``False`` for a command that trains nothing (it exports, evaluates or reports the
         finished stages): it may run on stages trained under rules retired since.
     """
+    # the command line's own mistakes are said before torch and the stages load (seconds, not half a minute)
+    mistake = check_set_keys(args.set) or check_task_names(args)
+    if mistake is not None:
+        print(f"divmorph {args.command}: {mistake}", file=sys.stderr)
+        return 2
+
     import torch as th
 
     from divmorph import pipeline as P

@@ -6,18 +6,41 @@ Stages skip work whose outputs exist, resume interrupted training from the last 
 write their outputs atomically.
 """
 
-from divmorph.pipeline.config import ConfigError, Profile, load_profile
-from divmorph.pipeline.distill import distill
-from divmorph.pipeline.evaluate import evaluate
-from divmorph.pipeline.export import export_actor, export_all
-from divmorph.pipeline.figures import FIGURES, make_figure, make_figures
-from divmorph.pipeline.grid import GridError, make_backend
-from divmorph.pipeline.grl import evolve
-from divmorph.pipeline.hyperdistill import hyperdistill
-from divmorph.pipeline.provenance import recorded_profile
-from divmorph.pipeline.report import report
-from divmorph.pipeline.teachers import load_teachers, train_teachers
-from divmorph.pipeline.transfer import transfer
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from divmorph.profile import Profile
+
+#: What the package exports, by the module that defines it: imported on first use, so that a light
+#: module of the pipeline (the profile's keys, the retired rules) loads without torch. The stage
+#: functions named like their modules (``distill``, ``evaluate``, ``hyperdistill``, ``report``,
+#: ``transfer``) are imported from those modules: ``from divmorph.pipeline.distill import distill``.
+_EXPORTS = {
+    "ConfigError": "divmorph.pipeline.config",
+    "Profile": "divmorph.pipeline.config",
+    "load_profile": "divmorph.pipeline.config",
+    "export_actor": "divmorph.pipeline.export",
+    "export_all": "divmorph.pipeline.export",
+    "FIGURES": "divmorph.pipeline.figures",
+    "make_figure": "divmorph.pipeline.figures",
+    "make_figures": "divmorph.pipeline.figures",
+    "GridError": "divmorph.pipeline.grid",
+    "make_backend": "divmorph.pipeline.grid",
+    "evolve": "divmorph.pipeline.grl",
+    "recorded_profile": "divmorph.pipeline.provenance",
+    "load_teachers": "divmorph.pipeline.teachers",
+    "train_teachers": "divmorph.pipeline.teachers",
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(_EXPORTS[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 STAGES = ("teachers", "distill", "hyperdistill", "grl", "transfer", "export", "evaluate", "report")
 
@@ -31,6 +54,15 @@ def run_pipeline(profile: Profile, out, progress_bar: bool = True, command: str 
     :param backend: a :mod:`~divmorph.pipeline.grid` backend for the independent trainings
         (teachers, students, GRL agents, transfer runs); default: local, one after the other.
     """
+    from divmorph.pipeline.distill import distill
+    from divmorph.pipeline.evaluate import evaluate
+    from divmorph.pipeline.export import export_all
+    from divmorph.pipeline.grl import evolve
+    from divmorph.pipeline.hyperdistill import hyperdistill
+    from divmorph.pipeline.report import report
+    from divmorph.pipeline.teachers import train_teachers
+    from divmorph.pipeline.transfer import transfer
+
     train_teachers(profile, out, progress_bar=progress_bar, backend=backend)
     distill(profile, out, progress_bar=progress_bar, backend=backend)
     if profile.hyperdistill is not None:
@@ -53,16 +85,11 @@ __all__ = [
     "make_figure",
     "make_figures",
     "Profile",
-    "distill",
-    "evaluate",
     "export_actor",
     "export_all",
-    "hyperdistill",
     "load_profile",
     "load_teachers",
     "recorded_profile",
-    "report",
     "run_pipeline",
     "train_teachers",
-    "transfer",
 ]

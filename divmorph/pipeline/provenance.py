@@ -27,7 +27,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-from divmorph.pipeline.config import ConfigError, Profile, apply_overrides
+from divmorph.pipeline.config import ConfigError, Profile, apply_overrides, profile_from_dict
 from divmorph.pipeline.folders import DOWNSTREAM, STAGE_FOLDERS  # noqa: F401 -- re-exported
 from divmorph.pipeline.envs import resolve_device
 from divmorph.pipeline.files import DONE, atomic_write_json, read_done
@@ -98,7 +98,7 @@ def recorded_profile(path: Path, overrides: dict[str, Any] | None = None) -> Pro
     values = dict(record["configuration"])
     name = values.pop("name")
     try:
-        return Profile.from_dict(name, apply_overrides(values, overrides or {}))
+        return profile_from_dict(name, apply_overrides(values, overrides or {}))
     except ConfigError as error:
         raise ConfigError(f"{path}: {error}") from None
 
@@ -108,7 +108,7 @@ def _with_defaults(recorded: dict[str, Any]) -> dict[str, Any]:
     recorded (a new key at its default changes nothing a run did); as recorded if it no longer parses."""
     values = dict(recorded)
     try:
-        return configuration(Profile.from_dict(values.pop("name", "recorded"), values))
+        return configuration(profile_from_dict(values.pop("name", "recorded"), values))
     except ConfigError:
         return recorded
 

@@ -7,7 +7,6 @@ the profile's ``overrides`` and ``policy_kwargs``. Each teacher is saved with it
 
 from __future__ import annotations
 
-import difflib
 from pathlib import Path
 
 from stable_baselines3 import PPO
@@ -19,6 +18,7 @@ from divmorph.pipeline.envs import make_vec_env, normalizer_for, profile_env_kwa
 from divmorph.pipeline.files import is_done
 from divmorph.pipeline.robots import profile_robots
 from divmorph.pipeline.training import TrainingRun
+from divmorph.profile import unknown_tasks
 from unimal_envs.contract import TASK_NAMES
 
 
@@ -97,11 +97,9 @@ def train_teachers(
 
     tasks = list(tasks or profile.teachers.tasks)
     # every name is checked before the first one is announced and trained
-    not_tasks = [task for task in tasks if task not in TASK_NAMES]
-    if not_tasks:
-        close = {task: difflib.get_close_matches(task, TASK_NAMES, n=1) for task in not_tasks}
-        hints = "; ".join(f"{task!r} (did you mean {match[0]!r}?)" if match else repr(task) for task, match in close.items())
-        raise ConfigError(f"unknown task(s) {hints}; tasks are {list(TASK_NAMES)}")
+    mistake = unknown_tasks(tasks)
+    if mistake is not None:
+        raise ConfigError(mistake)
     unknown = [task for task in tasks if task not in profile.teachers.tasks]
     if unknown:
         raise ConfigError(f"task(s) {unknown} have no teacher in profile {profile.name!r}: {profile.teachers.tasks}")
