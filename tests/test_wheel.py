@@ -16,14 +16,12 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 
 
-def _run(
-    command: list[str], cwd: Path, site: Path, timeout: int = 300, env: dict[str, str] | None = None, path: str | None = None
-) -> subprocess.CompletedProcess:
+def _run(command: list[str], cwd: Path, site: Path, timeout: int = 300, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
     # Only the installed copy on the path (not this checkout); one torch thread (small models, busy CPUs).
     merged = {
         **os.environ,
         **(env or {}),
-        "PYTHONPATH": path or str(site),
+        "PYTHONPATH": str(site),
         "MUJOCO_GL": "egl",
         "OMP_NUM_THREADS": "1",
         "HF_HUB_OFFLINE": "1",
@@ -220,10 +218,13 @@ def test_installed_rl_zoo_trains_with_the_shipped_entries_and_record_films_it(in
 
 
 def _plain_install(folder: Path) -> Path:
-    """A ``sitecustomize`` that hides every package the base install does not bring (the extras'
-    rl_zoo3, pandas, requests, Ray, MuJoCo Warp... and what only they need), as a plain
-    ``pip install divmorph`` leaves them out; put it first on ``PYTHONPATH``."""
+    """A Python with only what a plain ``pip install divmorph`` brings: a new virtual environment whose
+    site-packages links to this one's entries, less the packages that only the extras bring (rl_zoo3,
+    pandas, requests, Ray, MuJoCo Warp... and what only they need) and less this checkout's editable
+    install. Returns its ``python``."""
     import importlib.metadata as metadata
+    import site
+    import venv
 
     from packaging.requirements import Requirement
 
@@ -247,23 +248,24 @@ def _plain_install(folder: Path) -> Path:
 
     base = closure("divmorph")
     extras = set().union(*(closure(r.name) for r in map(Requirement, metadata.requires("divmorph") or []) if r.marker is not None))
+    only_extras = extras - base
     hidden = {
         module
         for module, dists in metadata.packages_distributions().items()
-        if all(d.lower().replace("_", "-") in extras - base for d in dists)
+        if all(d.lower().replace("_", "-") in only_extras for d in dists)
     }
     assert {"pandas", "rl_zoo3", "requests", "ray"} <= hidden, hidden
-    folder.mkdir(parents=True, exist_ok=True)
-    (folder / "sitecustomize.py").write_text(
-        "import sys\n"
-        f"HIDDEN = {sorted(hidden)!r}\n"
-        "class _PlainInstall:\n"
-        "    def find_spec(self, name, path=None, target=None):\n"
-        "        if name.split('.')[0] in HIDDEN:\n"
-        "            raise ModuleNotFoundError(f'No module named {name!r} (a plain install)', name=name)\n"
-        "sys.meta_path.insert(0, _PlainInstall())\n"
-    )
-    return folder
+    venv.EnvBuilder(with_pip=False).create(folder)
+    target = next((folder / "lib").glob("python*/site-packages"))
+    source = Path(next(p for p in site.getsitepackages() if Path(p).is_dir()))
+    for entry in source.iterdir():
+        name = entry.name
+        stem = name.split(".")[0].split("-")[0]
+        dist = name.split("-")[0].lower().replace("_", "-") if name.endswith((".dist-info", ".egg-info")) else None
+        if stem in hidden or (dist is not None and dist in only_extras) or "divmorph" in name.lower():
+            continue
+        (target / name).symlink_to(entry)
+    return folder / "bin" / "python"
 
 
 def test_a_plain_install_runs_every_command_that_needs_no_extra(installed, tmp_path):
@@ -275,7 +277,7 @@ def test_a_plain_install_runs_every_command_that_needs_no_extra(installed, tmp_p
     from test_usability import tiny_model
 
     site, elsewhere = installed
-    plain = _plain_install(tmp_path / "plain")
+    python = str(_plain_install(tmp_path / "plain"))
     run = tmp_path / "run"
     teacher = run / "teachers" / "FT"
     tiny_model(teacher, steps=64)
@@ -286,20 +288,19 @@ def test_a_plain_install_runs_every_command_that_needs_no_extra(installed, tmp_p
         writer = csv.writer(f)
         writer.writerow(["model", "task", "split", "morphology", "episode", "return", "length", "seed"])
         writer.writerows([["teacher", "FT", "train", "train-000", 0, 5.0, 10, ""], ["teacher", "FT", "train", "train-001", 0, 9.0, 10, ""]])
-    path = os.pathsep.join([str(plain), str(site)])
-    divmorph = [sys.executable, str(site / "bin" / "divmorph")]
-    hidden = _run([sys.executable, "-c", "import pandas"], elsewhere, site, env={}, path=path)
-    assert hidden.returncode != 0 and "a plain install" in hidden.stderr  # the stand-in hides what it should
+    divmorph = [python, str(site / "bin" / "divmorph")]
+    hidden = _run([python, "-c", "import pandas"], elsewhere, site)
+    assert hidden.returncode != 0 and "No module named 'pandas'" in hidden.stderr  # the plain install lacks what it should
     video = tmp_path / "best.gif"
     args = [str(teacher), "--steps", "6", "--width", "32", "--height", "32", "--no-progress", "--out", str(video)]
-    filmed = _run([*divmorph, "record", *args], elsewhere, site, path=path)
+    filmed = _run([*divmorph, "record", *args], elsewhere, site)
     assert filmed.returncode == 0, filmed.stderr[-3000:]
     assert "no --robot: filming train-001" in filmed.stdout and video.is_file()
-    plotted = _run([*divmorph, "plot", str(teacher), "--out", str(tmp_path / "curve.png")], elsewhere, site, path=path)
+    plotted = _run([*divmorph, "plot", str(teacher), "--out", str(tmp_path / "curve.png")], elsewhere, site)
     assert plotted.returncode == 0, plotted.stderr[-3000:]
     assert (tmp_path / "curve.png").is_file()
     for command in ("pipeline", "teachers", "distill", "transfer", "evaluate", "report", "export", "record", "plot", "fetch-models"):
-        helped = _run([*divmorph, command, "--help"], elsewhere, site, path=path)
+        helped = _run([*divmorph, command, "--help"], elsewhere, site)
         assert helped.returncode == 0 and "usage:" in helped.stdout, (command, helped.stderr[-2000:])
 
 
