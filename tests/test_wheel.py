@@ -296,6 +296,9 @@ def test_a_plain_install_runs_every_command_that_needs_no_extra(installed, tmp_p
     filmed = _run([*divmorph, "record", *args], elsewhere, site)
     assert filmed.returncode == 0, filmed.stderr[-3000:]
     assert "no --robot: filming train-001" in filmed.stdout and video.is_file()
+    logs = teacher / "logs" / "run-0"  # a pipeline stage's SB3 log: the first row before any episode ended
+    logs.mkdir(parents=True)
+    (logs / "progress.csv").write_text("time/total_timesteps,rollout/ep_rew_mean\n32,\n64,1.5\n96,2.5\n")
     plotted = _run([*divmorph, "plot", str(teacher), "--out", str(tmp_path / "curve.png")], elsewhere, site)
     assert plotted.returncode == 0, plotted.stderr[-3000:]
     assert (tmp_path / "curve.png").is_file()
