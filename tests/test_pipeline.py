@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import os
 import signal
@@ -1613,3 +1614,31 @@ def test_an_adapter_transfer_run_starts_as_the_student_learns_in_its_adapters_an
     loaded = transfer_run(adapted, out, "Escape", "divmorph", 4, progress_bar=False).run()  # finished: loaded, not retrained
     assert any(isinstance(m, FactorizedLinear) and m.adapter_rank == 2 for m in loaded.policy.modules())
     np.testing.assert_array_equal(actions(loaded), actions(trained))
+
+
+def test_the_transfer_students_learngenes_keep_the_papers_share_of_every_diverted_layer():
+    """The ``cpu100-transfer`` profile's student keeps at least 75% of each diverted layer's rank as
+    learngenes (the ``paper`` preset: 96 of 128) and distils with a load-balanced router; cpu100's own
+    student keeps 8 of 32, which is why transfer does not start from it (break: set the profile's
+    tailors back to 12 + 12 -> fails)."""
+    from stable_baselines3 import PPO
+
+    from divmorph.pipeline.students import STUDENTS
+    from sb3_divmorph.nn.layers import FactorizedLinear
+    from unimal_envs.morphology.loader import morphology_files
+
+    env = gym.make("Unimal-MultiTask-v0", morphologies=morphology_files("train")[:2])
+
+    def learngene_shares(profile_name: str) -> list[float]:
+        kwargs = STUDENTS["divmorph"].kwargs(load_profile(profile_name))
+        policy = PPO("DivMorphPolicy", env, policy_kwargs=kwargs, n_steps=64, device="cpu").policy
+        layers = [m for m in policy.modules() if isinstance(m, FactorizedLinear) and m.n_tailors > 0]
+        assert layers
+        return [m.n_learngenes / m.rank for m in layers]
+
+    assert min(learngene_shares("cpu100-transfer")) >= 0.75
+    assert max(learngene_shares("cpu100")) < 0.75
+    assert load_profile("cpu100-transfer").distill.load_balance > 0
+    # the transfer student's profile differs from cpu100's in the student and its distillation only
+    same = {k: v for k, v in dataclasses.asdict(load_profile("cpu100")).items() if k not in ("name", "student", "distill")}
+    assert same == {k: v for k, v in dataclasses.asdict(load_profile("cpu100-transfer")).items() if k not in ("name", "student", "distill")}
