@@ -38,9 +38,11 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize  # noqa: 
 
 import sb3_divmorph  # noqa: E402,F401
 import unimal_envs  # noqa: E402,F401
-from sb3_divmorph import DivMorphPolicy, HyperDistillMLP, HyperDistillPolicy, MetaMorphPolicy, ModuMorphActor, ModuMorphPolicy  # noqa: E402
+from sb3_divmorph import DivMorphPolicy, HyperDistillPolicy, MetaMorphPolicy, ModuMorphPolicy  # noqa: E402
 from sb3_divmorph.deploy.compact import CompactActor, actor_inputs, batch1_latency, export_torchscript  # noqa: E402
 from sb3_divmorph.deploy.deployment import matmul_flops  # noqa: E402
+from sb3_divmorph.deploy.hyperdistill_mlp import HyperDistillMLP  # noqa: E402
+from sb3_divmorph.deploy.modumorph_actor import ModuMorphActor  # noqa: E402
 from unimal_envs.morphology.loader import morphology_files  # noqa: E402
 from unimal_envs.tasks import TASKS  # noqa: E402
 

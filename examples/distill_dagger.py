@@ -4,7 +4,7 @@
     python examples/distill_dagger.py --steps 200000 --out runs/example   # a budget where teachers learn
 
 1. a MetaMorph teacher per task (FT and Incline), trained with PPO and the rl-zoo settings of
-   ``zoo_configs/ppo.yml`` (``sb3_divmorph.zoo.zoo_hyperparams``), saved with its observation statistics;
+   ``zoo_configs/ppo.yml`` (``zoo_hyperparams``), saved with its observation statistics;
 2. DAgger into one DivMorph student on ``Unimal-MultiTask-v0``: ``TeacherMixingVecEnv`` executes
    the teacher's action with probability beta (annealed 0.5 -> 0), ``DAggerCallback`` labels every
    visited state with its task's teacher and minimises KL(teacher || student), ``ImitationPPO``
@@ -26,11 +26,8 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.utils import LinearSchedule
 from stable_baselines3.common.vec_env import VecNormalize
 
-import sb3_divmorph  # noqa: F401  (policy aliases)
 import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
-from sb3_divmorph.algos.distillation import DAggerCallback, ImitationPPO, Teacher, TeacherMixingVecEnv
-from sb3_divmorph.policies import DivMorphPolicy
-from sb3_divmorph.zoo import zoo_hyperparams
+from sb3_divmorph import DAggerCallback, DivMorphPolicy, ImitationPPO, Teacher, TeacherMixingVecEnv, zoo_hyperparams
 from unimal_envs.contract import TASK_NAMES, observation_space
 
 TASKS = ["FT", "Incline"]

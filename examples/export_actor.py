@@ -17,14 +17,9 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 import torch as th
-from stable_baselines3 import PPO
 
-import sb3_divmorph  # noqa: F401  (policy aliases)
 import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
-from sb3_divmorph.algos.distillation import load_normalizer
-from sb3_divmorph.deploy.compact import CompactActor, actor_parameter_count, export_torchscript
-from sb3_divmorph.deploy.deployment import export_onnx
-from sb3_divmorph.deploy.onnx_actor import OnnxActor
+from sb3_divmorph import CompactActor, OnnxActor, export_onnx, export_torchscript, load_model
 from divmorph.pipeline.robots import trained_robot_set, trained_robots
 from unimal_envs.contract import TASK_NAMES
 from unimal_envs.morphology.loader import morphology_files
@@ -49,8 +44,8 @@ def main(argv: list[str] | None = None) -> None:
     robot = candidates[0] if args.robot is None else next((f for f in candidates if f.stem == args.robot), None)
     if robot is None:
         parser.error(f"no robot {args.robot!r} among {'the robots the student was trained on' if trained else 'the train set'}")
-    policy = PPO.load(args.student / "model.zip", device="cpu").policy.eval()
-    normalizer = load_normalizer(args.student / "vecnormalize.pkl")
+    student = load_model(args.student / "model.zip", args.student / "vecnormalize.pkl")
+    policy, normalizer = student.model.policy.eval(), student.normalizer
 
     env = gym.make(f"Unimal-{args.task}-v0", morphologies=[robot])
     obs, _ = env.reset(seed=0)
@@ -75,7 +70,8 @@ def main(argv: list[str] | None = None) -> None:
     env.close()
     print(
         f"{robot.stem} x {args.task}: {actor.stored_numbers()['weights']:,} weights "
-        f"(the student's actor: {actor_parameter_count(policy):,}); max |ONNX - student| over 20 steps {worst:.1e}"
+        f"(the whole student, critic and router included: {sum(p.numel() for p in policy.parameters()):,}); "
+        f"max |ONNX - student| over 20 steps {worst:.1e}"
     )
     print(f"-> {onnx_file} (onnxruntime + numpy), {script_file} (torch.jit.load)")
 

@@ -35,12 +35,9 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import VecNormalize
 
-import sb3_divmorph  # noqa: F401  (policy aliases)
 import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
-from sb3_divmorph.algos.finetune import UnitSelection, prepare_transfer
-from sb3_divmorph.policies import DivMorphPolicy
+from sb3_divmorph import DivMorphPolicy, UnitSelection, prepare_transfer, zoo_hyperparams
 from divmorph.pretrained import Pretrained, PretrainedError, load_pretrained
-from sb3_divmorph.zoo import zoo_hyperparams
 from unimal_envs.contract import NOVEL_TASKS
 
 #: Printed beside the returns: fixed-gate transfer does not learn yet (see the module docstring).

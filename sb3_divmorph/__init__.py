@@ -1,34 +1,38 @@
 """Stable-Baselines3 policies for universal morphology control: MetaMorph, ModuMorph and DivMorph.
 
+This module is the library's front door: it holds what a user imports, as sb3-contrib's top level
+holds its algorithms. The policies (:class:`MetaMorphPolicy`, :class:`DivMorphPolicy`,
+:class:`ModuMorphPolicy`, :class:`HyperDistillPolicy`); the algorithms (:class:`DevicePPO`, SB3's
+PPO with rollouts collected on the device when its env is the batched MuJoCo Warp env, and
+:class:`ImitationPPO`, for pure distillation); DAgger distillation (:class:`Teacher`,
+:class:`DAggerCallback`, :class:`TeacherMixingVecEnv`); fixed-gate transfer
+(:func:`prepare_transfer` with the :class:`UnitSelection` of the tailors the gates select); the
+compact actor and its export (:class:`CompactActor`, :func:`export_onnx`, :func:`export_torchscript`,
+and :class:`OnnxActor`, which runs the exported file); :func:`load_model` (a saved model with the
+observation statistics beside it, as a :class:`NormalizedModel`) and :func:`zoo_hyperparams` (the
+shipped rl-zoo settings, ready for ``PPO(...)``). The building blocks (layers, gates, extractors,
+presets, the baselines' deployed forms) stay in their own modules (``sb3_divmorph.nn``,
+``sb3_divmorph.policies``, ``sb3_divmorph.deploy``, ...).
+
 Importing the package registers ``"MetaMorphPolicy"``, ``"ModuMorphPolicy"``, ``"DivMorphPolicy"``
 and ``"HyperDistillPolicy"`` as PPO and A2C policy aliases, so ``PPO("DivMorphPolicy", env)`` and rl-zoo configs with ``policy: DivMorphPolicy``
 (with ``--gym-packages sb3_divmorph``) work. They are actor-critic policies, for on-policy algorithms only.
-:class:`DevicePPO` is SB3's PPO with rollouts collected on the device when its env is the batched
-MuJoCo Warp env (``sb3_divmorph.algos.device_ppo``); :func:`load_model` loads a saved model with
-the observation statistics beside it. The application built on it (pipeline, command line, run
-folders) is the package :mod:`divmorph`, which this one never imports.
+The application built on it (pipeline, command line, run folders) is the package :mod:`divmorph`,
+which this one never imports.
 """
 
 from stable_baselines3 import A2C, PPO
 
 from sb3_divmorph.algos.device_ppo import DevicePPO
-from sb3_divmorph.deploy.hyperdistill_mlp import HyperDistillMLP
-from sb3_divmorph.deploy.modumorph_actor import ModuMorphActor
-from sb3_divmorph.nn.distributions import MaskedDiagGaussianDistribution
-from sb3_divmorph.nn.extractors import MorphologyTransformerExtractor
-from sb3_divmorph.nn.gates import DiversionRouter, GateActivations, MorphologyEncoder, TopKSoftGate
-from sb3_divmorph.nn.layers import DenseLinear, Factorization, FactorizedLinear, LinearBuilder
-from sb3_divmorph.nn.transformer import MultiHeadSelfAttention, TransformerEncoder, TransformerEncoderLayer
-from sb3_divmorph.policies.hyperdistill import HYPERDISTILL_PRESETS, HyperDistillPolicy
-from sb3_divmorph.policies.modumorph import MODUMORPH_PRESETS, ModuMorphPolicy
+from sb3_divmorph.algos.distillation import DAggerCallback, ImitationPPO, Teacher, TeacherMixingVecEnv
+from sb3_divmorph.algos.finetune import UnitSelection, prepare_transfer
+from sb3_divmorph.deploy.compact import CompactActor, export_onnx, export_torchscript
+from sb3_divmorph.deploy.onnx_actor import OnnxActor
+from sb3_divmorph.policies.hyperdistill import HyperDistillPolicy
+from sb3_divmorph.policies.modumorph import ModuMorphPolicy
+from sb3_divmorph.policies.morphology_transformer import DivMorphPolicy, MetaMorphPolicy
 from sb3_divmorph.saved_model import NormalizedModel, load_model
-from sb3_divmorph.policies.morphology_transformer import (
-    DIVMORPH_PRESETS,
-    PRESETS,
-    DivMorphPolicy,
-    MetaMorphPolicy,
-    MorphologyTransformerPolicy,
-)
+from sb3_divmorph.zoo import zoo_hyperparams
 
 # The policies are SB3 ActorCriticPolicy subclasses: on-policy algorithms (PPO, A2C) take them.
 for _algo in (PPO, A2C):
@@ -66,31 +70,28 @@ def _register_off_policy_guards() -> None:
 _register_off_policy_guards()
 
 __all__ = [
-    "DIVMORPH_PRESETS",
-    "PRESETS",
-    "DenseLinear",
-    "DevicePPO",
+    # policies
     "DivMorphPolicy",
-    "DiversionRouter",
-    "FactorizedLinear",
-    "Factorization",
-    "GateActivations",
-    "HYPERDISTILL_PRESETS",
-    "HyperDistillMLP",
     "HyperDistillPolicy",
-    "LinearBuilder",
-    "MODUMORPH_PRESETS",
-    "MaskedDiagGaussianDistribution",
     "MetaMorphPolicy",
-    "ModuMorphActor",
     "ModuMorphPolicy",
-    "MorphologyEncoder",
-    "MorphologyTransformerExtractor",
-    "MorphologyTransformerPolicy",
-    "MultiHeadSelfAttention",
+    # algorithms
+    "DevicePPO",
+    "ImitationPPO",
+    # distillation
+    "DAggerCallback",
+    "Teacher",
+    "TeacherMixingVecEnv",
+    # transfer
+    "UnitSelection",
+    "prepare_transfer",
+    # deployment
+    "CompactActor",
+    "OnnxActor",
+    "export_onnx",
+    "export_torchscript",
+    # saved models and settings
     "NormalizedModel",
-    "TopKSoftGate",
-    "TransformerEncoder",
-    "TransformerEncoderLayer",
     "load_model",
+    "zoo_hyperparams",
 ]

@@ -7,8 +7,9 @@ import pytest
 import torch as th
 from stable_baselines3 import PPO
 
-from sb3_divmorph import MetaMorphPolicy, ModuMorphActor, ModuMorphPolicy
+from sb3_divmorph import MetaMorphPolicy, ModuMorphPolicy
 from sb3_divmorph.deploy.compact import actor_inputs, export_torchscript
+from sb3_divmorph.deploy.modumorph_actor import ModuMorphActor
 from sb3_divmorph.policies.modumorph import DECODER_INIT, EMBEDDING_INIT, HyperLinear
 from sb3_divmorph.testing import random_observations
 from unimal_envs import contract

@@ -502,6 +502,19 @@ class DevicePPO(PPO):
     def _device_chain(self):
         return device_env_chain(self.env)
 
+    @property
+    def device_mode(self) -> bool:
+        """Whether this model collects its rollouts on the device: its env is a ``BatchedUnimalEnv``,
+        optionally under ``VecMonitor`` and one ``VecNormalize`` (:func:`device_env_chain`)."""
+        return self._device_chain() is not None
+
+    @property
+    def device_normalizer(self) -> DeviceNormalizer | None:
+        """(device mode) The device mirror of the env's ``VecNormalize``, as of the latest rollout: it
+        normalises raw observation tensors as the policy sees them. ``None`` when the env has no
+        ``VecNormalize``, or before the first ``learn`` in device mode."""
+        return self._device_state.get("normalizer")
+
     def _static_keys(self, chain) -> tuple[str, ...]:
         from unimal_envs.batched.env import STATIC_KEYS
 

@@ -19,7 +19,7 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3 import PPO
-from stable_baselines3.common.vec_env import VecEnv, VecNormalize
+from stable_baselines3.common.vec_env import VecEnv, VecNormalize, unwrap_vec_wrapper
 from torch import nn
 
 from sb3_divmorph.algos.distillation import (
@@ -27,7 +27,6 @@ from sb3_divmorph.algos.distillation import (
     ObsDict,
     Teacher,
     check_spaces,
-    find_vec_wrapper,
     gaussian_kl,
     teacher_labels,
 )
@@ -92,7 +91,7 @@ def collect_teacher_rollouts(
     :param verbose: 1: a line at every tenth of the states collected (count, rate).
     """
     rng = np.random.default_rng(seed)
-    normalizer = find_vec_wrapper(venv, VecNormalize)
+    normalizer = unwrap_vec_wrapper(venv, VecNormalize)
     steps = math.ceil(n_samples / venv.num_envs)
     dataset = TeacherRollouts(capacity or steps * venv.num_envs)
     obs = venv.reset()

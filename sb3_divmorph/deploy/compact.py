@@ -173,7 +173,7 @@ class CompactActor(DeployedActor):
         raw = {k: np.asarray(v, dtype=np.float32)[None] for k, v in observation.items()}
         normalized = raw if normalizer is None else normalizer.normalize_obs(raw)
         obs = {k: th.as_tensor(v) for k, v in normalized.items()}
-        gates = policy._tailor_gates(obs) if hasattr(policy, "_tailor_gates") else None
+        gates = policy.tailor_gates(obs) if hasattr(policy, "tailor_gates") else None
         gates = None if gates is None else gates[0:1]
         extractor = policy.features_extractor if policy.share_features_extractor else policy.pi_features_extractor
 
@@ -272,13 +272,9 @@ def export_torchscript(actor: CompactActor, example: Mapping[str, np.ndarray], p
 def metamorph_twin(policy: nn.Module) -> nn.Module:
     """A MetaMorph policy of the same width, depth and encoders as a DivMorph student (random init):
     the paper's size reference."""
-    from sb3_divmorph.policies.morphology_transformer import DivMorphPolicy, MetaMorphPolicy
+    from sb3_divmorph.policies.morphology_transformer import MetaMorphPolicy
 
-    kwargs = {k: v for k, v in policy._get_constructor_parameters().items() if k not in (*DivMorphPolicy._divmorph_keys, "diversion")}
-    # the extractor kwargs carry DivMorph's factorization; MetaMorph rebuilds its own from the sizes
-    for key in ("observation_space", "action_space", "lr_schedule", "features_extractor_kwargs"):
-        kwargs.pop(key, None)
-    return MetaMorphPolicy(policy.observation_space, policy.action_space, lambda _: 0.0, **kwargs)
+    return MetaMorphPolicy(policy.observation_space, policy.action_space, lambda _: 0.0, **policy.metamorph_kwargs())
 
 
 def size_comparison(

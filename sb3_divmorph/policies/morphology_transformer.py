@@ -303,8 +303,11 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
     def _build_router(self) -> None:
         """Build any module that conditions the network (none for MetaMorph)."""
 
-    def _tailor_gates(self, obs: Mapping[str, th.Tensor]) -> th.Tensor | None:
-        """(B, N_m + N_t) per-sample gates, or ``None`` for an ungated network."""
+    def tailor_gates(self, obs: Mapping[str, th.Tensor]) -> th.Tensor | None:
+        """(B, N_m + N_t) per-sample gates of a batch of (preprocessed) observation tensors, in the
+        order tailors sit in every diverted layer, as the layers take them; ``None`` for an ungated
+        network (MetaMorph, or DivMorph with every diversion ablated). Computed with grad, as training
+        routes through them (DivMorph's ``get_gates`` is the no-grad view of both gates apart)."""
         return None
 
     # -- construction --------------------------------------------------------------------------
@@ -355,7 +358,7 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
         self, obs: Mapping[str, th.Tensor], actor: bool = True, critic: bool = True
     ) -> tuple[th.Tensor | None, th.Tensor | None, th.Tensor | None]:
         """Per-token actor and critic latents, and the tailor gates used by the actor."""
-        gates = self._tailor_gates(obs)
+        gates = self.tailor_gates(obs)
         # With separate actor and critic extractors (the default) the router is trained by the
         # policy objective only: the critic's modules see detached gates, so the value loss cannot
         # re-route the actor. With share_features_extractor=True the value loss reaches the router
@@ -434,7 +437,7 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
     ) -> th.Tensor | tuple[th.Tensor, th.Tensor]:
         """Token features (B, L, F); a (pi, vf) tuple when the extractor is not shared (SB3's API)."""
         obs = self._preprocess(obs)
-        gates = self._tailor_gates(obs)
+        gates = self.tailor_gates(obs)
         with self._extractor_precision():
             if self.share_features_extractor or features_extractor is not None:
                 return _float32((features_extractor or self.features_extractor)(obs, gates))
@@ -610,6 +613,16 @@ class DivMorphPolicy(MorphologyTransformerPolicy):
     def _get_constructor_parameters(self) -> dict[str, Any]:
         return {**super()._get_constructor_parameters(), "diversion": self.diversion}
 
+    def metamorph_kwargs(self) -> dict[str, Any]:
+        """Keyword arguments of a :class:`MetaMorphPolicy` of this policy's width, depth, encoders and
+        decoders, without the diversion: ``MetaMorphPolicy(observation_space, action_space, lr_schedule,
+        **policy.metamorph_kwargs())`` is the dense network of the same size (deployment's size reference)."""
+        kwargs = {k: v for k, v in self._get_constructor_parameters().items() if k not in (*self._divmorph_keys, "diversion")}
+        # the extractor kwargs carry DivMorph's factorization; MetaMorph rebuilds its own from the sizes
+        for key in ("observation_space", "action_space", "lr_schedule", "features_extractor_kwargs"):
+            kwargs.pop(key, None)
+        return kwargs
+
     def _resolve_diversion(self) -> None:
         """Fill the diversion defaults that depend on the network size."""
         c = self.config
@@ -682,7 +695,7 @@ class DivMorphPolicy(MorphologyTransformerPolicy):
     def _route(self, obs: Mapping[str, th.Tensor]) -> GateActivations:
         return self.router(obs[CONTEXT], token_padding(obs), obs[TASK_EMBEDDING].flatten(1))
 
-    def _tailor_gates(self, obs: Mapping[str, th.Tensor]) -> th.Tensor | None:
+    def tailor_gates(self, obs: Mapping[str, th.Tensor]) -> th.Tensor | None:
         return self._route(obs).tailor_gates() if self.is_gated else None
 
     def get_gates(self, observation: PyTorchObs | dict[str, np.ndarray]) -> GateActivations:
