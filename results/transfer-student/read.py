@@ -8,7 +8,11 @@ student computes for each of the ten task instructions (five training, five nove
 the morphology gates over the 100 training robots; a tailor counts as used where its gate weight is
 above 0.
 
-    python results/transfer-student/read.py --run RUN --evaluated EVAL [EVAL ...]   # writes reading.md here
+    python results/transfer-student/read.py --run RUN --evaluated EVAL [EVAL ...] \
+        --comparator-run RUN400 --comparator-evaluated EVAL400      # writes reading.md here
+
+``--comparator-*``: the DivMorph student of cpu100's proportions distilled alike for 400k steps (the ablation
+race's comparator), so that the budget is the same on both sides of the proportions' comparison.
 """
 
 from __future__ import annotations
@@ -51,7 +55,9 @@ def router(gates: dict[str, np.ndarray]) -> list[str]:
     for group, names in (("training", TRAIN_TASKS), ("novel", NOVEL_TASKS)):
         used = sorted({int(i) for t in names for i in chosen[t]})
         pairs = len({tuple(chosen[t]) for t in names})
-        lines.append(f"\n{group.capitalize()} tasks: {len(used)} of {n_task} task tailors used ({used}); {pairs} distinct selections of {len(names)} tasks.")
+        lines.append(
+            f"\n{group.capitalize()} tasks: {len(used)} of {n_task} task tailors used ({used}); {pairs} distinct selections of {len(names)} tasks."
+        )
     morphology = gates["morphology_gates"]
     used = int((morphology > 0).any(0).sum())
     selections = len({tuple(np.nonzero(row > 0)[0]) for row in morphology})
@@ -65,22 +71,26 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--run", type=Path, required=True, help="the transfer student's run (a branch of results/cpu100)")
     parser.add_argument("--evaluated", type=Path, nargs="+", required=True, help="its `divmorph evaluate --into` folders")
+    parser.add_argument("--comparator-run", type=Path, default=None, help="the 12 + 12 student distilled alike (400k)")
+    parser.add_argument("--comparator-evaluated", type=Path, nargs="*", default=[], help="its `divmorph evaluate --into` folders")
     args = parser.parse_args(argv)
     reference = robot_means(read_returns(REFERENCE / "evaluate" / "returns.csv"))
     new = robot_means([row for folder in args.evaluated for row in read_returns(folder / "returns.csv")])
+    comparator = robot_means([row for folder in args.comparator_evaluated for row in read_returns(folder / "returns.csv")])
     lines = [
         "# The transfer student: shares of the teachers and its router",
         "",
         "Made by `python results/transfer-student/read.py` (its docstring: how). Share of the cpu100 teacher's mean "
         "return on the 100 training robots [paired 95% bootstrap over robots], 3 deterministic episodes per robot:",
         "",
-        "| task | teacher | cpu100 student (12 + 12 tailors, 1M steps) | transfer student (4 + 4 tailors, load balance, 400k steps) |",
-        "|---|---:|---|---|",
+        "| task | teacher | cpu100 student (12 + 12 tailors, 1M steps) | 12 + 12 tailors, 400k steps | "
+        "transfer student (4 + 4 tailors, load balance, 400k steps) |",
+        "|---|---:|---|---|---|",
     ]
     for task in TRAIN_TASKS:
         teacher = reference[("teacher", task, "train")]
         cells = [task, f"{np.mean(list(teacher.values())):.0f}"]
-        for rows in (reference, new):
+        for rows in (reference, comparator, new):
             student = rows.get(("student", task, "train"))
             if not student:
                 cells.append("--")
@@ -90,7 +100,12 @@ def main(argv: list[str] | None = None) -> None:
         lines.append("| " + " | ".join(cells) + " |")
     profile = load_profile("cpu100-transfer")
     robots = profile_robots(profile, "train")
-    for name, run in (("cpu100 student", REFERENCE), ("transfer student", args.run)):
+    runs = [
+        ("cpu100 student", REFERENCE),
+        *([("12 + 12 student at 400k", args.comparator_run)] if args.comparator_run else []),
+        ("transfer student", args.run),
+    ]
+    for name, run in runs:
         lines += ["", f"## Router of the {name}", "", *router(student_gates(run, robots, profile.seed, **profile_env_kwargs(profile)))]
     (HERE / "reading.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
