@@ -1,8 +1,8 @@
 """A trained model in one call: the model, its observation statistics, its robots and env settings.
 
 A model is only as good as the observations it is fed: the statistics it was normalised with, the
-robots it learnt on and the env settings of its run (a ``cpu100`` model measures body heights above
-the ground, ``height_reference="ground"``; fed the default it returns a third of what it should).
+robots it learnt on and the env settings of its run (a model trained with heights above the ground,
+``height_reference="ground"``, fed the default sees heights it never learnt on and does far worse).
 :func:`load_pretrained` reads all of it from where the project and rl-zoo save it::
 
     from divmorph.pretrained import load_pretrained

@@ -129,7 +129,7 @@ class TransferConfig:
     #: learning-rate multiple of the critic's parameters in those arms' runs: their actor fine-tunes
     #: at ``finetune_overrides``' rate, while their critic (random, or another task's) has a new
     #: task's values to learn, as scratch's does at the teachers' rate; e.g. 10 with lin_1e-4 gives
-    #: the critic lin_1e-3 (``results/critic-start/critic_start.py`` measures it on a training task)
+    #: the critic lin_1e-3 (choose it on a training task, never on the novel ones)
     critic_lr_scale: float = 1.0
     #: env steps between checkpoints of each run
     checkpoint_every: int = 50_000
@@ -173,7 +173,7 @@ class TransferConfig:
     #: to the rate of the units they rotate (1.0: the same rate; 0: rotations frozen). Adam moves
     #: every generator entry by about the rate at once and each turns two whole singular
     #: directions, so at 1.0 the rotations can dominate an update where the policy is far from its
-    #: training (measured: ``docs/claims/transfer.md``). It also applies to ``divmorph-finetuned``
+    #: training. It also applies to ``divmorph-finetuned``
     #: (every Cayley generator at this multiple of its rate) and to the free square factors of the
     #: ``no-orthogonality`` ablation (0: every square factor fixed, orthogonal or not)
     rotation_lr_scale: float = 1.0
@@ -181,13 +181,13 @@ class TransferConfig:
     #: DivMorph-way arms, the start of ``divmorph-finetuned``'s): ``instruction`` (the novel task's own
     #: instruction through the gate network, the paper's rule) or ``closest`` (the instruction of the
     #: training task the ``closest`` arm starts from, chosen by ``closest_by`` as for MetaMorph->).
-    #: A gate network trained on five instructions does not place a sixth: on PointNav the cpu100
-    #: student's own gates return 56 zero-shot, Patrol's 113 (``results/novel-task-gates``)
+    #: A gate network trained on five instructions does not place a sixth well, so the closest
+    #: training task's gates can be the better start
     task_gates: str = "instruction"
     #: std of the Gaussian the arms that start from trained weights sample from while they fine-tune
     #: (``null``: the source's, MetaMorph's fixed 0.9). Their deterministic (mean) action is what the
-    #: race evaluates; under std 0.9 PPO improves the noisy policy, which need not improve its mean
-    #: (``results/finetune-known-task``, section 5). The deterministic actions at step 0 do not change
+    #: race evaluates; under std 0.9 PPO improves the noisy policy, which need not improve its mean.
+    #: The deterministic actions at step 0 do not change
     action_std: float | None = None
     #: ``null`` (default): every arm at its nominal rate. A KL, e.g. 0.01: every arm's learning rate
     #: is multiplied after each PPO update so that updates move the policy by about that KL
@@ -314,7 +314,7 @@ class Profile:
     novel_robots: int | None = None
     #: an out-of-distribution robot set, evaluated zero-shot and reported apart from the novel robots
     #: (split ``ood``), e.g. the shipped generated ``novel`` set beside official training robots
-    #: (taller, lighter, random designs: ``results/morphology_sets.md``); ``None``: none
+    #: (taller, lighter, random designs); ``None``: none
     ood_set: str | None = None
     #: the first N robots of ``ood_set`` (``null``: all)
     ood_robots: int | None = None
@@ -323,7 +323,7 @@ class Profile:
     #: what body heights in the robots' proprioception are measured from, in every env of the run
     #: (``gym.make(..., height_reference=...)``): ``world`` (MetaMorph's convention, default) or
     #: ``ground`` (above the ground under the torso: the same statistics on every task, the better
-    #: input for a multi-task student, ``results/normalizer_drift.md``); single env backend only
+    #: input for a multi-task student); single env backend only
     height_reference: str = "world"
     #: ``null`` (raw metres, the reference's) or a distance in metres beyond which the ``goal`` and
     #: ``object`` position inputs are observed at that distance in their own direction

@@ -1,4 +1,4 @@
-"""Deprecated path of :mod:`divmorph.shipped` (the application moved out of the library in 0.2.0; removed in 0.3.0)."""
+"""Deprecated path of :mod:`divmorph.shipped`: the application lives in :mod:`divmorph` (CHANGELOG: when this path goes)."""
 
 import importlib
 import sys

@@ -8,14 +8,14 @@
     divmorph transfer --profile demo --task Escape --arms divmorph,scratch,closest --seeds 0 1 2
     divmorph export   --profile demo --morphology train-000 --task FT
     divmorph evaluate --profile demo
-    divmorph evaluate --run results/cpu --model teacher --task FT --split train --episodes 3 --into my-eval
+    divmorph evaluate --run runs/demo --model teacher --task FT --split train --episodes 3 --into my-eval
     divmorph report   --profile demo                 # summary.md + every figure with data
     divmorph figure transfer-train --profile demo    # one figure (PNG + CSV) in report/figures/
     divmorph record   runs/demo/teachers/FT              # MP4 of a pipeline or rl-zoo model, headless
     divmorph plot     logs/ppo/Unimal-FT-v0_1            # learning curves of rl-zoo runs or stages, PNG, headless
     divmorph profiles [--profile demo]                   # the profiles and where they are read from
     divmorph branch --from runs/demo --out runs/demo-long  # a new run reusing demo's teachers and students
-    divmorph migrate runs/old-run                        # a run.json recorded before 0.2, in today's keys
+    divmorph migrate runs/old-run                        # a run.json of record format 1, in today's keys
 
 Every stage reads the profile (``zoo_configs/divmorph.yml``, shipped with the package, so any
 working directory will do) and works in ``--out`` (default ``runs/<profile>``); finished stages

@@ -1,4 +1,4 @@
-"""``divmorph migrate``: rewrite run folders' ``run.json`` recorded before divmorph 0.2 in today's keys."""
+"""``divmorph migrate``: rewrite run folders' ``run.json`` of record format 1 in today's keys."""
 
 from __future__ import annotations
 

@@ -175,7 +175,7 @@ def run_on_folder(args: argparse.Namespace, work: Work, reads_a_run: bool = Fals
     :param reads_a_run: the command reads an existing run: a missing ``--run`` folder is a typo.
     :param records: ``False`` for a command that only reads the run (its records stay as they are).
     :param trains: ``False`` for a command that trains nothing (it exports, evaluates or reports the
-        finished stages): it may run on stages trained under rules retired since.
+        finished stages): it may run on stages trained under retired rules.
     """
     # the command line's own mistakes are said before torch and the stages load (seconds, not half a minute)
     mistake = check_set_keys(args.set) or check_task_names(args)

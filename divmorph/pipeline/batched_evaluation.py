@@ -3,7 +3,7 @@
 The evaluation curves of a transfer run (:class:`~divmorph.pipeline.curves.EvalCurveCallback`)
 play each robot's episodes one after another in a C-MuJoCo env of its own. Evaluating against many
 draws -- 15 episodes of 40 robots at every curve point, which heavy-tailed tasks such as PointNav
-need (``results/novel-task-gates``) -- then costs as much as the training between two points. On the
+need -- then costs as much as the training between two points. On the
 batched backend the same evaluation is one rollout of ``robots x episodes`` MuJoCo Warp worlds: world
 ``i`` plays episode ``i % episodes`` of robot ``i // episodes`` until its first end, and the rollout
 stops when every world has ended once.
@@ -11,7 +11,7 @@ stops when every world has ended once.
 What it shares with the single-env evaluation: the deterministic (mean) action clipped to the action
 space, the model's observation statistics as they are (used, never updated), the raw task reward summed over the episode, the
 1000-step truncation, and the same episodes at every call (the env's generator is seeded again).
-What differs, because batching imposes it (``docs/batched.md``): float32 physics, terrain drawn from
+What differs, because batching imposes it: float32 physics, terrain drawn from
 the env's pool of variants, and episodes drawn by the env's own generator, so a robot's episodes
 depend on the robots evaluated beside it. Curves evaluated this way are comparable with each other
 (every arm and point of a race), not episode for episode with single-env numbers.

@@ -9,8 +9,8 @@ history, with the branch appended). Provenance then treats the linked stages as 
 branch: a command that changes their settings there is refused, while the stages downstream of
 them run in the branch under new settings, e.g.::
 
-    divmorph branch --from results/cpu --out results/cpu-transfer-300k
-    divmorph transfer --run results/cpu-transfer-300k --set transfer.n_timesteps=300000
+    divmorph branch --from runs/demo --out runs/demo-transfer-300k
+    divmorph transfer --run runs/demo-transfer-300k --set transfer.n_timesteps=300000
 
 Nothing is written into the source: unfinished runs are not linked (a student still distilling
 in the source is trained afresh in the branch if the branch needs it), and ``--redo`` in the

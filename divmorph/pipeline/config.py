@@ -170,8 +170,8 @@ def profile_from_dict(name: str, values: dict[str, Any]) -> Profile:
 
 
 def check_removed_keys(values: dict[str, Any], where: str) -> None:
-    """A profile that sets a key removed in 0.2, or a kept key to its retired value, is an error naming
-    it and what replaces it (a run recorded before 0.2 is migrated once: ``divmorph migrate``)."""
+    """A profile that sets a removed key, or a kept key to its retired value, is an error naming it and
+    what replaces it (a run recorded in record format 1 is migrated once: ``divmorph migrate``)."""
     for key, instead in REMOVED_KEYS.items():
         section_name, name = key.split(".")
         if isinstance(values.get(section_name), dict) and name in values[section_name]:

@@ -274,7 +274,7 @@ def seed_curves(out: Path, task: str, arm: str, split: str) -> dict[int, tuple[n
     """``{seed: (steps, mean return)}`` of every seed of an arm with an evaluation curve."""
     base = Path(out) / "transfer" / task / arm
     folders = {int(folder.name.split("-")[1]): folder for folder in base.glob("seed-*")}
-    folders.setdefault(0, base)  # a run from before seeds existed is seed 0
+    folders.setdefault(0, base)  # a run in the arm's folder itself (no seed-<n>/) is seed 0
     curves = {}
     for seed, folder in sorted(folders.items()):
         steps, returns = eval_curve(read_eval(folder / EVAL_FILE), split)
@@ -291,7 +291,7 @@ def seed_robot_curves(out: Path, task: str, arm: str, split: str, finished_only:
     """
     base = Path(out) / "transfer" / task / arm
     folders = {int(folder.name.split("-")[1]): folder for folder in base.glob("seed-*")}
-    folders.setdefault(0, base)  # a run from before seeds existed is seed 0
+    folders.setdefault(0, base)  # a run in the arm's folder itself (no seed-<n>/) is seed 0
     curves = {}
     for seed, folder in sorted(folders.items()):
         if finished_only and not is_done(folder):

@@ -294,7 +294,7 @@ def job_key(label: str, model: Path, task: str, split: str) -> tuple[str, str, s
     apart (``""`` for the other models: one run each)."""
     if not label.startswith("transfer-"):
         return label, task, split, ""
-    name = Path(model).name  # seed-<n>/, or the arm's folder itself for a run begun before seeds existed
+    name = Path(model).name  # seed-<n>/, or the arm's folder itself for a run without seed folders (seed 0)
     return label, task, split, name.removeprefix("seed-") if name.startswith("seed-") else "0"
 
 

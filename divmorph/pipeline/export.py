@@ -54,7 +54,6 @@ from sb3_divmorph.policies.morphology_transformer import DivMorphPolicy
 from unimal_envs.contract import NOVEL_TASKS, TASK_NAMES
 from unimal_envs.tasks import TASKS
 
-#: Largest accepted difference between the exported actor and the student (issue contract).
 #: Largest accepted difference between the exported actor and the student, relative to the size of
 #: the student's action means (at least 1): float32 rounding grows with the values (a trained student
 #: whose means reach a few units differs by ~1e-5 through another order of operations).

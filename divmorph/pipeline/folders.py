@@ -140,8 +140,8 @@ def evaluation_label(folder: Path) -> tuple[Path, str, int | None] | None:
 
 # -- transfer -----------------------------------------------------------------------------------------
 def transfer_folder(out: Path, task: str, arm: str, seed: int = 0) -> Path:
-    """``transfer/<task>/<arm>/seed-<seed>/``; a run begun before seeds existed (in the arm's folder
-    itself) stays seed 0, so an older run folder resumes rather than starting again."""
+    """``transfer/<task>/<arm>/seed-<seed>/``; a run held in the arm's folder itself (no ``seed-<n>/``)
+    is seed 0, so such a run folder resumes rather than starting again."""
     base = Path(out) / "transfer" / task / arm
     if seed == 0 and ((base / "done.json").is_file() or (base / "checkpoints").is_dir()):
         return base

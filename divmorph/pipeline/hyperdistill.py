@@ -10,8 +10,8 @@ Runs when the profile has a ``hyperdistill`` section (``divmorph hyperdistill`` 
    One student for all the training tasks: the one-hot of the task conditions its hypernetwork
    (the paper's one hypernetwork per task, in one network), and each state is normalised with the
    statistics of its task's teacher, held in ``model.zip`` (see :mod:`sb3_divmorph.policies.hyperdistill`).
-   A student trained before divmorph 0.2 without a task input and with one ``VecNormalize`` of its
-   own (``vecnormalize.pkl``) is still exported, for any task;
+   A student without a task input and with one ``VecNormalize`` of its own (``vecnormalize.pkl``)
+   is exported too, for any task;
 3. per (robot, task) of the ``export`` section: the MLP generated once for that robot, written as
    TorchScript (``mlp.pt``) and ONNX (``mlp.onnx``), checked against the student (max |diff| <= 1e-5)
    and reported with its size against the teacher's actor (``hyperdistill/export/<robot>-<task>/``).
@@ -68,7 +68,7 @@ def _config(profile: Profile):
 
 def _any_task(student: Path) -> bool:
     """Whether the trained student in folder ``student`` can be written for a task without a teacher:
-    one trained before 0.2, without a task input and with its own statistics."""
+    one without a task input and with its own statistics."""
     info = read_done(student)
     return info.get("task_input") == "none" and info.get("observation_statistics") == "own"
 

@@ -1,8 +1,7 @@
 """Rules a run folder was once trained under that today's code no longer runs, and the one-time
 migration of a run's ``run.json`` to today's keys (``divmorph migrate``).
 
-A run records its profile in ``run.json``. Records written before divmorph 0.2 (record format 1) may
-lack keys added since, and some of their values select rules that were replaced: the migration
+A run records its profile in ``run.json``. Records of format 1 may lack keys added since, and some of their values select rules that were replaced: the migration
 writes each key out explicitly, moves a replaced rule out of the configuration into the record's
 ``retired`` section (``{"transfer.observation_statistics": "learning"}``: what the stage really ran
 under), and turns ``transfer.compare_scratch`` into the explicit ``transfer.arms``. The profile then

@@ -64,8 +64,8 @@ def transfer_eval_robots(profile: Profile, split: str) -> list[Path]:
     robot when it is ``None``).
 
     Spread, not the first ones: robot files sort by family, and a prefix stands for one family only
-    (the first 20 of the official 100 are all ``floor-*`` robots, on which the cpu100 FT teacher
-    returns 46 against 583 over all 100).
+    (the first 20 of the official 100 are all ``floor-*`` robots, one family whose returns say little
+    of the whole set's).
     """
     robots = profile_robots(profile, split)
     wanted = profile.transfer.eval_robots

@@ -8,8 +8,7 @@ Every arm trains with the novel task's rl-zoo settings on the training robots (`
 with one optimiser rule for all: Adam's ``eps`` is ``transfer.adam_eps`` in every arm.
 Arms that start from a trained model (student, teacher, GRL agent) take its weights and its
 observation statistics, which stay *frozen* for the whole run (the weights were trained on inputs
-normalised by exactly these; letting them move changes what even a frozen network does, see
-``results/normalizer_drift.md``); reward statistics start afresh for the new task and learn.
+normalised by exactly these; letting them move changes what even a frozen network does); reward statistics start afresh for the new task and learn.
 Every arm sees the novel task's inputs: a source without an encoder for one of them (the teacher
 of a task without a height map, fine-tuned on Escape) gets the encoder the task's own
 architecture has, freshly initialised, next to all its trained weights (:func:`finetuned_model`).
@@ -227,8 +226,8 @@ def check_arm_prerequisites(profile: Profile, out: Path, tasks: list[str], arms:
 
 def _source_record(out: Path, arm: str, seed: int, source: Path | None, instruction: str | None = None) -> dict[str, Any]:
     """What a run started from; ``instruction``: the one ``task_gates: closest`` gave it (recorded only
-    then, so that runs begun before the setting existed keep their records; the evaluation stage reads
-    it back)."""
+    then: under the default rule the record is the same as without the setting; the evaluation stage
+    reads it back)."""
     record = {"arm": arm, "seed": seed, "source": None if source is None else str(Path(source).relative_to(out))}
     if instruction is not None:
         record["instruction"] = instruction
@@ -391,7 +390,7 @@ def set_action_std(policy, action_std: float) -> None:
 
 
 def transfer_seed(profile: Profile, task: str, seed: int) -> int:
-    """PPO seed of one run (seed 0 is the pre-arms seed, so older runs stay comparable)."""
+    """PPO seed of one run: the run's seed, a fixed offset, the task's index and 100 per ``seed``."""
     return profile.seed + 7000 + TASK_NAMES.index(task) + 100 * seed
 
 
@@ -411,8 +410,7 @@ def transfer_run(
     :param arm: a name of :data:`~divmorph.pipeline.arms.ARMS`.
     :param seed: offsets the PPO seed (the robots, budget and evaluation are the same for every seed).
     :param calibration: also accept a *training* task: a setting of the race (a learning rate, the
-        critic's treatment) is chosen by running the arms on a training task, never on the novel ones
-        (``results/critic-start/critic_start.py``).
+        critic's treatment) is chosen by running the arms on a training task, never on the novel ones.
     :raises ConfigError: not a novel task, unknown arm, or the run folder was begun from another source.
     :raises FileNotFoundError: the arm's prerequisite stage has not run.
     """

@@ -700,7 +700,7 @@ class DevicePPO(PPO):
                 return False
             n_steps += 1
 
-            # Time-limit truncation: bootstrap with the value of the final observation (SB3 #633).
+            # Time-limit truncation: bootstrap with the value of the final observation (as SB3's PPO does).
             truncated_worlds = truncated.nonzero().flatten()  # the step's one wait for the device
             if truncated_worlds.numel():
                 final = {k: v.index_select(0, truncated_worlds) for k, v in infos["final_observation"].items()}

@@ -1,4 +1,4 @@
-"""Deprecated path of :mod:`divmorph.pipeline` (the application moved out of the library in 0.2.0; removed in 0.3.0).
+"""Deprecated path of :mod:`divmorph.pipeline`: the application lives in :mod:`divmorph` (CHANGELOG: when this path goes).
 
 Importing ``sb3_divmorph.pipeline`` or any of its modules warns once and gives the module of
 ``divmorph.pipeline`` under the old name (the same objects: ``except ConfigError`` keeps working).

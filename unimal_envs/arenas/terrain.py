@@ -115,8 +115,7 @@ class ObstacleCourse(Arena):
     *mocap* body. A geom of the world body cannot be moved at run time: MuJoCo bounds the world
     body's geoms once, at compile time (its bounding-volume hierarchy), and MuJoCo Warp computes
     world-body geom poses once, in ``make_data``, so a moved world geom is drawn where it was put
-    but collides where it was compiled (the defect of earlier versions: robots walked through the
-    blocks). A mocap body's pose is state (``data.mocap_pos``), read by both engines every step.
+    but collides where it was compiled (robots would walk through the blocks). A mocap body's pose is state (``data.mocap_pos``), read by both engines every step.
     Sizes change through ``model.geom_size`` (with ``geom_aabb`` and ``geom_rbound``); every block
     is compiled at the largest size, so the compile-time bounding volumes of MuJoCo's midphase
     contain every size a block takes. Blocks and floor are both fixed, so MuJoCo never pairs them.

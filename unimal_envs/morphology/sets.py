@@ -19,10 +19,9 @@ filters; the other seeds are skipped:
 * **Stands on its own** (optional, on for the shipped sets, off by default for new sets): dropped
   on flat ground with the environments' contact settings (``filterparent`` on, no excludes) and
   zero control, the torso stays above half its standing height (the FT fall threshold) for 2 s.
-  Two thirds of the official train robots pass this test (33/100 fall), but fewer than a third of
-  generated robots inside the envelope. The shipped sets keep it so that few episodes end at
-  once; the price is a set that never falls at zero torque, unlike the official one
-  (``results/morphology_sets.md``). ``generate --stand-filter 0 --out DIR`` makes sets without it.
+  Most official train robots pass this test, but few generated robots inside the envelope do.
+  The shipped sets keep it so that few episodes end at once; the price is a set that never falls
+  at zero torque, unlike the official one. ``generate --stand-filter 0 --out DIR`` makes sets without it.
 
 The filters play the part of DERL's selection: they keep the sets comparable to the official one
 (see ``unimal-morphologies stats --compare``). Only the standing test depends on simulated dynamics;
