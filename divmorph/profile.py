@@ -11,11 +11,95 @@ import difflib
 import typing
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NoReturn
+
+#: Simulation backends a training stage may use (``env_backend``).
+ENV_BACKENDS = ("single", "batched")
+#: Policies a teacher may be (``teachers.policy``, ``hyperdistill.teacher_policy``).
+TEACHER_POLICIES = ("MetaMorphPolicy", "ModuMorphPolicy", "DivMorphPolicy")
+
+
+def _refuse(message: str) -> NoReturn:
+    """Raise the pipeline's ``ConfigError`` (imported here, on a mistake: its module loads torch)."""
+    from sb3_divmorph.zoo import ConfigError
+
+    raise ConfigError(message)
+
+
+def _check_tasks(tasks: list[str], allowed: tuple[str, ...], where: str) -> None:
+    bad = [t for t in tasks if t not in allowed]
+    if bad or not tasks:
+        _refuse(f"{where}: unknown or unsuitable task(s) {bad or tasks}; choose from {list(allowed)}")
+
+
+def _check_teacher_policy(policy: str | None, key: str, where: str) -> None:
+    if policy is not None and policy not in TEACHER_POLICIES:
+        _refuse(f"{where}: unknown teacher policy {policy!r} in {key}; choose from {list(TEACHER_POLICIES)}")
+
+
+def _check_ppo_keys(overrides: dict[str, Any], where: str) -> None:
+    from sb3_divmorph.zoo import check_ppo_keys  # the rl-zoo's keys: imported when a profile is checked
+
+    check_ppo_keys(overrides, where)
+
+
+def check_arms(arms: list[str], where: str) -> None:
+    """Unknown or repeated arms are an error that lists the valid ones."""
+    from divmorph.pipeline.arms import ARMS
+
+    unknown = [a for a in arms if a not in ARMS]
+    if unknown:
+        _refuse(f"{where}: unknown arm(s) {unknown}; valid arms: {list(ARMS)}")
+    repeated = sorted({a for a in arms if arms.count(a) > 1})
+    if repeated or not arms:
+        _refuse(f"{where}: arm(s) {repeated or arms} given twice or none given")
+
+
+def check_seeds(seeds: list[int], where: str) -> None:
+    """Seeds must be distinct non-negative integers (a seed given twice would race itself)."""
+    if not seeds or any(not isinstance(s, int) or isinstance(s, bool) or s < 0 for s in seeds):
+        _refuse(f"{where}: seeds must be a non-empty list of integers >= 0, got {seeds}")
+    repeated = sorted({s for s in seeds if seeds.count(s) > 1})
+    if repeated:
+        _refuse(f"{where}: seed(s) {repeated} given twice; each seed is one run folder")
+
+
+@dataclass(kw_only=True)
+class SimulationSettings:
+    """Where a training stage's envs run: the keys ``teachers``, ``distill`` and ``transfer`` share.
+
+    Each such section also has ``n_timesteps`` and ``checkpoint_every`` (in env steps, described by
+    the section), which :meth:`check_steps` checks and makes integers.
+    """
+
+    #: ``single``: ``n_envs`` C-MuJoCo envs; ``batched``: MuJoCo Warp (:mod:`unimal_envs.batched`),
+    #: ``worlds_per_robot`` worlds of every robot on the profile's device (``n_envs`` is then unused)
+    env_backend: str = "single"
+    worlds_per_robot: int = 16
+    #: ``batched`` only: distinct terrains drawn per terrain task (VT, Obstacle, Escape); every
+    #: episode picks one (the single env draws new terrain every episode)
+    terrain_variants: int = 64
+
+    def check_simulation(self, where: str, key: str) -> None:
+        """A known backend and counts >= 1 (``where``: the profile, ``key``: the section's key)."""
+        if self.env_backend not in ENV_BACKENDS or self.worlds_per_robot < 1 or self.terrain_variants < 1:
+            _refuse(
+                f"{where}: {key}.env_backend must be one of {list(ENV_BACKENDS)}, "
+                f"{key}.worlds_per_robot >= 1 and {key}.terrain_variants >= 1, got "
+                f"{self.env_backend!r}, {self.worlds_per_robot}, {self.terrain_variants}"
+            )
+
+    def check_steps(self, where: str, key: str) -> None:
+        """``n_timesteps`` and ``checkpoint_every`` are positive whole numbers of env steps, made ``int``."""
+        for name in ("n_timesteps", "checkpoint_every"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 1 or not float(value).is_integer():
+                _refuse(f"{where}: {key}.{name} must be a positive whole number of env steps, got {value!r}")
+            setattr(self, name, int(value))  # 2e7 in YAML arrives as a float
 
 
 @dataclass
-class TeachersConfig:
+class TeachersConfig(SimulationSettings):
     """One teacher per training task (MetaMorph unless ``policy`` says otherwise), trained with PPO."""
 
     #: the training tasks, one teacher each (of ``TRAIN_TASKS``)
@@ -36,13 +120,16 @@ class TeachersConfig:
     #: MetaMorph's training recipe (cosine lr with warm-up, Adam eps 1e-5, KL stop at 0.2,
     #: normalisation clipped at 10, balanced robot sampler; see ``sb3_divmorph.algos.recipe``)
     recipe: str = ""
-    #: ``single``: ``n_envs`` C-MuJoCo envs; ``batched``: MuJoCo Warp (:mod:`unimal_envs.batched`),
-    #: ``worlds_per_robot`` worlds of every robot on the profile's device (``n_envs`` is then unused)
-    env_backend: str = "single"
-    worlds_per_robot: int = 16
-    #: ``batched`` only: distinct terrains drawn per terrain task (VT, Obstacle, Escape); every
-    #: episode picks one (the single env draws new terrain every episode)
-    terrain_variants: int = 64
+
+    def check(self, where: str) -> None:
+        """Check the section's values (``where``: the profile); :raises ConfigError: a bad one."""
+        from unimal_envs.contract import TRAIN_TASKS
+
+        _check_tasks(self.tasks, TRAIN_TASKS, f"{where}, teachers.tasks")
+        _check_teacher_policy(self.policy, "teachers.policy", where)
+        self.check_simulation(where, "teachers")
+        self.check_steps(where, "teachers")
+        _check_ppo_keys(self.overrides, f"{where}, teachers.overrides")
 
 
 @dataclass
@@ -56,9 +143,12 @@ class StudentConfig:
     #: compact actor's size reduction grows with width); applied last
     overrides: dict[str, dict[str, Any]] = field(default_factory=dict)
 
+    def check(self, where: str) -> None:
+        """Nothing to check beyond the keys: the policy checks its ``policy_kwargs`` (``where``: the profile)."""
+
 
 @dataclass
-class DistillConfig:
+class DistillConfig(SimulationSettings):
     """DAgger distillation of the teachers into the student."""
 
     #: DAgger env steps (the student's own rollouts, labelled by the teachers)
@@ -93,17 +183,26 @@ class DistillConfig:
     optimizer: str = "adam"
     weight_decay: float = 0.0
     value_weight: float = 0.0
-    #: ``single``: ``n_envs`` C-MuJoCo envs; ``batched``: MuJoCo Warp (:mod:`unimal_envs.batched`),
-    #: ``worlds_per_robot`` worlds of every robot on the profile's device (``n_envs`` is then unused)
-    env_backend: str = "single"
-    worlds_per_robot: int = 16
-    #: ``batched`` only: distinct terrains drawn per terrain task (VT, Obstacle, Escape); every
-    #: episode picks one (the single env draws new terrain every episode)
-    terrain_variants: int = 64
+
+    def check(self, where: str) -> None:
+        """Check the section's values (``where``: the profile); :raises ConfigError: a bad one."""
+        if self.optimizer not in ("adam", "adamw"):
+            _refuse(f"{where}: distill.optimizer must be 'adam' or 'adamw', got {self.optimizer!r}")
+        if (self.target_bound is not None and self.target_bound <= 0) or self.weight_decay < 0 or self.value_weight < 0:
+            _refuse(
+                f"{where}: distill.target_bound must be positive or null, distill.weight_decay and "
+                f"distill.value_weight >= 0; got {self.target_bound!r}, {self.weight_decay!r}, {self.value_weight!r}"
+            )
+        self.check_simulation(where, "distill")
+        self.check_steps(where, "distill")
+        if not 0 <= self.beta_start <= 1 or not 0 <= self.beta_end <= 1:
+            _refuse(f"{where}: distill.beta_start/beta_end must be in [0, 1]")
+        if self.ppo_loss and max(self.beta_start, self.beta_end) > 0:
+            _refuse(f"{where}: distill.ppo_loss needs beta_start = beta_end = 0 (mixing is off-policy)")
 
 
 @dataclass
-class TransferConfig:
+class TransferConfig(SimulationSettings):
     """Transfer of the student to novel tasks (and the MetaMorph-from-scratch comparison)."""
 
     #: the novel tasks to transfer to (of ``NOVEL_TASKS``)
@@ -140,13 +239,6 @@ class TransferConfig:
     #: how the ``closest`` arm picks its teacher: ``embedding`` (cosine of the instruction
     #: embeddings) or ``return`` (best zero-shot return on the novel task)
     closest_by: str = "embedding"
-    #: ``single``: ``n_envs`` C-MuJoCo envs; ``batched``: MuJoCo Warp (:mod:`unimal_envs.batched`),
-    #: ``worlds_per_robot`` worlds of every robot on the profile's device (``n_envs`` is then unused)
-    env_backend: str = "single"
-    worlds_per_robot: int = 16
-    #: ``batched`` only: distinct terrains drawn per terrain task (VT, Obstacle, Escape); every
-    #: episode picks one (the single env draws new terrain every episode)
-    terrain_variants: int = 64
     #: deterministic evaluation on the training and the novel robots every this many env steps
     #: (and at step 0 and at the end); 0 = no evaluation curves (no transfer metrics)
     eval_every: int = 0
@@ -208,6 +300,55 @@ class TransferConfig:
         """The arms to run: ``arms``, or ``divmorph`` and ``scratch``."""
         return list(self.arms) if self.arms is not None else ["divmorph", "scratch"]
 
+    def check(self, where: str) -> None:
+        """Check the section's values (``where``: the profile); :raises ConfigError: a bad one."""
+        from sb3_divmorph.algos.finetune import RECIPES  # the library's recipes: imported when a profile is checked
+        from unimal_envs.contract import NOVEL_TASKS
+
+        _check_tasks(self.tasks, NOVEL_TASKS, f"{where}, transfer.tasks")
+        if self.desired_kl is not None and not self.desired_kl > 0:
+            _refuse(f"{where}: transfer.desired_kl must be null or a KL > 0, got {self.desired_kl!r}")
+        self.check_simulation(where, "transfer")
+        if self.action_std is not None and not (
+            isinstance(self.action_std, (int, float)) and not isinstance(self.action_std, bool) and self.action_std > 0
+        ):
+            _refuse(f"{where}: transfer.action_std must be a positive number or null, got {self.action_std!r}")
+        if self.eval_backend not in ENV_BACKENDS:
+            _refuse(f"{where}: transfer.eval_backend must be one of {list(ENV_BACKENDS)}, got {self.eval_backend!r}")
+        self.check_steps(where, "transfer")
+        _check_ppo_keys(self.overrides, f"{where}, transfer.overrides")
+        _check_ppo_keys(self.finetune_overrides, f"{where}, transfer.finetune_overrides")
+        at = f"{where}, transfer"
+        check_arms(self.arm_list(), f"{at}.arms")
+        check_seeds(list(self.seeds), f"{at}.seeds")
+        if self.closest_by not in ("embedding", "return"):
+            _refuse(f"{at}.closest_by must be 'embedding' or 'return', got {self.closest_by!r}")
+        if self.eval_every < 0 or self.eval_episodes < 1:
+            _refuse(f"{at}: eval_every must be >= 0 and eval_episodes >= 1")
+        if self.eval_robots is not None and self.eval_robots < 1:
+            _refuse(f"{at}.eval_robots must be >= 1 or null (every robot), got {self.eval_robots!r}")
+        if self.critic_warmup < 0:
+            _refuse(f"{at}.critic_warmup must be >= 0 env steps, got {self.critic_warmup}")
+        if not self.critic_lr_scale > 0:
+            _refuse(f"{at}.critic_lr_scale must be > 0, got {self.critic_lr_scale}")
+        try:
+            self.adam_eps = float(self.adam_eps)  # YAML reads 1e-10 (no dot) as a string
+        except (TypeError, ValueError):
+            _refuse(f"{at}.adam_eps must be a number > 0, got {self.adam_eps!r}")
+        if not self.adam_eps > 0:
+            _refuse(f"{at}.adam_eps must be a number > 0, got {self.adam_eps!r}")
+        if not 0 <= self.rotation_lr_scale <= 1:
+            _refuse(f"{at}.rotation_lr_scale must be in [0, 1], got {self.rotation_lr_scale}")
+        if self.recipe not in RECIPES:
+            _refuse(f"{at}.recipe must be one of {list(RECIPES)}, got {self.recipe!r}")
+        if isinstance(self.adapter_rank, bool) or not isinstance(self.adapter_rank, int) or self.adapter_rank < 1:
+            _refuse(f"{at}.adapter_rank must be an integer >= 1, got {self.adapter_rank!r}")
+        if not isinstance(self.undiverted_lr_scale, (int, float)) or not 0 <= self.undiverted_lr_scale <= 1:
+            _refuse(f"{at}.undiverted_lr_scale must be in [0, 1], got {self.undiverted_lr_scale!r}")
+        stray = sorted(set(self.instructions) - set(self.tasks))
+        if stray:
+            _refuse(f"{where}: transfer.instructions for {stray}, which are not in transfer.tasks {self.tasks}")
+
 
 @dataclass
 class ExportConfig:
@@ -219,6 +360,12 @@ class ExportConfig:
     robots_per_split: int = 1
     #: forward passes timed for the batch-1 latency
     latency_repeats: int = 200
+
+    def check(self, where: str) -> None:
+        """Check the section's values (``where``: the profile); :raises ConfigError: a bad one."""
+        from unimal_envs.contract import TASK_NAMES
+
+        _check_tasks(self.tasks, TASK_NAMES, f"{where}, export.tasks")
 
 
 @dataclass
@@ -251,6 +398,18 @@ class HyperDistillConfig:
     #: capacity of DAgger's aggregated dataset (states)
     buffer_size: int = 50_000
 
+    def check(self, where: str) -> None:
+        """Check the section's values (``where``: the profile); :raises ConfigError: a bad one."""
+        _check_teacher_policy(self.teacher_policy, "hyperdistill.teacher_policy", where)
+        if self.loss not in ("nll", "kl"):
+            _refuse(f"{where}: hyperdistill.loss must be 'nll' or 'kl', got {self.loss!r}")
+        for key in ("task_input", "observation_statistics", "normalized_keys"):
+            if key in self.policy_kwargs:
+                _refuse(
+                    f"{where}: hyperdistill.policy_kwargs.{key} is set by the pipeline (the task's index in, "
+                    "each state normalised with its task's teacher's statistics)"
+                )
+
 
 @dataclass
 class GRLConfig:
@@ -273,6 +432,12 @@ class GRLConfig:
     #: PPO settings of the agents (updates the training task's zoo entry, like ``teachers.overrides``)
     overrides: dict[str, Any] = field(default_factory=dict)
 
+    def check(self, where: str) -> None:
+        """Check the section's values (``where``: the profile); :raises ConfigError: a bad one."""
+        _check_ppo_keys(self.overrides, f"{where}, grl.overrides")
+        if self.population < 1 or self.generations < 1 or self.learngene_layers < 1 or self.tournament < 1:
+            _refuse(f"{where}: grl.population, generations, learngene_layers and tournament must be >= 1")
+
 
 @dataclass
 class EvaluateConfig:
@@ -280,6 +445,9 @@ class EvaluateConfig:
 
     #: deterministic episodes per robot (they differ by reset noise and terrain)
     episodes: int = 3
+
+    def check(self, where: str) -> None:
+        """Nothing to check beyond the keys (``where``: the profile)."""
 
 
 @dataclass
@@ -335,6 +503,15 @@ class Profile:
     #: GRL's evolution settings (the ``grl`` transfer arm); defaults apply when absent
     grl: GRLConfig = field(default_factory=GRLConfig)
 
+    def check(self, where: str) -> None:
+        """Check the profile's own values, not its sections' (``where``: the profile); :raises ConfigError: a bad one."""
+        from unimal_envs.contract import HEIGHT_REFERENCES
+
+        if self.height_reference not in HEIGHT_REFERENCES:
+            _refuse(f"{where}: height_reference must be one of {list(HEIGHT_REFERENCES)}, got {self.height_reference!r}")
+        if self.goal_range is not None and not self.goal_range > 0:
+            _refuse(f"{where}: goal_range must be null or a distance > 0 (m), got {self.goal_range!r}")
+
 
 #: The profile's sections by key: each a dataclass whose fields are the section's keys.
 SECTIONS: dict[str, type] = {
@@ -347,6 +524,14 @@ SECTIONS: dict[str, type] = {
     "grl": GRLConfig,
     "hyperdistill": HyperDistillConfig,
 }
+
+
+def section_keys(cls: type) -> list[str]:
+    """The keys of section (or profile) ``cls`` as messages list them: its own in declaration order,
+    then those it shares with other sections (:class:`SimulationSettings`)."""
+    names = [f.name for f in dataclasses.fields(cls)]
+    shared = {f.name for f in dataclasses.fields(SimulationSettings)} if issubclass(cls, SimulationSettings) else set()
+    return [n for n in names if n not in shared] + [n for n in names if n in shared]
 
 
 def _is_mapping(cls: type, name: str) -> bool:
@@ -373,7 +558,7 @@ def unknown_override(key: str, removed: Mapping[str, Any] = {}) -> str | None:
         return f"{parts[0]!r} is not a section of the profile" if len(parts) > 1 else None
     if len(parts) == 1:
         return None
-    keys = [f.name for f in dataclasses.fields(section)]
+    keys = section_keys(section)
     if parts[1] not in keys:
         return f"section {parts[0]!r}: unknown key(s) {[parts[1]]}; valid keys: {keys}"
     if len(parts) > 2 and not _is_mapping(section, parts[1]):

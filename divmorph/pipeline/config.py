@@ -1,8 +1,8 @@
 """Pipeline profiles (``zoo_configs/divmorph.yml``), validated (rl-zoo entries: :mod:`sb3_divmorph.zoo`).
 
-A profile is plain YAML; every section maps onto a dataclass below, and a key the dataclass does
-not have is an error that names it and lists the valid ones (a typo must never be silently
-ignored in a run that takes hours).
+A profile is plain YAML; every section maps onto a dataclass of :mod:`divmorph.profile`, which
+checks its values (``check``), and a key the dataclass does not have is an error that names it and
+lists the valid ones (a typo must never be silently ignored in a run that takes hours).
 """
 
 from __future__ import annotations
@@ -15,7 +15,6 @@ from typing import Any
 
 import yaml
 
-from sb3_divmorph.algos.finetune import RECIPES
 from sb3_divmorph.zoo import (  # noqa: F401 -- the rl-zoo entries are read in sb3_divmorph.zoo; re-exported here
     BALANCED_SAMPLER,
     PPO_HYPERPARAMETERS,
@@ -29,26 +28,32 @@ from sb3_divmorph.zoo import (  # noqa: F401 -- the rl-zoo entries are read in s
     zoo_configs_dir,
 )
 from divmorph.pipeline.retired import REMOVED_KEYS, RETIRED_RULES
-from divmorph.profile import (  # noqa: F401 -- the sections are declared in divmorph.profile; re-exported here
+from divmorph.profile import (  # noqa: F401 -- the sections and their checks live in divmorph.profile; re-exported here
+    ENV_BACKENDS,
+    SECTIONS,
+    TEACHER_POLICIES,
     DistillConfig,
     EvaluateConfig,
     ExportConfig,
     GRLConfig,
     HyperDistillConfig,
     Profile,
+    SimulationSettings,
     StudentConfig,
     TeachersConfig,
     TransferConfig,
+    check_arms,
+    check_seeds,
+    section_keys,
 )
 from unimal_envs import env_id
-from unimal_envs.contract import HEIGHT_REFERENCES, NOVEL_TASKS, TASK_NAMES, TRAIN_TASKS
 
 DEFAULT_PROFILES = Path("zoo_configs") / "divmorph.yml"
 
 
 def _from_dict(cls: type, values: dict[str, Any] | None, where: str):
     values = dict(values or {})
-    names = [f.name for f in dataclasses.fields(cls)]
+    names = section_keys(cls)
     unknown = sorted(set(values) - set(names))
     if unknown:
         raise ConfigError(f"{where}: unknown key(s) {unknown}; valid keys: {names}")
@@ -60,18 +65,6 @@ def _from_dict(cls: type, values: dict[str, Any] | None, where: str):
     if missing:
         raise ConfigError(f"{where}: missing key(s) {missing}")
     return cls(**values)
-
-
-def _check_tasks(tasks: list[str], allowed: tuple[str, ...], where: str) -> None:
-    bad = [t for t in tasks if t not in allowed]
-    if bad or not tasks:
-        raise ConfigError(f"{where}: unknown or unsuitable task(s) {bad or tasks}; choose from {list(allowed)}")
-
-
-#: Simulation backends a training stage may use (``env_backend``).
-ENV_BACKENDS = ("single", "batched")
-#: Policies a teacher may be (``teachers.policy``, ``hyperdistill.teacher_policy``).
-TEACHER_POLICIES = ("MetaMorphPolicy", "ModuMorphPolicy", "DivMorphPolicy")
 
 
 def profile_from_dict(name: str, values: dict[str, Any]) -> Profile:
@@ -98,74 +91,12 @@ def profile_from_dict(name: str, values: dict[str, Any]) -> Profile:
     if values.get("hyperdistill") is not None:
         parsed["hyperdistill"] = _from_dict(HyperDistillConfig, values.pop("hyperdistill"), f"profile {name!r}, section 'hyperdistill'")
     profile = _from_dict(Profile, {**values, **parsed, "name": name}, f"profile {name!r}")
-    _check_tasks(profile.teachers.tasks, TRAIN_TASKS, f"profile {name!r}, teachers.tasks")
-    _check_tasks(profile.transfer.tasks, NOVEL_TASKS, f"profile {name!r}, transfer.tasks")
-    _check_tasks(profile.export.tasks, TASK_NAMES, f"profile {name!r}, export.tasks")
-    for where, policy in (
-        ("teachers.policy", profile.teachers.policy),
-        ("hyperdistill.teacher_policy", profile.hyperdistill.teacher_policy if profile.hyperdistill else None),
-    ):
-        if policy is not None and policy not in TEACHER_POLICIES:
-            raise ConfigError(f"profile {name!r}: unknown teacher policy {policy!r} in {where}; choose from {list(TEACHER_POLICIES)}")
-    d = profile.distill
-    if d.optimizer not in ("adam", "adamw"):
-        raise ConfigError(f"profile {name!r}: distill.optimizer must be 'adam' or 'adamw', got {d.optimizer!r}")
-    if (d.target_bound is not None and d.target_bound <= 0) or d.weight_decay < 0 or d.value_weight < 0:
-        raise ConfigError(
-            f"profile {name!r}: distill.target_bound must be positive or null, distill.weight_decay and "
-            f"distill.value_weight >= 0; got {d.target_bound!r}, {d.weight_decay!r}, {d.value_weight!r}"
-        )
-    if profile.hyperdistill is not None and profile.hyperdistill.loss not in ("nll", "kl"):
-        raise ConfigError(f"profile {name!r}: hyperdistill.loss must be 'nll' or 'kl', got {profile.hyperdistill.loss!r}")
-    for key in ("task_input", "observation_statistics", "normalized_keys"):
-        if profile.hyperdistill is not None and key in profile.hyperdistill.policy_kwargs:
-            raise ConfigError(
-                f"profile {name!r}: hyperdistill.policy_kwargs.{key} is set by the pipeline (the task's index in, "
-                "each state normalised with its task's teacher's statistics)"
-            )
-    if profile.height_reference not in HEIGHT_REFERENCES:
-        raise ConfigError(f"profile {name!r}: height_reference must be one of {list(HEIGHT_REFERENCES)}, got {profile.height_reference!r}")
-    if profile.transfer.desired_kl is not None and not profile.transfer.desired_kl > 0:
-        raise ConfigError(f"profile {name!r}: transfer.desired_kl must be null or a KL > 0, got {profile.transfer.desired_kl!r}")
-    if profile.goal_range is not None and not profile.goal_range > 0:
-        raise ConfigError(f"profile {name!r}: goal_range must be null or a distance > 0 (m), got {profile.goal_range!r}")
-    for section in ("teachers", "distill", "transfer"):
-        cfg = getattr(profile, section)
-        if cfg.env_backend not in ENV_BACKENDS or cfg.worlds_per_robot < 1 or cfg.terrain_variants < 1:
-            raise ConfigError(
-                f"profile {name!r}: {section}.env_backend must be one of {list(ENV_BACKENDS)}, "
-                f"{section}.worlds_per_robot >= 1 and {section}.terrain_variants >= 1, got "
-                f"{cfg.env_backend!r}, {cfg.worlds_per_robot}, {cfg.terrain_variants}"
-            )
-    if profile.transfer.action_std is not None and not (
-        isinstance(profile.transfer.action_std, (int, float))
-        and not isinstance(profile.transfer.action_std, bool)
-        and profile.transfer.action_std > 0
-    ):
-        raise ConfigError(f"profile {name!r}: transfer.action_std must be a positive number or null, got {profile.transfer.action_std!r}")
-    if profile.transfer.eval_backend not in ENV_BACKENDS:
-        raise ConfigError(
-            f"profile {name!r}: transfer.eval_backend must be one of {list(ENV_BACKENDS)}, got {profile.transfer.eval_backend!r}"
-        )
-    for section in ("teachers", "distill", "transfer"):
-        for key in ("n_timesteps", "checkpoint_every"):
-            value = getattr(getattr(profile, section), key)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 1 or not float(value).is_integer():
-                raise ConfigError(f"profile {name!r}: {section}.{key} must be a positive whole number of env steps, got {value!r}")
-            setattr(getattr(profile, section), key, int(value))  # 2e7 in YAML arrives as a float
-    for section in ("teachers", "transfer", "grl"):
-        check_ppo_keys(getattr(profile, section).overrides, f"profile {name!r}, {section}.overrides")
-    check_ppo_keys(profile.transfer.finetune_overrides, f"profile {name!r}, transfer.finetune_overrides")
-    check_transfer(profile.transfer, f"profile {name!r}, transfer")
-    if profile.grl.population < 1 or profile.grl.generations < 1 or profile.grl.learngene_layers < 1 or profile.grl.tournament < 1:
-        raise ConfigError(f"profile {name!r}: grl.population, generations, learngene_layers and tournament must be >= 1")
-    stray = sorted(set(profile.transfer.instructions) - set(profile.transfer.tasks))
-    if stray:
-        raise ConfigError(f"profile {name!r}: transfer.instructions for {stray}, which are not in transfer.tasks {profile.transfer.tasks}")
-    if not 0 <= profile.distill.beta_start <= 1 or not 0 <= profile.distill.beta_end <= 1:
-        raise ConfigError(f"profile {name!r}: distill.beta_start/beta_end must be in [0, 1]")
-    if profile.distill.ppo_loss and max(profile.distill.beta_start, profile.distill.beta_end) > 0:
-        raise ConfigError(f"profile {name!r}: distill.ppo_loss needs beta_start = beta_end = 0 (mixing is off-policy)")
+    # each section checks its own values (divmorph.profile), then the profile its top-level ones
+    for key in SECTIONS:
+        section = getattr(profile, key)
+        if section is not None:
+            section.check(f"profile {name!r}")
+    profile.check(f"profile {name!r}")
     return profile
 
 
@@ -180,56 +111,6 @@ def check_removed_keys(values: dict[str, Any], where: str) -> None:
         section = values.get(rule.section)
         if rule.kept and isinstance(section, dict) and rule.name in section and section[rule.name] == rule.value:
             raise ConfigError(f"{where}: {rule.key}: {rule.value!r} selected a rule retired in divmorph 0.2; today's is {rule.today!r}")
-
-
-def check_arms(arms: list[str], where: str) -> None:
-    """Unknown or repeated arms are an error that lists the valid ones."""
-    from divmorph.pipeline.arms import ARMS
-
-    unknown = [a for a in arms if a not in ARMS]
-    if unknown:
-        raise ConfigError(f"{where}: unknown arm(s) {unknown}; valid arms: {list(ARMS)}")
-    repeated = sorted({a for a in arms if arms.count(a) > 1})
-    if repeated or not arms:
-        raise ConfigError(f"{where}: arm(s) {repeated or arms} given twice or none given")
-
-
-def check_seeds(seeds: list[int], where: str) -> None:
-    """Seeds must be distinct non-negative integers (a seed given twice would race itself)."""
-    if not seeds or any(not isinstance(s, int) or isinstance(s, bool) or s < 0 for s in seeds):
-        raise ConfigError(f"{where}: seeds must be a non-empty list of integers >= 0, got {seeds}")
-    repeated = sorted({s for s in seeds if seeds.count(s) > 1})
-    if repeated:
-        raise ConfigError(f"{where}: seed(s) {repeated} given twice; each seed is one run folder")
-
-
-def check_transfer(cfg: TransferConfig, where: str) -> None:
-    check_arms(cfg.arm_list(), f"{where}.arms")
-    check_seeds(list(cfg.seeds), f"{where}.seeds")
-    if cfg.closest_by not in ("embedding", "return"):
-        raise ConfigError(f"{where}.closest_by must be 'embedding' or 'return', got {cfg.closest_by!r}")
-    if cfg.eval_every < 0 or cfg.eval_episodes < 1:
-        raise ConfigError(f"{where}: eval_every must be >= 0 and eval_episodes >= 1")
-    if cfg.eval_robots is not None and cfg.eval_robots < 1:
-        raise ConfigError(f"{where}.eval_robots must be >= 1 or null (every robot), got {cfg.eval_robots!r}")
-    if cfg.critic_warmup < 0:
-        raise ConfigError(f"{where}.critic_warmup must be >= 0 env steps, got {cfg.critic_warmup}")
-    if not cfg.critic_lr_scale > 0:
-        raise ConfigError(f"{where}.critic_lr_scale must be > 0, got {cfg.critic_lr_scale}")
-    try:
-        cfg.adam_eps = float(cfg.adam_eps)  # YAML reads 1e-10 (no dot) as a string
-    except (TypeError, ValueError):
-        raise ConfigError(f"{where}.adam_eps must be a number > 0, got {cfg.adam_eps!r}") from None
-    if not cfg.adam_eps > 0:
-        raise ConfigError(f"{where}.adam_eps must be a number > 0, got {cfg.adam_eps!r}")
-    if not 0 <= cfg.rotation_lr_scale <= 1:
-        raise ConfigError(f"{where}.rotation_lr_scale must be in [0, 1], got {cfg.rotation_lr_scale}")
-    if cfg.recipe not in RECIPES:
-        raise ConfigError(f"{where}.recipe must be one of {list(RECIPES)}, got {cfg.recipe!r}")
-    if isinstance(cfg.adapter_rank, bool) or not isinstance(cfg.adapter_rank, int) or cfg.adapter_rank < 1:
-        raise ConfigError(f"{where}.adapter_rank must be an integer >= 1, got {cfg.adapter_rank!r}")
-    if not isinstance(cfg.undiverted_lr_scale, (int, float)) or not 0 <= cfg.undiverted_lr_scale <= 1:
-        raise ConfigError(f"{where}.undiverted_lr_scale must be in [0, 1], got {cfg.undiverted_lr_scale!r}")
 
 
 def load_profiles(path: str | Path = DEFAULT_PROFILES) -> dict[str, dict[str, Any]]:
