@@ -61,7 +61,7 @@ def test_readme_opens_with_make_demo_and_make_test():
     assert [line.split()[:2] for line in first[:2]] == [["make", "demo"], ["make", "test"]]
 
 
-def test_every_example_and_python_block_runs(tmp_path, monkeypatch, capsys, restore_threads):
+def test_every_example_and_python_block_runs(tmp_path, monkeypatch, capsys, restore_threads, official_cache):
     assert sorted(p.name for p in EXAMPLES.glob("*.py") if p.name != "__init__.py") == sorted(name for name, _ in EXAMPLE_RUNS), (
         "an example is not run here"
     )
