@@ -73,14 +73,8 @@ def profile_from_dict(name: str, values: dict[str, Any]) -> Profile:
 
     :raises ConfigError: an unknown, removed or missing key, or a bad value.
     """
-    sections = {
-        "teachers": TeachersConfig,
-        "student": StudentConfig,
-        "distill": DistillConfig,
-        "transfer": TransferConfig,
-        "export": ExportConfig,
-        "evaluate": EvaluateConfig,
-    }
+    # the sections every profile has (grl and hyperdistill are optional, read below)
+    sections = {key: section for key, section in SECTIONS.items() if key not in ("grl", "hyperdistill")}
     values = dict(values)
     check_removed_keys(values, f"profile {name!r}")
     parsed = {key: _from_dict(section, values.pop(key, None), f"profile {name!r}, section {key!r}") for key, section in sections.items()}
