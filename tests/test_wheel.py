@@ -131,63 +131,15 @@ def test_installed_cli_finds_its_profiles_from_any_folder(installed):
 def test_installed_rl_zoo_trains_with_the_shipped_entries_and_record_films_it(installed):
     site, elsewhere = installed
     tiny = "policy_kwargs:dict(d_model=16, n_layers=1, ff_dim=32, exteroception={})"
-    train = _run(
-        [
-            sys.executable,
-            "-m",
-            "rl_zoo3.train",
-            "--algo",
-            "ppo",
-            "--env",
-            "Unimal-FT-v0",
-            "--gym-packages",
-            "unimal_envs",
-            "sb3_divmorph",
-            "--conf-file",
-            "sb3_divmorph.zoo",
-            "-n",
-            "64",
-            "-f",
-            "logs",
-            "--seed",
-            "0",
-            "-params",
-            "n_envs:1",
-            "n_steps:64",
-            "batch_size:64",
-            "n_epochs:1",
-            tiny,
-        ],
-        elsewhere,
-        site,
-    )
+    # the README's two commands, on the same env and packages
+    zoo = ["--algo", "ppo", "--env", "Unimal-FT-v0", "--gym-packages", "unimal_envs", "sb3_divmorph", "-f", "logs"]
+    training = ["--conf-file", "sb3_divmorph.zoo", "-n", "64", "--seed", "0", "-params", "n_envs:1", "n_steps:64", "batch_size:64"]
+    train = _run([sys.executable, "-m", "rl_zoo3.train", *zoo, *training, "n_epochs:1", tiny], elsewhere, site)
     assert train.returncode == 0, train.stderr[-3000:]
     run = elsewhere / "logs" / "ppo" / "Unimal-FT-v0_1"
     assert (run / "Unimal-FT-v0.zip").is_file() and (run / "Unimal-FT-v0" / "vecnormalize.pkl").is_file()
-    # the README's enjoy command replays it (rl_zoo3.enjoy imports requests: the [zoo] extra brings it)
-    enjoy = _run(
-        [
-            sys.executable,
-            "-m",
-            "rl_zoo3.enjoy",
-            "--algo",
-            "ppo",
-            "--env",
-            "Unimal-FT-v0",
-            "--gym-packages",
-            "unimal_envs",
-            "sb3_divmorph",
-            "-f",
-            "logs",
-            "--exp-id",
-            "1",
-            "-n",
-            "20",
-            "--no-render",
-        ],
-        elsewhere,
-        site,
-    )
+    # enjoy replays it (rl_zoo3.enjoy imports requests: the [zoo] extra brings it)
+    enjoy = _run([sys.executable, "-m", "rl_zoo3.enjoy", *zoo, "--exp-id", "1", "-n", "20", "--no-render"], elsewhere, site)
     assert enjoy.returncode == 0, enjoy.stderr[-3000:]
     assert "Loading" in enjoy.stdout + enjoy.stderr
 
