@@ -49,6 +49,7 @@ from divmorph.pipeline.transfer import transfer_run
 
 ARMS = {
     "closest": "teacher (MetaMorph->)",
+    "scratch": "MetaMorph from scratch (its start: each run's own step 0)",
     "distilled": "dense MetaMorph⚗ student",
     "divmorph": "DivMorph student",
     "divmorph-finetuned": "DivMorph student, fully fine-tuned",
@@ -100,6 +101,8 @@ def evaluate_baselines(args: argparse.Namespace, profile) -> dict[str, dict[str,
     robots = transfer_eval_robots(profile, "train")
     for arm in args.arms:
         record = json.loads((transfer_folder(args.out, args.task, arm, args.seeds[0]) / "source.json").read_text())
+        if record.get("source") is None:
+            continue  # a random init: each run's start is its own step 0, not one model to draw many episodes of
         model = load_pretrained(args.out / record["source"])
         # told what the runs are told: the closest task's instruction under ``transfer.task_gates: closest``,
         # else the profile's ``transfer.instructions[task]`` (``--set``), else the task's own
