@@ -140,7 +140,8 @@ def archive(paths: list[str]) -> list[str]:
         raise ArchiveError(f"commit these first (the archive is HEAD's tree): {', '.join(changed[:5])}")
     head = git("rev-parse", "HEAD").strip()
     date = git("show", "-s", "--format=%cs", head).strip()
-    record = {"archives": [*entries(), {"commit": head, "date": date, "paths": prefixes}]}
+    holding = [prefix for prefix in prefixes if any(within(name, prefix) for name in raw)]
+    record = {"archives": [*entries(), {"commit": head, "date": date, "paths": holding}]}
     for start in range(0, len(raw), 500):
         git("rm", "-q", "--", *raw[start : start + 500])
     RECORD.write_text(json.dumps(record, indent=1) + "\n")
