@@ -53,14 +53,18 @@ def entries() -> list[dict[str, object]]:
 
 
 def shipped_files() -> set[str]:
+    """The shipped runs' models and records (``results/<run>/...``), and ``results/<run>/`` itself."""
     runs = json.loads(SHIPPED.read_text())
-    return {f"results/{run}/{path}" for run, files in runs.items() for path in files}
+    return {f"results/{run}/{path}" for run, files in runs.items() for path in files} | {f"results/{run}/" for run in runs}
 
 
 def is_raw(path: str, size: int, shipped: set[str]) -> bool:
-    """A tracked file of a study that is raw data (not its reading, not a shipped model)."""
+    """A tracked file of a study that is raw data (not its reading, not a shipped model or record)."""
     if path in shipped or path == "results/archive.json" or path.endswith(READING_SUFFIXES):
         return False
+    in_shipped_run = any(path.startswith(run) for run in shipped if run.endswith("/"))
+    if path.endswith(".json") and in_shipped_run:
+        return size > SMALL_TABLE  # a shipped run's stage records (done.json, ...): what loading a model reads
     return not (path.endswith(".csv") and size <= SMALL_TABLE)
 
 
