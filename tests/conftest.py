@@ -114,3 +114,31 @@ def train_files() -> list[Path]:
     from unimal_envs.morphology.loader import morphology_files
 
     return morphology_files("train")[:3]
+
+
+@pytest.fixture(scope="session")
+def archived_study(tmp_path_factory):
+    """``archived_study("results/cpu") -> Path``: the study as its archive holds it (its raw runs out of
+    the tree, ``results/archive.json``), restored under a temporary folder by ``tools/archive_runs.py``
+    -- the README's command, with ``--into``. Skips where git or the archive's commit is absent."""
+    import importlib.util
+
+    root = Path(__file__).resolve().parents[1]
+    spec = importlib.util.spec_from_file_location("archive_runs", root / "tools" / "archive_runs.py")
+    archive_runs = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(archive_runs)
+    into = tmp_path_factory.mktemp("archived")
+    done: set[str] = set()
+
+    def restore(path: str) -> Path:
+        if path not in done:
+            if shutil.which("git") is None:
+                pytest.skip("git is not installed")
+            try:
+                archive_runs.restore([str(root / path)], into)
+            except archive_runs.ArchiveError as error:
+                pytest.skip(str(error))
+            done.add(path)
+        return into / path
+
+    return restore

@@ -6,7 +6,6 @@ import importlib
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -30,7 +29,6 @@ from unimal_envs.tasks import TASKS
 
 th.set_num_threads(1)
 ROBOTS = morphology_files("train")[:3]
-SHIPPED = Path(__file__).resolve().parents[1] / "results" / "cpu"
 STUDENT = dict(hidden_dim=32, n_layers=2, embed_dim=16, encoder_ff_dim=32, exteroception=dict(hfield=[8], goal=[4], object=[4]))
 TEACHER = dict(d_model=16, n_layers=1, ff_dim=32, hypernet_dim=8, net_arch=dict(pi=[16], vf=[16]), exteroception={})
 
@@ -369,10 +367,10 @@ def test_task_input_lets_one_student_tell_ft_from_incline(teacher):
 
 
 @pytest.mark.shipped_results
-def test_the_shipped_small_runs_record_says_its_hyperdistill_ran_under_the_retired_rules():
-    """results/cpu's student was trained without a task input, on statistics of its own: its record,
-    migrated to today's keys, keeps both as retired rules."""
-    record = json.loads((SHIPPED / "run.json").read_text())
+def test_the_small_runs_record_says_its_hyperdistill_ran_under_the_retired_rules(archived_study):
+    """results/cpu's student was trained without a task input, on statistics of its own: its record
+    (archived with the run), migrated to today's keys, keeps both as retired rules."""
+    record = json.loads((archived_study("results/cpu") / "run.json").read_text())
     assert {k: v for k, v in record["retired"].items() if k.startswith("hyperdistill.")} == {
         "hyperdistill.task_input": "none",
         "hyperdistill.observation_statistics": "own",

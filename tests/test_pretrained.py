@@ -27,7 +27,8 @@ from unimal_envs.instructions import shipped_embeddings
 RESULTS = Path(__file__).resolve().parents[1] / "results"
 #: every test here reads the shipped runs: the results suite (`make test-results`), not the library's
 pytestmark = pytest.mark.shipped_results
-RUN = RESULTS / "cpu"
+#: the small run: its raw files (records, statistics, exports) are archived (``tools/archive_runs.py``)
+SMALL_RUN = "results/cpu"
 RUN100 = RESULTS / "cpu100"
 #: the 100-robot run's teachers, all shipped
 TEACHERS100 = ["FT", "VT", "Incline", "Obstacle", "Patrol"]
@@ -130,9 +131,10 @@ def test_the_hyperdistill_student_walks_on_its_teachers_statistics(official_trai
         "students/no-orthogonality",
     ],
 )
-def test_a_model_that_does_not_ship_is_named_with_the_way_back(folder, capsys):
+def test_a_model_that_does_not_ship_is_named_with_the_way_back(folder, capsys, archived_study):
     """These finished models live in git history only (tracked-size limit): loading one says so and how
     to restore it, and evaluating the whole run skips it with a note instead of failing."""
+    RUN = archived_study(SMALL_RUN)
     with pytest.raises(FileNotFoundError, match="not in this checkout.*git checkout"):
         stage_model(RUN / folder)
     plan = evaluation_plan(load_profile("cpu"), RUN)
@@ -140,9 +142,10 @@ def test_a_model_that_does_not_ship_is_named_with_the_way_back(folder, capsys):
     assert f"skipping {RUN / folder}" in capsys.readouterr().out
 
 
-def test_the_compact_actors_ship_as_onnx():
-    """The DivMorph student's four FT actors ship as ONNX; the other 36 exports ship their reports (results/cpu/README.md
+def test_the_small_runs_compact_actors_are_archived_as_onnx(archived_study):
+    """The DivMorph student's four FT actors are kept as ONNX; the other 36 exports keep their reports (results/cpu/README.md
     says how to make their files, and the four's TorchScript, again)."""
+    RUN = archived_study(SMALL_RUN)
     exports = sorted((RUN / "export").glob("*-FT"))
     assert len(exports) == 4 and all((e / "actor.onnx").is_file() for e in exports)
     reports = sorted((RUN / "export").glob("**/report.json"))

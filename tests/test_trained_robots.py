@@ -30,10 +30,10 @@ def test_a_model_folder_names_the_robots_of_its_run(tmp_path):
 
 
 @pytest.mark.shipped_results
-def test_the_shipped_teachers_default_to_the_official_robots(official_cache):
+def test_the_shipped_teachers_default_to_the_official_robots(official_cache, archived_study):
     robots = trained_robots(RUN100 / "teachers" / "Obstacle")
     assert len(robots) == 100 and robots[0].stem == "floor-1409-0-12-01-12-30-07"
-    assert trained_robot_set(RUN / "student") == "unimals100-train"
+    assert trained_robot_set(archived_study("results/cpu") / "student") == "unimals100-train"  # the small run, archived
 
 
 @pytest.mark.shipped_results
@@ -57,8 +57,10 @@ def test_the_load_example_runs_the_shipped_teacher_on_its_robot_with_no_env_flag
 
 
 @pytest.mark.shipped_results
-def test_the_shipped_compact_actors_name_their_robot_set():
+def test_the_small_runs_compact_actors_name_their_robot_set(archived_study):
     onnx = pytest.importorskip("onnx")
-    for path in sorted((RUN / "export").glob("*-FT/actor.onnx")):
+    actors = sorted((archived_study("results/cpu") / "export").glob("*-FT/actor.onnx"))
+    assert len(actors) == 4
+    for path in actors:
         props = {p.key: p.value for p in onnx.load(str(path)).metadata_props}
         assert props["robot_set"] == "unimals100-train" and props["robot"] in path.parent.name

@@ -3,11 +3,8 @@
 from __future__ import annotations
 
 import importlib.util
-import io
 import json
 import re
-import subprocess
-import tarfile
 from pathlib import Path
 
 import numpy as np
@@ -174,28 +171,15 @@ def test_a_race_packed_as_it_is_kept_reads_as_the_race_itself(tmp_path):
         load("collect").collect(kept, tmp_path / "read-kept")
 
 
-#: the commit whose tree holds every run and start the race kept (``kept/race``); collect's tables replaced it in
-#: the tree, which it would take over 24 MiB beside them
-RACE_COMMIT = "454a95b"
 KEPT_RACE = "results/transfer-ablations/kept/race"
 
 
-def archived(commit: str, path: str, folder: Path) -> Path:
-    """``path`` taken out of ``commit`` into ``folder`` as the README says (skips where the history is absent)."""
-    archive = subprocess.run(["git", "archive", commit, path], cwd=STUDY.parents[1], capture_output=True)
-    if archive.returncode != 0:
-        pytest.skip(f"commit {commit} is not in this checkout's history")
-    with tarfile.open(fileobj=io.BytesIO(archive.stdout)) as tar:
-        tar.extractall(folder, filter="data")
-    return folder / path
-
-
 @pytest.fixture(scope="module")
-def kept_race(tmp_path_factory) -> Path:
-    """The race's kept runs and starts: in the tree while it runs, afterwards taken out of their commit."""
+def kept_race(archived_study) -> Path:
+    """The race's kept runs and starts: in the tree while it runs, afterwards restored out of the archive."""
     if (STUDY / "kept" / "race").is_dir():
         return STUDY / "kept" / "race"
-    return archived(RACE_COMMIT, KEPT_RACE, tmp_path_factory.mktemp("race"))
+    return archived_study(KEPT_RACE)
 
 
 def test_every_kept_run_reads_with_its_updates_and_at_the_race_terms(kept_race, tmp_path):
@@ -212,28 +196,27 @@ def test_every_kept_run_reads_with_its_updates_and_at_the_race_terms(kept_race, 
         assert len(updates) >= 290 and updates.approx_kl.notna().all()
 
 
-def test_the_shipped_tables_and_reading_are_what_the_kept_race_collects_to(kept_race, tmp_path):
-    """The race's shipped tables (``curves.csv.gz``, ``training.csv.gz``, ``starts.csv``) hold
-    all 24 runs and 8 starts, are what its kept runs collect to, and ``reading.md`` is what ``read.py`` reads
-    from them."""
+def test_the_archived_tables_and_the_reading_are_what_the_kept_race_collects_to(kept_race, tmp_path, archived_study):
+    """The race's tables (``curves.csv.gz``, ``training.csv.gz``, ``starts.csv``; the first two archived with its
+    raw runs) hold all 24 runs and 8 starts, are what its kept runs collect to, and ``reading.md`` is what
+    ``read.py`` reads from them."""
     load("collect").collect(kept_race, tmp_path)
+    archived = archived_study("results/transfer-ablations")
     for name in ["curves.csv.gz", "training.csv.gz", "starts.csv"]:
-        pd.testing.assert_frame_equal(pd.read_csv(tmp_path / name), pd.read_csv(STUDY / name), obj=name)
-    curves, starts = pd.read_csv(STUDY / "curves.csv.gz"), pd.read_csv(STUDY / "starts.csv")
+        pd.testing.assert_frame_equal(pd.read_csv(tmp_path / name), pd.read_csv(archived / name), obj=name)
+    curves, starts = pd.read_csv(archived / "curves.csv.gz"), pd.read_csv(archived / "starts.csv")
     assert curves.groupby(["task", "student"]).seed.nunique().to_dict() == {key: 3 for key in starts.groupby(["task", "student"]).groups}
     assert len(starts.groupby(["task", "student"])) == 8
     assert load("read").main(tmp_path) + "\n" == (STUDY / "reading.md").read_text()
 
 
-#: the commit that holds the race's four distilled students (not in the tree: they would take it over 24 MiB)
-STUDENTS_COMMIT = "63b877b"
 KEPT = "results/transfer-ablations/kept/students"
 
 
 @pytest.fixture(scope="module")
-def kept_students(tmp_path_factory) -> Path:
-    """The four students, taken out of their commit as the README says (skips where the history is absent)."""
-    return archived(STUDENTS_COMMIT, KEPT, tmp_path_factory.mktemp("students"))
+def kept_students(archived_study) -> Path:
+    """The four students, restored out of the archive as the README says (skips where the history is absent)."""
+    return archived_study(KEPT)
 
 
 @pytest.mark.parametrize("name", ["divmorph", "no-kdiv-transformer", "no-kdiv-decoder", "no-orthogonality"])

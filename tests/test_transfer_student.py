@@ -1,12 +1,9 @@
-"""The transfer race's student, kept in a commit out of the tree: the README's command restores it, and it is
+"""The transfer race's student, archived out of the tree: the README's command restores it, and it is
 the ``cpu100-transfer`` profile's student (its proportions, its load-balanced router, its budget), and it acts."""
 
 from __future__ import annotations
 
 import dataclasses
-import io
-import subprocess
-import tarfile
 from pathlib import Path
 
 import numpy as np
@@ -14,26 +11,18 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 STUDY = REPO / "results" / "transfer-student"
-#: the commit that holds the student (out of the tree, which it would take over 24 MiB)
-STUDENT_COMMIT = "9626364"
 KEPT = "results/transfer-student/kept"
 pytestmark = pytest.mark.shipped_results
 
 
 @pytest.fixture(scope="module")
-def kept(tmp_path_factory) -> Path:
-    """The kept student taken out of its commit as the README says (skips where the history is absent)."""
-    folder = tmp_path_factory.mktemp("kept")
-    archive = subprocess.run(["git", "archive", STUDENT_COMMIT, KEPT], cwd=REPO, capture_output=True)
-    if archive.returncode != 0:
-        pytest.skip(f"commit {STUDENT_COMMIT} is not in this checkout's history")
-    with tarfile.open(fileobj=io.BytesIO(archive.stdout)) as tar:
-        tar.extractall(folder, filter="data")
-    return folder / KEPT
+def kept(archived_study) -> Path:
+    """The kept student, restored out of the archive as the README says (skips where the history is absent)."""
+    return archived_study(KEPT)
 
 
-def test_the_readme_names_the_commit_that_holds_the_student():
-    assert f"git archive {STUDENT_COMMIT} {KEPT}" in (STUDY / "README.md").read_text()
+def test_the_readme_names_the_command_that_restores_the_student():
+    assert f"python tools/archive_runs.py restore {KEPT}" in (STUDY / "README.md").read_text()
 
 
 def test_the_kept_student_is_the_transfer_profiles_student_and_acts(kept, official_cache):
