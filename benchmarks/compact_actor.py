@@ -54,7 +54,7 @@ def policy_kwargs(config: str, profile_name: str | None) -> dict:
 def measure(config: str, task: str, repeats: int, folder: Path, kwargs: dict) -> dict:
     th.manual_seed(0)
     robot = morphology_files("train")[0]
-    venv = VecNormalize(DummyVecEnv([lambda: gym.make(f"Unimal-{task}-v0", morphologies=[robot])]), norm_obs_keys=["proprioceptive"])
+    venv = VecNormalize(DummyVecEnv([lambda: gym.make(unimal_envs.env_id(task), morphologies=[robot])]), norm_obs_keys=["proprioceptive"])
     venv.reset()
     raw = venv.get_original_obs()
     policy = DivMorphPolicy(venv.observation_space, venv.action_space, lambda _: 3e-4, **kwargs).eval()

@@ -88,7 +88,7 @@ def fold(name: str, policy, observation, keys, normalizer):
 
 def measure(task: str, repeats: int, folder: Path) -> list[dict]:
     robot = morphology_files("train")[0]
-    venv = VecNormalize(DummyVecEnv([lambda: gym.make(f"Unimal-{task}-v0", morphologies=[robot])]), norm_obs_keys=["proprioceptive"])
+    venv = VecNormalize(DummyVecEnv([lambda: gym.make(unimal_envs.env_id(task), morphologies=[robot])]), norm_obs_keys=["proprioceptive"])
     venv.reset()
     for _ in range(20):  # statistics that are not the identity
         venv.step(th.empty(1, 24).uniform_(-1, 1).numpy())

@@ -32,7 +32,7 @@ import torch as th
 from stable_baselines3 import PPO
 
 import sb3_divmorph  # noqa: F401  (policy aliases)
-import unimal_envs  # noqa: F401
+import unimal_envs
 from divmorph.pipeline.grl import inherited_normalizer
 from divmorph.pipeline.provenance import recorded_profile
 from divmorph.pipeline.envs import make_vec_env
@@ -44,7 +44,9 @@ def visited_states(run: Path, folder: str, task: str, robots, steps: int, device
     """``steps`` x 4 normalised observations the trained model at ``run/folder`` visits (deterministic actions)."""
     source = run / folder
     model = PPO.load(stage_model(source), device=device)
-    venv = inherited_normalizer(source, make_vec_env(f"Unimal-{task}-v0", 4, 0, 1000, morphologies=robots), 0.99, freeze_observations=True)
+    venv = inherited_normalizer(
+        source, make_vec_env(unimal_envs.env_id(task), 4, 0, 1000, morphologies=robots), 0.99, freeze_observations=True
+    )
     obs, batch = venv.reset(), []
     for _ in range(steps):
         action, _ = model.predict(obs, deterministic=True)
@@ -117,7 +119,7 @@ def main(argv: list[str] | None = None) -> None:
     run = Path(args.run)
     robots = profile_robots(recorded_profile(run / "run.json"), "train")
     states = visited_states(run, "teachers/FT", args.task, robots, args.steps, args.device)
-    env = make_vec_env(f"Unimal-{args.task}-v0", 1, 0, 1000, morphologies=robots)
+    env = make_vec_env(unimal_envs.env_id(args.task), 1, 0, 1000, morphologies=robots)
     models = [
         ("FT teacher (trained)", PPO.load(stage_model(run / "teachers" / "FT"), device=args.device).policy),
         ("DivMorph student (trained)", PPO.load(stage_model(run / "student"), device=args.device).policy),

@@ -151,6 +151,7 @@ def find_model(source: str | Path) -> SavedModel:
     # divmorph pipeline: teachers/<task>, transfer/<task>/<arm>, student (multi-task: no single task)
     from divmorph.pipeline.files import ENV_SETTINGS
     from divmorph.pipeline.robots import trained_env_kwargs, trained_instruction, trained_robots
+    from unimal_envs import env_id as unimal_env_id
 
     # teachers/<task>, transfer/<task>/<arm>, transfer/<task>/<arm>/seed-<n>
     names = (folder.name, folder.parent.name, *((folder.parent.parent.name,) if folder.name.startswith("seed-") else ()))
@@ -177,7 +178,7 @@ def find_model(source: str | Path) -> SavedModel:
     instruction = trained_instruction(folder, task)
     if instruction is not None:  # a transfer run told another task's instruction, or one in other words
         env_kwargs["instruction"] = instruction
-    return SavedModel(model, normalizer if normalizer.is_file() else None, f"Unimal-{task}-v0" if task else None, None, env_kwargs)
+    return SavedModel(model, normalizer if normalizer.is_file() else None, unimal_env_id(task) if task else None, None, env_kwargs)
 
 
 @dataclass
@@ -216,7 +217,9 @@ class Pretrained:
         if task is not None:
             if task not in TASK_NAMES:
                 raise PretrainedError(f"unknown task {task!r}; choose from {list(TASK_NAMES)}")
-            return f"Unimal-{task}-v0"
+            from unimal_envs import env_id as unimal_env_id
+
+            return unimal_env_id(task)
         if self.env_id is None:
             raise PretrainedError(f"cannot tell which task {self.saved.model} was trained on; pass task= (one of {list(TASK_NAMES)})")
         return self.env_id

@@ -153,7 +153,7 @@ class DistillConfig(SimulationSettings):
 
     #: DAgger env steps (the student's own rollouts, labelled by the teachers)
     n_timesteps: int
-    #: parallel envs of the rollouts (``Unimal-MultiTask-v0``: each episode a training task and robot)
+    #: parallel envs of the rollouts (``Unimal-MultiTask-v1``: each episode a training task and robot)
     n_envs: int = 4
     #: env steps per env between distillation updates
     n_steps: int = 256

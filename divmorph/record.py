@@ -91,7 +91,7 @@ def record(args: argparse.Namespace) -> Path:
     from tqdm import tqdm
 
     import sb3_divmorph  # noqa: F401  (the policy aliases, for models saved with them)
-    import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
+    from unimal_envs import env_id as unimal_env_id  # (importing unimal_envs registers the Unimal-* ids)
     from sb3_divmorph.algos.distillation import check_spaces, load_normalizer
     from divmorph.pipeline.curves import episode_seed
     from unimal_envs.contract import TASK_NAMES
@@ -106,7 +106,7 @@ def record(args: argparse.Namespace) -> Path:
     if args.task is not None:
         if args.task not in TASK_NAMES:
             raise RecordError(f"unknown task {args.task!r}; choose from {list(TASK_NAMES)}")
-        env_id = f"Unimal-{args.task}-v0"
+        env_id = unimal_env_id(args.task)
     elif saved.env_id is not None:
         env_id = saved.env_id
     else:

@@ -5,7 +5,7 @@
 
 1. a MetaMorph teacher per task (FT and Incline), trained with PPO and the rl-zoo settings of
    ``zoo_configs/ppo.yml`` (``zoo_hyperparams``), saved with its observation statistics;
-2. DAgger into one DivMorph student on ``Unimal-MultiTask-v0``: ``TeacherMixingVecEnv`` executes
+2. DAgger into one DivMorph student on ``Unimal-MultiTask-v1``: ``TeacherMixingVecEnv`` executes
    the teacher's action with probability beta (annealed 0.5 -> 0), ``DAggerCallback`` labels every
    visited state with its task's teacher and minimises KL(teacher || student), ``ImitationPPO``
    makes that the only loss;
@@ -26,7 +26,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.utils import LinearSchedule
 from stable_baselines3.common.vec_env import VecNormalize
 
-import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
+import unimal_envs
 from sb3_divmorph import DAggerCallback, DivMorphPolicy, ImitationPPO, Teacher, TeacherMixingVecEnv, zoo_hyperparams
 from unimal_envs.contract import TASK_NAMES, observation_space
 
@@ -38,9 +38,9 @@ SMALL = dict(d_model=32, n_layers=1, ff_dim=64)
 
 def train_teacher(task: str, steps: int, folder: Path, seed: int) -> Teacher:
     """PPO with the zoo's settings for ``task``; saves model + statistics into ``folder``."""
-    hp = zoo_hyperparams(f"Unimal-{task}-v0", overrides=dict(n_envs=2, n_steps=256, batch_size=256, n_epochs=2))
+    hp = zoo_hyperparams(unimal_envs.env_id(task), overrides=dict(n_envs=2, n_steps=256, batch_size=256, n_epochs=2))
     venv = VecNormalize(
-        make_vec_env(f"Unimal-{task}-v0", n_envs=hp.n_envs, seed=seed, env_kwargs=dict(morphologies=ROBOTS)),
+        make_vec_env(unimal_envs.env_id(task), n_envs=hp.n_envs, seed=seed, env_kwargs=dict(morphologies=ROBOTS)),
         gamma=hp.ppo_kwargs["gamma"],
         **hp.normalize,
     )
@@ -65,7 +65,7 @@ def main(argv: list[str] | None = None) -> None:
 
     teachers = {TASK_NAMES.index(task): train_teacher(task, args.steps, args.out / "teachers" / task, args.seed) for task in TASKS}
 
-    venv = make_vec_env("Unimal-MultiTask-v0", n_envs=2, seed=args.seed, env_kwargs=dict(tasks=TASKS, morphologies=ROBOTS))
+    venv = make_vec_env("Unimal-MultiTask-v1", n_envs=2, seed=args.seed, env_kwargs=dict(tasks=TASKS, morphologies=ROBOTS))
     venv = TeacherMixingVecEnv(venv, teachers, beta=0.5, seed=args.seed)
     venv = VecNormalize(venv, norm_obs_keys=["proprioceptive"], norm_reward=False)
     student = ImitationPPO(

@@ -18,7 +18,7 @@ import gymnasium as gym
 import numpy as np
 import torch as th
 
-import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
+import unimal_envs
 from sb3_divmorph import CompactActor, OnnxActor, export_onnx, export_torchscript, load_model
 from divmorph.pipeline.robots import trained_robot_set, trained_robots
 from unimal_envs.contract import TASK_NAMES
@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> None:
     student = load_model(args.student / "model.zip", args.student / "vecnormalize.pkl")
     policy, normalizer = student.model.policy.eval(), student.normalizer
 
-    env = gym.make(f"Unimal-{args.task}-v0", morphologies=[robot])
+    env = gym.make(unimal_envs.env_id(args.task), morphologies=[robot])
     obs, _ = env.reset(seed=0)
     actor = CompactActor.from_policy(policy, obs, TASKS[args.task].observation_keys, normalizer)
     args.out.mkdir(parents=True, exist_ok=True)

@@ -35,7 +35,7 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import VecNormalize
 
-import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
+import unimal_envs
 from sb3_divmorph import DivMorphPolicy, UnitSelection, prepare_transfer, zoo_hyperparams
 from divmorph.pretrained import Pretrained, PretrainedError, load_pretrained
 from unimal_envs.contract import NOVEL_TASKS
@@ -81,7 +81,7 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"{args.student} holds a {type(student.model.policy).__name__}: transfer with fixed gates needs a DivMorph student")
     if student.normalizer is None:
         parser.error(f"{args.student} has no vecnormalize.pkl: the student's observation statistics are needed")
-    env_id = f"Unimal-{args.task}-v0"
+    env_id = unimal_envs.env_id(args.task)
     trained = student.robots
     robots = [trained[i] for i in np.linspace(0, len(trained) - 1, min(args.robots, len(trained))).round().astype(int)]
     before = mean_return(student, robots, args.task, args.seed, args.eval_steps)

@@ -43,7 +43,7 @@ def test_a_world_agrees_with_the_single_env_from_the_same_state_with_the_same_ac
     benv = make_batched_env(task, morphologies=ROBOTS, worlds_per_robot=2, device="cpu", seed=0, terrain_variants=2)
     benv.reset()
     for robot in range(2):
-        env = gym.make(f"Unimal-{task}-v0", morphologies=ROBOTS).unwrapped
+        env = gym.make(unimal_envs.env_id(task), morphologies=ROBOTS).unwrapped
         single_obs, _ = env.reset(seed=robot, options={"morphology": robot})
         world = 2 * robot + 1
         batched_obs = mirror_world(benv, world, env)
@@ -318,7 +318,7 @@ def test_heights_measured_from_the_ground_are_the_single_envs(task):
     )
     assert benv.get_attr("height_reference") == ["ground", "ground"]
     benv.reset()
-    env = gym.make(f"Unimal-{task}-v0", morphologies=ROBOTS[:1], height_reference="ground").unwrapped
+    env = gym.make(unimal_envs.env_id(task), morphologies=ROBOTS[:1], height_reference="ground").unwrapped
     env.reset(seed=0)
     if task == "Incline":
         env.data.qpos[:2] += (6.0, 1.0)  # up the slope

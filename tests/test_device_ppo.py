@@ -300,7 +300,7 @@ def _teachers(tmp_path):
     found = {}
     for seed, task in enumerate(("FT", "Patrol")):
         venv = VecNormalize(
-            DummyVecEnv([lambda task=task: gym.make(f"Unimal-{task}-v0", morphologies=ROBOTS)]), norm_obs_keys=["proprioceptive"]
+            DummyVecEnv([lambda task=task: gym.make(unimal_envs.env_id(task), morphologies=ROBOTS)]), norm_obs_keys=["proprioceptive"]
         )
         model = PPO("MetaMorphPolicy", venv, n_steps=16, batch_size=16, n_epochs=1, seed=seed, policy_kwargs=TINY)
         model.learn(16)

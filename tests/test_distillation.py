@@ -13,7 +13,7 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
 import sb3_divmorph  # noqa: F401
-import unimal_envs  # noqa: F401
+import unimal_envs
 from sb3_divmorph.algos.distillation import (
     DAggerCallback,
     DistillationDataset,
@@ -38,7 +38,7 @@ ROBOTS = morphology_files("train")[:2]
 
 
 def multitask_venv(n_envs=2, tasks=("FT", "Patrol"), mixer_teachers=None, beta=0.0):
-    venv = DummyVecEnv([lambda: gym.make("Unimal-MultiTask-v0", tasks=list(tasks), morphologies=ROBOTS, max_episode_steps=50)] * n_envs)
+    venv = DummyVecEnv([lambda: gym.make("Unimal-MultiTask-v1", tasks=list(tasks), morphologies=ROBOTS, max_episode_steps=50)] * n_envs)
     if mixer_teachers is not None:
         venv = TeacherMixingVecEnv(venv, mixer_teachers, beta=beta, seed=0)
     return VecNormalize(venv, norm_obs_keys=["proprioceptive"], norm_reward=False)
@@ -51,7 +51,7 @@ def teachers(tmp_path_factory):
     found = {}
     for seed, task in enumerate(("FT", "Patrol")):
         venv = VecNormalize(
-            DummyVecEnv([lambda task=task: gym.make(f"Unimal-{task}-v0", morphologies=ROBOTS, max_episode_steps=50)]),
+            DummyVecEnv([lambda task=task: gym.make(unimal_envs.env_id(task), morphologies=ROBOTS, max_episode_steps=50)]),
             norm_obs_keys=["proprioceptive"],
         )
         model = PPO("MetaMorphPolicy", venv, n_steps=64, batch_size=64, n_epochs=1, seed=seed, policy_kwargs=TINY)
@@ -294,7 +294,7 @@ def test_critic_warmup_trains_only_the_critic_then_both(policy):
 def test_compact_actor_equals_the_student_and_runs_from_torch_alone(task, activation, tmp_path):
     th.manual_seed(1)
     venv = VecNormalize(
-        DummyVecEnv([lambda: gym.make(f"Unimal-{task}-v0", morphologies=ROBOTS[:1], max_episode_steps=50)]),
+        DummyVecEnv([lambda: gym.make(unimal_envs.env_id(task), morphologies=ROBOTS[:1], max_episode_steps=50)]),
         norm_obs_keys=["proprioceptive"],
     )
     model = PPO(

@@ -315,7 +315,7 @@ def test_height_above_the_ground_is_an_option_of_the_contract_and_world_height_s
     others = np.delete(np.arange(C.PROPRIO_DIM), C.Z_COLUMN)
     assert np.array_equal(world["proprioceptive"][:, others], ground["proprioceptive"][:, others])
     assert not ground["proprioceptive"][~real].any()
-    multitask = gym.make("Unimal-MultiTask-v0", morphologies=robot, height_reference="ground")
+    multitask = gym.make("Unimal-MultiTask-v1", morphologies=robot, height_reference="ground")
     assert abs(multitask.reset(seed=0, options={"task": "Incline"})[0]["proprioceptive"][0, C.Z_COLUMN] - flat[0, C.Z_COLUMN]) < 0.05
     with pytest.raises(ValueError, match="height_reference must be one of"):
         gym.make("Unimal-FT-v0", morphologies=robot, height_reference="sea level")
@@ -344,7 +344,7 @@ def test_goal_range_observes_a_far_goal_in_its_direction_at_the_range_and_change
     box_raw = gym.make("Unimal-ManipulateBox-v0", morphologies=robot).reset(seed=1)[0]["object"].reshape(4, 3)
     box = gym.make("Unimal-ManipulateBox-v0", morphologies=robot, goal_range=5).reset(seed=1)[0]["object"].reshape(4, 3)
     assert np.allclose(np.linalg.norm(box[[0, 3]], axis=1), 5) and np.array_equal(box[[1, 2]], box_raw[[1, 2]])
-    multitask = gym.make("Unimal-MultiTask-v0", morphologies=robot, tasks=["Patrol", "PointNav"], goal_range=10)
+    multitask = gym.make("Unimal-MultiTask-v1", morphologies=robot, tasks=["Patrol", "PointNav"], goal_range=10)
     assert np.linalg.norm(multitask.reset(seed=3, options={"task": "PointNav"})[0]["goal"]) <= 10 + 1e-4
     with pytest.raises(ValueError, match="goal_range is the distance"):
         gym.make("Unimal-PointNav-v0", morphologies=robot, goal_range=0)

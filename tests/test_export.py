@@ -16,7 +16,7 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
 import sb3_divmorph  # noqa: F401
-import unimal_envs  # noqa: F401
+import unimal_envs
 from sb3_divmorph.deploy.compact import CompactActor, actor_inputs, export_onnx, size_comparison
 from sb3_divmorph.nn.layers import FactorizedLinear
 from unimal_envs.morphology.loader import morphology_files
@@ -31,7 +31,7 @@ def trained_student(task: str, policy: str = "DivMorphPolicy", **policy_kwargs):
     """A tiny student moved off its init by a few PPO steps, its normaliser and a batch of raw observations."""
     th.manual_seed(2)
     venv = VecNormalize(
-        DummyVecEnv([lambda: gym.make(f"Unimal-{task}-v0", morphologies=ROBOTS[:1], max_episode_steps=50)]),
+        DummyVecEnv([lambda: gym.make(unimal_envs.env_id(task), morphologies=ROBOTS[:1], max_episode_steps=50)]),
         norm_obs_keys=["proprioceptive", "hfield"],
     )
     model = PPO(policy, venv, n_steps=64, batch_size=64, n_epochs=1, seed=0, policy_kwargs={**TINY, **policy_kwargs})

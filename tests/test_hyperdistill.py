@@ -22,6 +22,7 @@ from sb3_divmorph.deploy.compact import actor_inputs, export_torchscript
 from sb3_divmorph.deploy.deployment import export_onnx
 from sb3_divmorph.deploy.hyperdistill_mlp import HyperDistillMLP
 from sb3_divmorph.policies.hyperdistill import HyperDistillPolicy
+import unimal_envs
 from unimal_envs import contract
 from unimal_envs.contract import TASK_NAMES
 from unimal_envs.morphology.loader import morphology_files
@@ -34,7 +35,7 @@ TEACHER = dict(d_model=16, n_layers=1, ff_dim=32, hypernet_dim=8, net_arch=dict(
 
 
 def multitask_venv(n_envs=2, tasks=("FT",)):
-    venv = DummyVecEnv([lambda: gym.make("Unimal-MultiTask-v0", tasks=list(tasks), morphologies=ROBOTS, max_episode_steps=60)] * n_envs)
+    venv = DummyVecEnv([lambda: gym.make("Unimal-MultiTask-v1", tasks=list(tasks), morphologies=ROBOTS, max_episode_steps=60)] * n_envs)
     venv.seed(0)
     return VecNormalize(venv, norm_obs_keys=["proprioceptive"], norm_reward=False)
 
@@ -153,7 +154,7 @@ def trained_student(teacher):
 @pytest.mark.parametrize("task", ["VT", "ManipulateBox"])
 def test_exported_mlp_equals_the_student_and_onnx_runs_without_torch(trained_student, task, tmp_path):
     student, normalizer = trained_student
-    env = gym.make(f"Unimal-{task}-v0", morphologies=ROBOTS[1:2], max_episode_steps=50)
+    env = gym.make(unimal_envs.env_id(task), morphologies=ROBOTS[1:2], max_episode_steps=50)
     obs, _ = env.reset(seed=0)
     observations = [obs]
     for _ in range(7):
@@ -205,7 +206,7 @@ def test_exported_mlp_equals_the_student_and_onnx_runs_without_torch(trained_stu
 
 
 def _robot_obs(task: str, index: int) -> dict[str, np.ndarray]:
-    env = gym.make(f"Unimal-{task}-v0", morphologies=ROBOTS[index : index + 1], max_episode_steps=10)
+    env = gym.make(unimal_envs.env_id(task), morphologies=ROBOTS[index : index + 1], max_episode_steps=10)
     return env.reset(seed=0)[0]
 
 

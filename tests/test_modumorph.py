@@ -12,6 +12,7 @@ from sb3_divmorph.deploy.compact import actor_inputs, export_torchscript
 from sb3_divmorph.deploy.modumorph_actor import ModuMorphActor
 from sb3_divmorph.policies.modumorph import DECODER_INIT, EMBEDDING_INIT, HyperLinear
 from sb3_divmorph.testing import random_observations
+import unimal_envs
 from unimal_envs import contract
 
 th.set_num_threads(1)
@@ -205,7 +206,7 @@ def test_folded_actor_equals_the_policy(variant, tmp_path, train_files):
 
     task = "VT"
     venv = VecNormalize(
-        DummyVecEnv([lambda: gym.make(f"Unimal-{task}-v0", morphologies=train_files[:1], max_episode_steps=30)]),
+        DummyVecEnv([lambda: gym.make(unimal_envs.env_id(task), morphologies=train_files[:1], max_episode_steps=30)]),
         norm_obs_keys=["proprioceptive"],
     )
     model = PPO("ModuMorphPolicy", venv, n_steps=32, batch_size=32, n_epochs=1, seed=0, policy_kwargs=dict(TINY, **VARIANTS[variant]))

@@ -27,6 +27,7 @@ from divmorph.pipeline.config import ConfigError, load_profile, load_profiles, l
 from divmorph.pipeline.files import read_done
 from divmorph.pipeline.training import latest_checkpoint
 from sb3_divmorph.policies import DivMorphPolicy, MetaMorphPolicy
+import unimal_envs
 from unimal_envs.morphology.loader import morphology_files
 
 REPO = Path(__file__).resolve().parents[1]
@@ -773,7 +774,7 @@ def test_every_shipped_profile_builds_its_models(name):
     """A shipped profile whose student cannot divert a layer (or whose teacher cannot be built)
     fails here, not hours into a run."""
     profile = load_profile(name)
-    env = gym.make("Unimal-MultiTask-v0", tasks=list(profile.teachers.tasks), morphologies=morphology_files("train")[:1])
+    env = gym.make("Unimal-MultiTask-v1", tasks=list(profile.teachers.tasks), morphologies=morphology_files("train")[:1])
     policy = DivMorphPolicy(env.observation_space, env.action_space, lambda _: 1e-3, **profile.student.policy_kwargs)
     assert policy.is_gated
     teacher_kwargs = {**load_zoo_entry(profile.teachers.hyperparams, "Unimal-VT-v0").policy_kwargs, **profile.teachers.policy_kwargs}
@@ -1210,7 +1211,7 @@ def fixed_states(task: str, robots: list[Path], steps: int = 8) -> dict[str, np.
     states = []
     rng = np.random.default_rng(0)
     for robot in robots:
-        env = gym.make(f"Unimal-{task}-v0", morphologies=[robot])
+        env = gym.make(unimal_envs.env_id(task), morphologies=[robot])
         obs, _ = env.reset(seed=3)
         states.append(obs)
         for _ in range(steps):
@@ -1627,7 +1628,7 @@ def test_the_transfer_students_learngenes_keep_the_papers_share_of_every_diverte
     from sb3_divmorph.nn.layers import FactorizedLinear
     from unimal_envs.morphology.loader import morphology_files
 
-    env = gym.make("Unimal-MultiTask-v0", morphologies=morphology_files("train")[:2])
+    env = gym.make("Unimal-MultiTask-v1", morphologies=morphology_files("train")[:2])
 
     def learngene_shares(profile_name: str) -> list[float]:
         kwargs = STUDENTS["divmorph"].kwargs(load_profile(profile_name))

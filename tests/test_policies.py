@@ -502,7 +502,7 @@ def test_trains_on_multitask_and_routes_tasks_apart(policy):
 
     th.manual_seed(0)
     files = morphology_files("train")[:2]
-    envs = [lambda: gym.make("Unimal-MultiTask-v0", morphologies=files) for _ in range(2)]
+    envs = [lambda: gym.make("Unimal-MultiTask-v1", morphologies=files) for _ in range(2)]
     venv = VecNormalize(DummyVecEnv(envs), norm_obs_keys=["proprioceptive"])
     venv.seed(0)
     model = PPO(policy, venv, n_steps=128, batch_size=128, n_epochs=1, seed=0)

@@ -1,4 +1,4 @@
-"""The ten tasks and Unimal-MultiTask-v0: rewards, terminations, height maps, goal/object frames."""
+"""The ten tasks and Unimal-MultiTask-v1: rewards, terminations, height maps, goal/object frames."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from unimal_envs.arenas.heightfield import FORWARD_CELLS, LATERAL_CELLS
 from unimal_envs.tasks import TASKS
 
 ZERO = np.zeros(C.ACTION_DIM, np.float32)
-ALL_IDS = [unimal_envs.env_id(t) for t in TASKS] + ["Unimal-MultiTask-v0"]
+ALL_IDS = [unimal_envs.env_id(t) for t in TASKS] + ["Unimal-MultiTask-v1"]
 
 
 def make(task: str, files, **kwargs) -> gym.Env:
@@ -283,7 +283,7 @@ def test_terrain_is_redrawn_every_episode(train_files):
 
 
 def test_multitask_draws_tasks_and_reports_them(train_files):
-    env = gym.make("Unimal-MultiTask-v0", morphologies=train_files[:2])
+    env = gym.make("Unimal-MultiTask-v1", morphologies=train_files[:2])
     seen = set()
     for seed in range(30):
         obs, info = env.reset(seed=seed)
@@ -295,4 +295,46 @@ def test_multitask_draws_tasks_and_reports_them(train_files):
     with pytest.raises(ValueError, match="not one of this env's tasks"):
         env.reset(options={"task": "Escape"})
     with pytest.raises(ValueError, match="unknown"):
-        gym.make("Unimal-MultiTask-v0", tasks=["FT", "Swim"], morphologies=train_files[:1])
+        gym.make("Unimal-MultiTask-v1", tasks=["FT", "Swim"], morphologies=train_files[:1])
+
+
+def test_each_id_is_its_tasks_current_version_and_an_old_id_names_the_new_one():
+    """Obstacle's blocks became solid (dynamics changed): its id moved to v1, and so did MultiTask's, which draws
+    Obstacle episodes; the old ids fail naming the new; every docstring's Version History has the current version."""
+    registered = {spec.id for spec in gym.registry.values() if spec.id.startswith("Unimal-")}
+    assert registered == set(ALL_IDS) and unimal_envs.MULTITASK_ID in registered
+    assert unimal_envs.env_id("Obstacle") == "Unimal-Obstacle-v1" and unimal_envs.env_id("FT") == "Unimal-FT-v0"
+    for old, new in (("Unimal-Obstacle-v0", "Unimal-Obstacle-v1"), ("Unimal-MultiTask-v0", "Unimal-MultiTask-v1")):
+        with pytest.raises(gym.error.DeprecatedEnv, match=new):
+            gym.make(old)
+    for cls in [*TASKS.values(), unimal_envs.MultiTaskEnv]:
+        history = cls.__doc__.split("Version History:")[1]
+        assert f"* v{cls.version}:" in history and "* v0:" in history, cls.__name__
+    assert unimal_envs.task_of("Unimal-Obstacle-v1") == "Obstacle" and unimal_envs.task_of("Unimal-FT-v0-metamorph") == "FT"
+    with pytest.raises(ValueError, match="outdated version.*'Unimal-Obstacle-v1'"):
+        unimal_envs.task_of("Unimal-Obstacle-v0")
+    with pytest.raises(ValueError, match="not a Unimal env id"):
+        unimal_envs.task_of("Ant-v5")
+
+
+@pytest.mark.parametrize(
+    "before, after",
+    [({}, "egl"), ({"DISPLAY": ":0"}, None), ({"MUJOCO_GL": "glfw"}, "glfw")],
+)
+def test_importing_sets_mujoco_gl_only_when_headless_and_unset(before, after):
+    """The one change to the process environment, documented in the package docstring: ``MUJOCO_GL=egl`` when
+    there is no display and the user chose no backend; otherwise the environment is left as it was."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "DISPLAY", "PYOPENGL_PLATFORM")} | before
+    shown = subprocess.run(
+        [sys.executable, "-c", "import os, unimal_envs; print(os.environ.get('MUJOCO_GL'))"],
+        env=env,
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.split()[-1]
+    assert shown == str(after)
+    assert "MUJOCO_GL" in unimal_envs.__doc__

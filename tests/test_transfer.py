@@ -11,7 +11,7 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
 import sb3_divmorph  # noqa: F401
-import unimal_envs  # noqa: F401
+import unimal_envs
 from sb3_divmorph.algos.finetune import (
     UnitLearningRates,
     UnitSelection,
@@ -260,7 +260,7 @@ def test_a_teacher_without_an_encoder_for_a_task_input_gets_one_and_keeps_its_we
         n_steps=64,
         batch_size=64,
     )
-    venv = DummyVecEnv([lambda: gym.make(f"Unimal-{task}-v0", morphologies=ROBOTS)])
+    venv = DummyVecEnv([lambda: gym.make(unimal_envs.env_id(task), morphologies=ROBOTS)])
     model = finetuned_model(
         teacher, venv, task, {**tiny, "exteroception": dict(hfield=[8], goal=[4], object=[4])}, 0, "cpu", dict(n_steps=64, batch_size=64)
     )

@@ -86,7 +86,7 @@ def test_a_missing_directory_is_called_one(tmp_path, monkeypatch):
 def test_human_rendering_without_a_display_is_a_python_error_that_suggests_rgb_array(monkeypatch):
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
-    for env_id in ("Unimal-FT-v0", "Unimal-MultiTask-v0"):
+    for env_id in ("Unimal-FT-v0", "Unimal-MultiTask-v1"):
         with pytest.raises(RuntimeError, match="rgb_array"):
             gym.make(env_id, render_mode="human", morphologies=morphology_files("train")[:1])
 

@@ -88,7 +88,8 @@ class _World:
 class UnimalEnv(gym.Env):
     """A UNIMAL robot doing a task; one morphology is drawn per episode.
 
-    Registered as ``Unimal-<task>-v0`` (e.g. ``gym.make("Unimal-FT-v0")``). Every task and every
+    Registered as ``Unimal-<task>-v<N>`` (:func:`unimal_envs.env_id`, e.g. ``gym.make("Unimal-FT-v0")``; each
+    task's docstring has its Version History). Every task and every
     morphology shares the same observation and action spaces (:mod:`unimal_envs.contract`), so a
     single policy and a single vectorised env can mix them.
 

@@ -120,7 +120,7 @@ def main(argv: list[str] | None = None) -> None:
     fig, axes = plt.subplots(math.ceil(len(frames) / columns), columns, figsize=(3.2 * columns, 2.7 * math.ceil(len(frames) / columns)))
     for ax, (task, frame) in zip(axes.flat, frames):
         ax.imshow(frame)
-        ax.set_title(f"Unimal-{task}-v0", fontsize=10)
+        ax.set_title(unimal_envs.env_id(task), fontsize=10)
         ax.axis("off")
     for ax in list(axes.flat)[len(frames) :]:
         ax.axis("off")

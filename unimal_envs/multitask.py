@@ -1,4 +1,4 @@
-"""``Unimal-MultiTask-v0``: one env that draws a task per episode."""
+"""``Unimal-MultiTask-v1``: one env that draws a task per episode."""
 
 from __future__ import annotations
 
@@ -29,9 +29,16 @@ class MultiTaskEnv(gym.Env):
     :param task_probabilities: sampling probability of each task (default: uniform).
     :param render_mode: ``"rgb_array"`` or ``"human"``.
     :param env_kwargs: passed to every task's :class:`~unimal_envs.env.UnimalEnv` (e.g. ``ctrl_cost_weight``).
+
+    Version History:
+
+    * v1: its Obstacle episodes are ``Unimal-Obstacle-v1``'s (solid blocks).
+    * v0: first release.
     """
 
     metadata = UnimalEnv.metadata
+    #: the env id's version (``Unimal-MultiTask-v<version>``): it moves with any of its tasks'
+    version = 1
 
     def __init__(
         self,

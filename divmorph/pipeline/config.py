@@ -172,7 +172,7 @@ def grl_policy_kwargs(profile: Profile) -> dict[str, Any]:
 
 
 def zoo_entry_id(profile: Profile, task: str) -> str:
-    """The rl-zoo entry of ``task``'s teacher: ``Unimal-<task>-v0``, or its ``-<recipe>`` variant."""
+    """The rl-zoo entry of ``task``'s teacher: ``Unimal-<task>-v<N>``, or its ``-<recipe>`` variant."""
     env_name = env_id(task)
     return f"{env_name}-{profile.teachers.recipe}" if profile.teachers.recipe else env_name
 

@@ -1,7 +1,7 @@
 """Stage 2 — diversion: DAgger distillation of the teachers into one DivMorph student (and the students
 of the other transfer arms: the dense MetaMorph⚗ student and the ablated DivMorph students).
 
-The student acts in ``Unimal-MultiTask-v0`` over the training tasks and morphologies (a task is
+The student acts in ``Unimal-MultiTask-v1`` over the training tasks and morphologies (a task is
 drawn per episode), each visited state is labelled by its own task's teacher, and the student
 minimises ``KL(teacher || student)`` (see :mod:`sb3_divmorph.algos.distillation`). With
 ``ppo_loss: false`` (default) learning is pure distillation (:class:`ImitationPPO`) and the
@@ -44,6 +44,7 @@ from divmorph.pipeline.files import is_done
 from divmorph.pipeline.robots import profile_robots
 from divmorph.pipeline.training import TrainingRun
 from divmorph.pipeline.students import STUDENTS, StudentSpec, dense_student_kwargs  # noqa: F401 -- re-exported
+from unimal_envs import MULTITASK_ID
 from unimal_envs.contract import TASK_NAMES
 
 #: Observation keys the student normalises (masks, context and embeddings must reach it as they are).
@@ -67,7 +68,7 @@ def distill_run(profile: Profile, out: Path, name: str = "divmorph", progress_ba
 
     def make_env():
         venv = make_vec_env(
-            "Unimal-MultiTask-v0",
+            MULTITASK_ID,
             cfg.n_envs,
             seed,
             profile.max_episode_steps,

@@ -16,7 +16,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecMonitor, Ve
 import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
 from sb3_divmorph.algos.finetune import freeze_observation_statistics
 from divmorph.pipeline.config import ConfigError, Profile
-from unimal_envs import env_id
+from unimal_envs import env_id, task_of
 
 from divmorph.pipeline.files import NORMALIZER
 
@@ -62,7 +62,7 @@ def batched_env(
     ``env_kwargs``: ``morphologies``, ``instruction``, ``height_reference``...)."""
     from unimal_envs.batched import make_batched_env
 
-    task = env_name.removeprefix("Unimal-").removesuffix("-v0")
+    task = task_of(env_name)
     return make_batched_env(
         task,
         worlds_per_robot=worlds_per_robot,

@@ -5,7 +5,7 @@ Runs when the profile has a ``hyperdistill`` section (``divmorph hyperdistill`` 
 1. teachers of ``hyperdistill.teacher_policy`` (ModuMorph by default): the run's own teachers when
    they are of that policy, else trained with the ``teachers`` settings into ``hyperdistill/teachers/``;
 2. the student (``hyperdistill/student/``): offline from ``rollout_samples`` teacher-rollout states on
-   ``Unimal-MultiTask-v0`` over the training robots (loss ``nll`` or ``kl``), then optionally
+   ``Unimal-MultiTask-v1`` over the training robots (loss ``nll`` or ``kl``), then optionally
    ``dagger_timesteps`` of DAgger on the states the student visits; ``model.zip`` + ``vecnormalize.pkl``.
    One student for all the training tasks: the one-hot of the task conditions its hypernetwork
    (the paper's one hypernetwork per task, in one network), and each state is normalised with the
@@ -46,6 +46,7 @@ from divmorph.pipeline.files import MODEL, atomic_save, atomic_write_json, is_do
 from divmorph.pipeline.robots import profile_robots
 from divmorph.pipeline.training import stage_model, stage_normalizer
 from sb3_divmorph.policies.hyperdistill import HyperDistillPolicy
+from unimal_envs import MULTITASK_ID
 from unimal_envs.contract import TASK_NAMES, observation_space
 from unimal_envs.tasks import TASKS
 
@@ -99,7 +100,7 @@ def train_student(profile: Profile, out: Path, progress_bar: bool = True) -> Pat
     robots = profile_robots(profile, "train")
     seed = profile.seed + 7
     venv = make_vec_env(
-        "Unimal-MultiTask-v0",
+        MULTITASK_ID,
         cfg.n_envs,
         seed,
         profile.max_episode_steps,

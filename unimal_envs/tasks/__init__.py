@@ -1,6 +1,6 @@
 """Tasks: reward, termination and task observations (dm_control's *task*).
 
-``TASKS`` maps a task name (as in ``Unimal-<name>-v0``) to its class.
+``TASKS`` maps a task name (as in ``Unimal-<name>-v<version>``) to its class.
 """
 
 from __future__ import annotations

@@ -26,8 +26,11 @@ class Task(abc.ABC):
     implement :meth:`make_arena` and :meth:`reward_terms`.
     """
 
-    #: Short name used in env ids (``Unimal-<name>-v0``) and ``info["task"]``.
+    #: Short name used in env ids (``Unimal-<name>-v<version>``) and ``info["task"]``.
     name: str = ""
+    #: The env id's version: it moves when the task's dynamics, reward or observation change, and the
+    #: class docstring's Version History says what changed.
+    version: int = 0
     #: Episode ends when torso height above ground <= ratio x standing height (MetaMorph 0.5).
     fall_height_ratio: float = 0.5
     #: The task observations this task fills (the other keys stay zeros); e.g. an exported

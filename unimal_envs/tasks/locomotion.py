@@ -25,6 +25,10 @@ class FlatTerrain(Task):
     ==============  ===========================================================================
 
     With no control cost, an episode return is about 50 x the forward distance in metres.
+
+    Version History:
+
+    * v0: first release.
     """
 
     name = "FT"
@@ -69,6 +73,10 @@ class VariableTerrainTask(_Corridor):
 
     Deliberate change: the original observed a y-mirrored copy of the physical terrain (spec 4.2);
     here physics and observation read the same array, so what the robot sees is what it walks on.
+
+    Version History:
+
+    * v0: first release.
     """
 
     name = "VT"
@@ -97,9 +105,17 @@ class ObstacleTask(_Corridor):
     ==============  ===========================================================================
 
     Deliberate change: blocks stand on the ground instead of floating 0.1 m above it (spec 4.4).
+
+    Version History:
+
+    * v1: the blocks are solid. In v0 they were world-body geoms moved at reset, which MuJoCo keeps
+      colliding at their compiled place (under the floor), so robots walked through them; a v0
+      return is not comparable with a v1 one.
+    * v0: first release.
     """
 
     name = "Obstacle"
+    version = 1
     observation_keys = ("hfield",)
 
     def make_arena(self) -> Arena:
@@ -122,6 +138,10 @@ class InclineTask(_Corridor):
     observations    proprioception only
     info            ``x_position``, ``distance_along_slope``
     ==============  ===========================================================================
+
+    Version History:
+
+    * v0: first release.
     """
 
     name = "Incline"

@@ -142,6 +142,10 @@ class PushBoxIncline(_BoxTask):
                     ``goal`` repeats the last three
     info            ``reached_box``, ``box_goal_distance``, ``box_displacement`` (along the slope)
     ==============  ===========================================================================
+
+    Version History:
+
+    * v0: first release.
     """
 
     name = "PushBoxIncline"
@@ -191,6 +195,10 @@ class ManipulateBox(_BoxTask):
     buffer before the far end and a 10 m buffer from the side walls). Kept departure: the ground is
     flat, whereas MVT lays the corridor with VT's terrain segments (the box tasks observe no
     height map, as in MVT, whose ``make_env_manipulation`` attaches none).
+
+    Version History:
+
+    * v0: first release.
     """
 
     name = "ManipulateBox"

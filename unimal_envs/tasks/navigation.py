@@ -74,6 +74,10 @@ class Patrol(_ReachGoal):
     observations    ``goal``: current goal minus torso position, in the torso frame
     info            ``goals_reached``, ``goal_distance``
     ==============  ===========================================================================
+
+    Version History:
+
+    * v0: first release.
     """
 
     name = "Patrol"
@@ -134,6 +138,10 @@ class PointNav(_WalledArena, _ReachGoal):
     observations    ``goal``: goal minus torso position, in the torso frame
     info            ``goal_distance``, ``steps_at_goal``
     ==============  ===========================================================================
+
+    Version History:
+
+    * v0: first release.
     """
 
     name = "PointNav"
@@ -164,6 +172,10 @@ class Exploration(_WalledArena, Task):
     observations    proprioception only
     info            ``cells_visited``
     ==============  ===========================================================================
+
+    Version History:
+
+    * v0: first release.
     """
 
     name = "Exploration"
@@ -200,6 +212,10 @@ class Escape(Task):
     observations    ``hfield``: height map of the bowl around the robot
     info            ``radius``
     ==============  ===========================================================================
+
+    Version History:
+
+    * v0: first release.
     """
 
     name = "Escape"
