@@ -253,6 +253,10 @@ class TransferConfig(SimulationSettings):
     #: robots per split of those evaluations: the first N training and the first N novel robots
     #: (a fixed subset, chosen by position, never by result); ``null``: every robot of both splits
     eval_robots: int | None = None
+    #: the robots each run trains on: ``all`` (every training robot of the profile) or ``eval`` (only
+    #: the ``eval_robots`` its curves are read on, spread over the set: fewer robots share the budget,
+    #: and the curves read the robots the run trained on)
+    train_robots: str = "all"
     #: Adam's ``eps`` of every arm's optimiser (one rule for the whole race). DivMorph's per-unit
     #: learning rates need it far below a distilled student's gradients
     #: (:data:`~sb3_divmorph.algos.finetune.TRANSFER_ADAM_EPS`), so every arm gets that value
@@ -327,6 +331,8 @@ class TransferConfig(SimulationSettings):
             _refuse(f"{at}: eval_every must be >= 0 and eval_episodes >= 1")
         if self.eval_robots is not None and self.eval_robots < 1:
             _refuse(f"{at}.eval_robots must be >= 1 or null (every robot), got {self.eval_robots!r}")
+        if self.train_robots not in ("all", "eval"):
+            _refuse(f"{at}.train_robots must be 'all' or 'eval', got {self.train_robots!r}")
         if self.critic_warmup < 0:
             _refuse(f"{at}.critic_warmup must be >= 0 env steps, got {self.critic_warmup}")
         if not self.critic_lr_scale > 0:

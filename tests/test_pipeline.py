@@ -1643,3 +1643,20 @@ def test_the_transfer_students_learngenes_keep_the_papers_share_of_every_diverte
     # the transfer student's profile differs from cpu100's in the student and its distillation only
     same = {k: v for k, v in dataclasses.asdict(load_profile("cpu100")).items() if k not in ("name", "student", "distill")}
     assert same == {k: v for k, v in dataclasses.asdict(load_profile("cpu100-transfer")).items() if k not in ("name", "student", "distill")}
+
+
+@pytest.mark.parametrize("train_robots, trained", [("all", 2), ("eval", 1)])
+def test_transfer_train_robots_eval_trains_only_on_the_robots_the_curves_read(finished_run, tmp_path, train_robots, trained):
+    from divmorph.pipeline.robots import transfer_eval_robots
+    from divmorph.pipeline.transfer import transfer_run
+
+    out, profiles = copied_run(finished_run, tmp_path)
+    profile = load_profile(
+        "tiny", profiles, overrides={"transfer.train_robots": train_robots, "transfer.eval_robots": 1, "transfer.eval_every": 0}
+    )
+    run = transfer_run(profile, out, "Escape", "scratch", 3, progress_bar=False)
+    model = run.make_model()
+    robots = {Path(name).stem for name in model.get_env().get_attr("morphology_names", indices=[0])[0]}
+    assert len(robots) == trained
+    if train_robots == "eval":
+        assert robots == {p.stem for p in transfer_eval_robots(profile, "train")}

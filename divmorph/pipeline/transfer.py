@@ -426,7 +426,7 @@ def transfer_run(
     # arms that start from trained weights (a source, or GRL's inherited layers) are fine-tuned
     overrides = cfg.overrides if source is None else {**cfg.overrides, **cfg.finetune_overrides}
     entry = load_zoo_entry(profile.teachers.hyperparams, env_name, overrides)
-    robots = profile_robots(profile, "train")
+    robots = transfer_eval_robots(profile, "train") if cfg.train_robots == "eval" else profile_robots(profile, "train")
     device = resolve_device(profile.device)
     run_seed = transfer_seed(profile, task, seed)
     gamma = entry.ppo_kwargs.get("gamma", 0.99)
