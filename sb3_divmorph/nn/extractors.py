@@ -17,7 +17,7 @@ from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from torch import nn
 
 from sb3_divmorph.nn.layers import Factorization, LinearBuilder
-from sb3_divmorph.nn.transformer import TokenEmbedding, TransformerEncoder
+from sb3_divmorph.nn.transformer import TokenEmbedding, TokenPacking, TransformerEncoder, attention_mask
 
 PROPRIOCEPTIVE = "proprioceptive"
 CONTEXT = "context"
@@ -146,6 +146,27 @@ class MorphologyTransformerExtractor(BaseFeaturesExtractor):
         tokens = th.where(padding[..., None], th.zeros((), dtype=tokens.dtype, device=tokens.device), tokens)
         features = self.encoder(self.embedding(tokens), padding, tailor_gates)
         if len(self.exteroception):
-            extero = th.cat([encoder(observations[key].flatten(1), tailor_gates) for key, encoder in self.exteroception.items()], dim=-1)
+            extero = self._exteroception(observations, tailor_gates)
             features = th.cat([features, extero[:, None, :].expand(-1, features.shape[1], -1)], dim=-1)
         return features
+
+    def forward_rows(self, observations: Mapping[str, th.Tensor], tailor_gates: th.Tensor | None, packing: TokenPacking) -> th.Tensor:
+        """:meth:`forward` on the real tokens only: (N, features_dim), packed row ``i`` the token
+        ``packing.flat_index[i]``. The embedding, the Transformer's projections and FFNs (and whatever
+        reads the features per token next) then never compute a padded slot (see :class:`TokenPacking`).
+
+        :param packing: the real tokens of ``observations``' padding mask (:func:`packing_for`).
+        """
+        tokens = packing.pack(observations[PROPRIOCEPTIVE])
+        if self.use_context:
+            tokens = th.cat([tokens, packing.pack(observations[CONTEXT])], dim=-1)
+        row_gates = None if tailor_gates is None else tailor_gates.index_select(0, packing.sample)
+        rows = self.embedding.forward_rows(tokens, packing.position)
+        rows = self.encoder.forward_rows(rows, packing, attention_mask(token_padding(observations)), row_gates)
+        if len(self.exteroception):
+            rows = th.cat([rows, self._exteroception(observations, tailor_gates).index_select(0, packing.sample)], dim=-1)
+        return rows
+
+    def _exteroception(self, observations: Mapping[str, th.Tensor], tailor_gates: th.Tensor | None) -> th.Tensor:
+        """(B, sum of the encoders' widths): every exteroception encoding, side by side."""
+        return th.cat([encoder(observations[key].flatten(1), tailor_gates) for key, encoder in self.exteroception.items()], dim=-1)

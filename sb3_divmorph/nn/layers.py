@@ -578,3 +578,11 @@ def project_many(layers: list[nn.Module], x: th.Tensor, tailor_gates: th.Tensor 
         for out, layer in zip(outs, layers)
     ]
     return [out.view(*x.shape[:-1], layer.out_features) for out, layer in zip(outs, layers)]
+
+
+def project_concat(layers: list[nn.Module], x: th.Tensor, tailor_gates: th.Tensor | None = None) -> th.Tensor:
+    """:func:`project_many`'s outputs side by side, (B, ..., sum of out_features): dense layers give
+    their one matmul's output as it is, without splitting it and joining the parts again."""
+    if all(type(layer) is DenseLinear and layer.bias is not None for layer in layers):
+        return F.linear(x, th.cat([layer.weight for layer in layers]), th.cat([layer.bias for layer in layers]))
+    return th.cat(project_many(layers, x, tailor_gates), dim=-1)

@@ -26,7 +26,7 @@ import torch as th
 from torch import nn
 from torch.nn import functional as F
 
-from sb3_divmorph.nn.layers import LinearBuilder, project_many
+from sb3_divmorph.nn.layers import LinearBuilder, project_concat, project_many
 
 #: FFN activations. Not in place: the FFN output is a view (``F.linear`` on tokens), and autograd
 #: turns an in-place op on a view into extra copies of the whole (tokens x ff_dim) tensor.
@@ -78,6 +78,11 @@ class TokenPacking(NamedTuple):
         """(N,) the sample each packed row belongs to."""
         return th.div(self.flat_index, self.length, rounding_mode="floor")
 
+    @property
+    def position(self) -> th.Tensor:
+        """(N,) the token slot of each packed row."""
+        return th.remainder(self.flat_index, self.length)
+
     def pack(self, x: th.Tensor) -> th.Tensor:
         """(B, L, D) -> (N, D): the real tokens' rows."""
         return x.reshape(-1, x.shape[-1]).index_select(0, self.flat_index)
@@ -86,6 +91,15 @@ class TokenPacking(NamedTuple):
         """(N, D) -> (B, L, D), padded tokens zero."""
         padded = rows.new_zeros(self.batch * self.length, rows.shape[-1])
         return padded.index_copy(0, self.flat_index, rows).view(self.batch, self.length, rows.shape[-1])
+
+
+def packing_for(key_padding_mask: th.Tensor) -> TokenPacking | None:
+    """The packing a pass should run with: while autograd records and some token is real, else
+    ``None`` (the padded path: rollouts, or a batch of padding alone, which has nothing to pack)."""
+    if not th.is_grad_enabled():
+        return None
+    packing = TokenPacking.of(key_padding_mask)
+    return packing if packing.flat_index.numel() > 0 else None
 
 
 class MultiHeadSelfAttention(nn.Module):
@@ -131,9 +145,9 @@ class MultiHeadSelfAttention(nn.Module):
 
         :param row_gates: (N, N_m + N_t) each row's sample's gates, or ``None``.
         """
-        q, k, v = project_many([self.q, self.k, self.v], rows, row_gates)
         width = rows.shape[-1]
-        qkv = packing.unpack(th.cat([q, k, v], dim=-1)).view(packing.batch, packing.length, 3, self.n_heads, self.head_dim)
+        qkv = packing.unpack(project_concat([self.q, self.k, self.v], rows, row_gates))
+        qkv = qkv.view(packing.batch, packing.length, 3, self.n_heads, self.head_dim)
         q, k, v = qkv.permute(2, 0, 3, 1, 4).unbind(0)
         dropout = self.dropout if self.training else 0.0
         out = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask, dropout_p=dropout)
@@ -224,16 +238,24 @@ class TransformerEncoder(nn.Module):
         :return: (B, L, D).
         """
         mask = attention_mask(key_padding_mask)
-        packing = TokenPacking.of(key_padding_mask) if self.pack_tokens and th.is_grad_enabled() else None
-        if packing is not None and packing.flat_index.numel() > 0:  # (a batch of padding alone: nothing to pack)
+        packing = packing_for(key_padding_mask) if self.pack_tokens else None
+        if packing is not None:
             rows = packing.pack(x)
             row_gates = None if tailor_gates is None else tailor_gates.index_select(0, packing.sample)
-            for block in cast(list[TransformerEncoderLayer], list(self.layers)):
-                rows = block.forward_packed(rows, packing, mask, row_gates)
-            return packing.unpack(rows)
+            return packing.unpack(self.forward_rows(rows, packing, mask, row_gates))
         for layer in self.layers:
             x = layer(x, mask, tailor_gates)
         return x
+
+    def forward_rows(self, rows: th.Tensor, packing: TokenPacking, attn_mask: th.Tensor, row_gates: th.Tensor | None) -> th.Tensor:
+        """The encoder on packed real tokens: (N, D) -> (N, D) (see :class:`TokenPacking`).
+
+        :param attn_mask: (B, 1, 1, L) from :func:`attention_mask`.
+        :param row_gates: (N, N_m + N_t) each row's sample's gates, or ``None``.
+        """
+        for block in cast(list[TransformerEncoderLayer], list(self.layers)):
+            rows = block.forward_packed(rows, packing, attn_mask, row_gates)
+        return rows
 
 
 class TokenEmbedding(nn.Module):
@@ -256,4 +278,9 @@ class TokenEmbedding(nn.Module):
         self.dropout = nn.Dropout(dropout)
 
     def forward(self, tokens: th.Tensor) -> th.Tensor:
+        """(B, L, in_dim) -> (B, L, d_model)."""
         return self.dropout(self.linear(tokens) * self.scale + self.position)
+
+    def forward_rows(self, rows: th.Tensor, position: th.Tensor) -> th.Tensor:
+        """:meth:`forward` on packed tokens: (N, in_dim) rows in the token slots ``position`` (N,) -> (N, d_model)."""
+        return self.dropout(self.linear(rows) * self.scale + self.position.index_select(0, position))

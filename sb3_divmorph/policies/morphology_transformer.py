@@ -45,7 +45,7 @@ from sb3_divmorph.nn.extractors import (
 )
 from sb3_divmorph.nn.gates import DiversionRouter, GateActivations, masked_mean
 from sb3_divmorph.nn.layers import Factorization, LinearBuilder, batched_square_factors
-from sb3_divmorph.nn.transformer import TokenEmbedding
+from sb3_divmorph.nn.transformer import TokenEmbedding, TokenPacking, TransformerEncoder, packing_for
 
 #: What the project's presets add to MetaMorph's network (each an option of the policies): a
 #: 35-feature morphology ``context`` row in every token, a hidden layer in the per-token decoders,
@@ -364,6 +364,9 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
         # re-route the actor. With share_features_extractor=True the value loss reaches the router
         # (and every shared weight) through the shared features, as any shared SB3 extractor does.
         critic_gates = None if gates is None else gates.detach()
+        packing = self._packing(obs)
+        if packing is not None:
+            return (*self._packed_latents(obs, gates, critic_gates, packing, actor, critic), gates)
         latent_pi = latent_vf = None
         with self._extractor_precision():
             if self.share_features_extractor:
@@ -378,6 +381,39 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
         if critic:
             latent_vf = self.mlp_extractor.forward_critic(vf_features, critic_gates)
         return latent_pi, latent_vf, gates
+
+    def _packing(self, obs: Mapping[str, th.Tensor]) -> TokenPacking | None:
+        """The real tokens of ``obs`` when the pass runs packed (autograd recording, packing on: the
+        update; see :class:`~sb3_divmorph.nn.transformer.TokenPacking`), else ``None``."""
+        extractor = self.features_extractor if self.share_features_extractor else self.pi_features_extractor
+        encoder = getattr(extractor, "encoder", None)
+        if not isinstance(encoder, TransformerEncoder) or not encoder.pack_tokens:
+            return None
+        return packing_for(token_padding(obs))
+
+    def _packed_latents(
+        self,
+        obs: Mapping[str, th.Tensor],
+        gates: th.Tensor | None,
+        critic_gates: th.Tensor | None,
+        packing: TokenPacking,
+        actor: bool,
+        critic: bool,
+    ) -> tuple[th.Tensor | None, th.Tensor | None]:
+        """:meth:`_latents`' latents computed on the real tokens only, from the token embedding to the
+        per-token decoders' last hidden layer, then padded back (padded tokens' latents zero, which the
+        masked distribution and the masked value mean never read)."""
+        row_gates = None if gates is None else gates.index_select(0, packing.sample)
+        critic_row_gates = None if row_gates is None else row_gates.detach()
+        with self._extractor_precision():
+            if self.share_features_extractor:
+                pi_rows = vf_rows = self.features_extractor.forward_rows(obs, gates, packing)
+            else:
+                pi_rows = self.pi_features_extractor.forward_rows(obs, gates, packing) if actor else None
+                vf_rows = self.vf_features_extractor.forward_rows(obs, critic_gates, packing) if critic else None
+        latent_pi = packing.unpack(self.mlp_extractor.forward_actor(_float32(pi_rows), row_gates)) if actor else None
+        latent_vf = packing.unpack(self.mlp_extractor.forward_critic(_float32(vf_rows), critic_row_gates)) if critic else None
+        return latent_pi, latent_vf
 
     def _distribution(self, latent_pi: th.Tensor, obs: Mapping[str, th.Tensor], gates: th.Tensor | None) -> MaskedDiagGaussianDistribution:
         mean_actions = self.action_net(latent_pi, gates).flatten(1)
