@@ -253,6 +253,9 @@ class TransferConfig(SimulationSettings):
     #: robots per split of those evaluations: the first N training and the first N novel robots
     #: (a fixed subset, chosen by position, never by result); ``null``: every robot of both splits
     eval_robots: int | None = None
+    #: the robot splits those evaluations roll out: ``train`` and ``novel`` (the held-out robots), or one
+    #: of them (a study that reads one split spends no episodes on the other)
+    eval_splits: list[str] = field(default_factory=lambda: ["train", "novel"])
     #: the robots each run trains on: ``all`` (every training robot of the profile) or ``eval`` (only
     #: the ``eval_robots`` its curves are read on, spread over the set: fewer robots share the budget,
     #: and the curves read the robots the run trained on)
@@ -331,6 +334,8 @@ class TransferConfig(SimulationSettings):
             _refuse(f"{at}: eval_every must be >= 0 and eval_episodes >= 1")
         if self.eval_robots is not None and self.eval_robots < 1:
             _refuse(f"{at}.eval_robots must be >= 1 or null (every robot), got {self.eval_robots!r}")
+        if not self.eval_splits or not set(self.eval_splits) <= {"train", "novel"} or len(set(self.eval_splits)) < len(self.eval_splits):
+            _refuse(f"{at}.eval_splits must list 'train' and/or 'novel' once each, got {self.eval_splits!r}")
         if self.train_robots not in ("all", "eval"):
             _refuse(f"{at}.train_robots must be 'all' or 'eval', got {self.train_robots!r}")
         if self.critic_warmup < 0:

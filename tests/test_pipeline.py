@@ -1660,3 +1660,24 @@ def test_transfer_train_robots_eval_trains_only_on_the_robots_the_curves_read(fi
     assert len(robots) == trained
     if train_robots == "eval":
         assert robots == {p.stem for p in transfer_eval_robots(profile, "train")}
+
+
+@pytest.mark.parametrize("splits", [["train"], ["train", "novel"]])
+def test_transfer_eval_splits_are_the_splits_the_curves_roll_out(finished_run, tmp_path, splits):
+    from divmorph.pipeline.transfer import transfer_run
+
+    out, profiles = copied_run(finished_run, tmp_path)
+    profile = load_profile(
+        "tiny", profiles, overrides={"transfer.eval_splits": splits, "transfer.eval_every": 64, "transfer.eval_episodes": 1}
+    )
+    run = transfer_run(profile, out, "Escape", "scratch", 3, progress_bar=False)
+    run.run()
+    with open(out / "transfer" / "Escape" / "scratch" / "seed-3" / "eval.csv") as f:
+        assert {row["split"] for row in csv.DictReader(f)} == set(splits)
+
+
+def test_transfer_eval_splits_must_name_known_splits_once(tmp_path):
+    profiles = write_profiles(tmp_path)
+    for bad in ([], ["train", "train"], ["held-out"]):
+        with pytest.raises(ConfigError, match="eval_splits"):
+            load_profile("tiny", profiles, overrides={"transfer.eval_splits": bad})

@@ -459,7 +459,7 @@ def transfer_run(
     if cfg.desired_kl is not None:
         callbacks.append(AdaptiveLearningRate(cfg.desired_kl))
     if cfg.eval_every > 0:
-        splits = {split: transfer_eval_robots(profile, split) for split in ("train", "novel")}
+        splits = {split: transfer_eval_robots(profile, split) for split in cfg.eval_splits}
         callbacks.append(
             EvalCurveCallback(
                 folder / EVAL_FILE,
