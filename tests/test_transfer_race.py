@@ -89,3 +89,76 @@ def test_every_settings_profile_keys_are_the_profiles(monkeypatch):
         for sets in (setting.sets + module.EVAL, *module.TASKS.values()):
             overrides = {key: yaml.safe_load(value) for key, value in (item.split("=", 1) for item in sets)}
             load_profile("cpu100", overrides=overrides)  # a key or value the profile refuses raises ConfigError
+
+
+def load_reader(monkeypatch):
+    spec = importlib.util.spec_from_file_location("transfer_race_read", ROOT / "results" / "transfer-race" / "read.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "transfer_race_read", module)
+    spec.loader.exec_module(module)
+    return module
+
+
+def made_up_race(keep: Path, task: str, curves: dict[str, object], seeds: int = 3, noise: float = 2.0) -> None:
+    """Kept runs of ``task`` whose 8 training robots follow ``curves[arm](step fraction)`` plus noise; the
+    fine-tuned arms' many-draw starts at their curves' step 0."""
+    import numpy as np
+    import pandas as pd
+
+    rng = np.random.default_rng(1)
+    steps = [i * 100_352 for i in range(7)]
+    starts = {}
+    for arm, curve in curves.items():
+        for seed in range(seeds):
+            run = keep / task / "transfer" / task / arm / f"seed-{seed}"
+            run.mkdir(parents=True)
+            rows = [
+                dict(
+                    timesteps=s, split=split, robot=f"r{r}", episode=0, **{"return": curve(s / steps[-1]) + rng.normal(0, noise)}, length=1
+                )
+                for s in steps
+                for split in ("train", "novel")
+                for r in range(8)
+            ]
+            pd.DataFrame(rows).to_csv(run / "eval.csv.gz", index=False)
+            (run / "done.json").write_text("{}")
+        if arm != "scratch":
+            starts[arm] = {str(e): {f"r{r}": curve(0.0) + rng.normal(0, noise) for r in range(8)} for e in range(5)}
+    (keep / task / "baseline.json").write_text(json.dumps(starts))
+
+
+def test_the_race_reading_holds_fails_or_has_no_reference_as_the_curves_say(monkeypatch, tmp_path):
+    """Made-up races: DivMorph at MetaMorph->'s final return by a seventh of the budget (holds); DivMorph flat below
+    it (does not hold); MetaMorph-> flat (no reference). Broken once: the ratio turned upside down -> the first task
+    reads ~1/7 and fails."""
+    reader = load_reader(monkeypatch)
+    fast = {
+        "closest": lambda f: 100 + 100 * f,
+        "divmorph": lambda f: 100 + 700 * min(f, 1 / 6),
+        "scratch": lambda f: 200 * f,
+        "distilled": lambda f: 100 + 50 * f,
+    }
+    made_up_race(tmp_path, "Escape", fast)
+    flat = {**fast, "divmorph": lambda f: 90 + 0 * f}
+    made_up_race(tmp_path, "Exploration", flat)
+    no_reference = {**fast, "closest": lambda f: 150 + 0 * f}
+    made_up_race(tmp_path, "PointNav", no_reference)
+    found = {task: reader.read_task(tmp_path, task) for task in reader.TASKS}
+    assert found["Escape"]["readings"]["direct"][3] == "holds"
+    assert found["Escape"]["readings"]["direct"][0] >= 5
+    assert found["Exploration"]["readings"]["direct"][3] == "does not hold"
+    assert found["PointNav"]["readings"]["direct"][3].startswith("no reference")
+    text = reader.main(["--keep", str(tmp_path)])
+    assert "not decidable at this scale" in text.split("Against direct fine-tuning")[1].splitlines()[0]
+    assert (tmp_path / "curves.png").stat().st_size > 0
+
+
+def test_steps_to_a_level_is_the_first_crossing_linear_between_evaluations(monkeypatch):
+    import numpy as np
+
+    reader = load_reader(monkeypatch)
+    steps = np.array([0.0, 100.0, 200.0])
+    assert reader.steps_to(steps, np.array([0.0, 10.0, 20.0]), 15.0) == 150.0
+    assert reader.steps_to(steps, np.array([16.0, 10.0, 20.0]), 15.0) == 0.0
+    assert reader.steps_to(steps, np.array([0.0, 10.0, 12.0]), 15.0) == float("inf")
