@@ -30,8 +30,8 @@ def race(monkeypatch, tmp_path):
     def fake_command(job, setting, runs):
         """A job that leaves what the real one leaves: a run's source.json and done.json, or the task's baseline.json."""
         if job.seed is None:
-            target = runs / job.task / "baseline.json"
-            code = f"import json, pathlib; p = pathlib.Path({str(target)!r}); p.write_text(json.dumps({{{job.arm!r}: {{}}}}))"
+            target = runs / job.folder / "baseline.json"
+            code = f"import json, pathlib; p = pathlib.Path({str(target)!r}); p.parent.mkdir(exist_ok=True); p.write_text(json.dumps({{{job.arm!r}: {{}}}}))"
         else:
             folder = module.run_folder(runs, job, job.seed)
             code = f"import pathlib; f = pathlib.Path({str(folder)!r}); f.mkdir(parents=True); (f / 'source.json').write_text('{{}}'); (f / 'done.json').write_text('{{}}')"
@@ -39,12 +39,12 @@ def race(monkeypatch, tmp_path):
 
     def fake_keep(job, runs, keep):
         if job.seed is None:
-            path = keep / job.task / "baseline.json"
+            path = keep / job.folder / "baseline.json"
             path.parent.mkdir(parents=True, exist_ok=True)
             old = json.loads(path.read_text()) if path.is_file() else {}
             path.write_text(json.dumps({**old, job.arm: {}}))
         else:
-            folder = keep / job.task / "transfer" / job.task / job.arm / f"seed-{job.seed}"
+            folder = keep / job.folder / "transfer" / job.task / job.arm / f"seed-{job.seed}"
             folder.mkdir(parents=True)
             (folder / "done.json").write_text("{}")
 
@@ -58,13 +58,14 @@ def test_a_worker_runs_every_job_once_in_the_rules_order(race, tmp_path):
     runs, keep = tmp_path / "runs", tmp_path / "keep"
     (runs / "claims").mkdir(parents=True)
     (runs / "claims" / "Escape-scratch-seed-2").mkdir()  # held by another worker
-    for task in module.TASKS:
-        (runs / task).mkdir()
     module.work(module.SETTINGS["S2"], runs, keep, poll=0.01)
     order = log.read_text().split()
     expected = [job.name for job in module.jobs() if job.name != "Escape-scratch-seed-2"]
     assert order == expected and len(set(order)) == len(order)
     assert order[: len(module.TASKS) * len(module.ARMS)] == [f"{t}-{a}-seed-0" for t in module.TASKS for a in module.ARMS]
+    assert "Escape-lowstart-closest-seed-0" in order and "Escape-lr0-divmorph-seed-0" in order
+    kept = {path.relative_to(keep).parts[0] for path in keep.glob("*/transfer/*/*/seed-*/done.json")}
+    assert kept == {*module.TASKS, "Escape-lowstart", "Escape-lr0"}  # the freed student races in Escape's own folder
     module.work(module.SETTINGS["S2"], runs, keep, poll=0.01)  # everything done or held: nothing runs again
     assert log.read_text().split() == order
 
@@ -86,7 +87,7 @@ def test_every_settings_profile_keys_are_the_profiles(monkeypatch):
 
     module = load_race(monkeypatch)
     for setting in module.SETTINGS.values():
-        for sets in (setting.sets + module.EVAL, *module.TASKS.values()):
+        for sets in (setting.sets + module.EVAL, *module.TASKS.values(), *(sets for sets, _, _ in module.CONTROLS.values())):
             overrides = {key: yaml.safe_load(value) for key, value in (item.split("=", 1) for item in sets)}
             load_profile("cpu100", overrides=overrides)  # a key or value the profile refuses raises ConfigError
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import fcntl
+import json
 import os
 import shutil
 import subprocess
@@ -53,27 +54,50 @@ SETTINGS = {
 EVAL_EVERY = 100_352
 
 
+#: The rule's controls, each a run folder of its own beside the race's (``<task>-<control>``): what they set, and
+#: the arms and seeds they run. ``lowstart``: MetaMorph→ from the Incline teacher (told Incline's instruction, so the
+#: closest teacher is Incline's; Escape's start near 0.7); ``lr0``: every fine-tuned arm at learning rate 0 (the start
+#: must hold); ``freed`` (in the race's own Escape folder): the student fine-tuned with its router and so its
+#: Transformer's selection free.
+INCLINE = "Walk forward as fast as possible up a ten degree incline."
+CONTROLS = {
+    "lowstart": ([f"transfer.instructions.Escape={INCLINE}"], ["closest"], SEEDS),
+    "lr0": (["transfer.finetune_overrides.learning_rate=0"], FINE_TUNED, SEEDS[:1]),
+    "freed": ([], ["divmorph-finetuned"], SEEDS),
+}
+
+
 @dataclass(frozen=True)
 class Job:
     task: str
     arm: str
     seed: int | None  # None: the arm's many-draw start
+    control: str = ""
+
+    @property
+    def folder(self) -> str:
+        """The run folder's name: the task's, or ``<task>-<control>`` for a control with settings of its own."""
+        return f"{self.task}-{self.control}" if self.control and CONTROLS[self.control][0] else self.task
 
     @property
     def name(self) -> str:
-        return f"{self.task}-{self.arm}-" + ("start" if self.seed is None else f"seed-{self.seed}")
+        kind = "start" if self.seed is None else f"seed-{self.seed}"
+        return f"{self.task}-{self.control + '-' if self.control else ''}{self.arm}-{kind}"
 
 
 def jobs() -> list[Job]:
+    """Seed 0 of the race, the controls' first seeds and every start, then the race's other seeds, then the controls'."""
     first = [Job(task, arm, SEEDS[0]) for task in TASKS for arm in ARMS]
-    starts = [Job(task, arm, None) for task in TASKS for arm in FINE_TUNED]
+    controls_first = [Job("Escape", arm, seeds[0], name) for name, (_, arms, seeds) in CONTROLS.items() for arm in arms]
+    starts = [Job(task, arm, None) for task in TASKS for arm in FINE_TUNED] + [Job("Escape", "closest", None, "lowstart")]
     rest = [Job(task, arm, seed) for seed in SEEDS[1:] for task in TASKS for arm in ARMS]
-    return first + starts + rest
+    controls_rest = [Job("Escape", arm, seed, name) for name, (_, arms, seeds) in CONTROLS.items() for seed in seeds[1:] for arm in arms]
+    return first + controls_first + starts + rest + controls_rest
 
 
 def command(job: Job, setting: Setting, runs: Path) -> list[str]:
-    sets = [*setting.sets, *EVAL, *TASKS[job.task]]
-    line = [sys.executable, str(SCRIPT), "--source", str(runs / "source"), "--out", str(runs / job.task), "--task", job.task]
+    sets = [*setting.sets, *EVAL, *TASKS[job.task], *(CONTROLS[job.control][0] if job.control else [])]
+    line = [sys.executable, str(SCRIPT), "--source", str(runs / "source"), "--out", str(runs / job.folder), "--task", job.task]
     line += ["--steps", str(setting.steps), "--eval-every", str(EVAL_EVERY), "--arms", job.arm]
     for item in sets:
         line += ["--set", item]
@@ -83,7 +107,7 @@ def command(job: Job, setting: Setting, runs: Path) -> list[str]:
 
 
 def run_folder(runs: Path, job: Job, seed: int) -> Path:
-    return runs / job.task / "transfer" / job.task / job.arm / f"seed-{seed}"
+    return runs / job.folder / "transfer" / job.task / job.arm / f"seed-{seed}"
 
 
 def ready(job: Job, runs: Path) -> bool:
@@ -93,8 +117,9 @@ def ready(job: Job, runs: Path) -> bool:
 
 def done(job: Job, runs: Path, keep: Path) -> bool:
     if job.seed is None:
-        return (keep / job.task / "baseline.json").is_file() and job.arm in (keep / job.task / "baseline.json").read_text()
-    return (keep / job.task / "transfer" / job.task / job.arm / f"seed-{job.seed}" / "done.json").is_file()
+        path = keep / job.folder / "baseline.json"
+        return path.is_file() and job.arm in json.loads(path.read_text())
+    return (keep / job.folder / "transfer" / job.task / job.arm / f"seed-{job.seed}" / "done.json").is_file()
 
 
 def keep_finished(job: Job, runs: Path, keep: Path) -> None:
@@ -103,12 +128,11 @@ def keep_finished(job: Job, runs: Path, keep: Path) -> None:
     with open(keep / ".lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         if job.seed is None:
-            (keep / job.task).mkdir(exist_ok=True)
-            shutil.copyfile(runs / job.task / "baseline.json", keep / job.task / "baseline.json")
+            (keep / job.folder).mkdir(exist_ok=True)
+            shutil.copyfile(runs / job.folder / "baseline.json", keep / job.folder / "baseline.json")
         else:
-            subprocess.run(
-                [sys.executable, str(ROOT / "tools" / "pack_transfer_runs.py"), str(keep), f"{runs / job.task}={job.task}"], check=True
-            )
+            pack = [sys.executable, str(ROOT / "tools" / "pack_transfer_runs.py"), str(keep), f"{runs / job.folder}={job.folder}"]
+            subprocess.run(pack, check=True)
 
 
 def work(setting: Setting, runs: Path, keep: Path, poll: float) -> None:
