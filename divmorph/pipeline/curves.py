@@ -25,7 +25,8 @@ import numpy as np
 from stable_baselines3 import PPO
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
-from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecMonitor, VecNormalize
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecMonitor
+from sb3_divmorph.algos.vec_normalize import LeanVecNormalize
 
 from divmorph.pipeline.arms import ARMS
 from divmorph.pipeline.config import Profile
@@ -378,7 +379,7 @@ def evaluate_model(
     venv = robot_venv(task_env_name(task), robots, max_steps, seed, **({"instruction": instruction} if instruction else {}), **env_kwargs)
     statistics = stage_normalizer(folder)
     if statistics is not None:
-        venv = VecNormalize.load(str(statistics), venv)
+        venv = LeanVecNormalize.load(str(statistics), venv)
         venv.training, venv.norm_reward = False, False
     model = PPO.load(stage_model(folder), device="cpu")
     rows = rollout_returns(model, venv, robots, episodes, deterministic=deterministic)

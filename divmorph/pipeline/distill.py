@@ -34,7 +34,7 @@ from pathlib import Path
 
 from stable_baselines3 import PPO
 from stable_baselines3.common.utils import LinearSchedule
-from stable_baselines3.common.vec_env import VecNormalize
+from sb3_divmorph.algos.vec_normalize import LeanVecNormalize
 
 from sb3_divmorph.algos.distillation import DAggerCallback, ImitationPPO, TeacherMixingVecEnv
 from divmorph.pipeline.config import ConfigError, Profile, load_zoo_entry
@@ -87,7 +87,7 @@ def distill_run(profile: Profile, out: Path, name: str = "divmorph", progress_ba
         return TeacherMixingVecEnv(venv, teachers, beta=cfg.beta_start, seed=seed)
 
     def make_model():
-        venv = VecNormalize(make_env(), norm_obs_keys=NORM_OBS_KEYS, norm_reward=False)
+        venv = LeanVecNormalize(make_env(), norm_obs_keys=NORM_OBS_KEYS, norm_reward=False)
         return algo(spec.policy, venv, policy_kwargs=dict(policy_kwargs), seed=seed, device=device, **ppo_kwargs)
 
     callback = DAggerCallback(

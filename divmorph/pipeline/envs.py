@@ -11,7 +11,8 @@ import gymnasium as gym
 import numpy as np
 import torch as th
 from stable_baselines3.common.running_mean_std import RunningMeanStd
-from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecMonitor, VecNormalize
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecMonitor
+from sb3_divmorph.algos.vec_normalize import LeanVecNormalize
 
 import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
 from sb3_divmorph.algos.finetune import freeze_observation_statistics
@@ -118,7 +119,7 @@ def normalizer_for(venv: VecEnv, normalize: dict[str, Any] | None, gamma: float)
     """Wrap in ``VecNormalize`` with rl-zoo's ``normalize`` kwargs (``None``: no normalisation)."""
     if normalize is None:
         return venv
-    return VecNormalize(venv, gamma=gamma, **normalize)
+    return LeanVecNormalize(venv, gamma=gamma, **normalize)
 
 
 def seed_everything(seed: int, threads: int) -> None:
@@ -159,7 +160,7 @@ def inherited_normalizer(source: Path, venv: VecEnv, gamma: float, freeze_observ
     """
     if not (source / NORMALIZER).is_file():
         return venv
-    normalizer = VecNormalize.load(str(source / NORMALIZER), venv)
+    normalizer = LeanVecNormalize.load(str(source / NORMALIZER), venv)
     normalizer.training, normalizer.norm_reward = True, True
     normalizer.gamma = gamma
     normalizer.ret_rms = RunningMeanStd(shape=())

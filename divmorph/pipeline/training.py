@@ -23,7 +23,8 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.save_util import load_from_zip_file
-from stable_baselines3.common.vec_env import VecEnv, VecNormalize
+from stable_baselines3.common.vec_env import VecEnv
+from sb3_divmorph.algos.vec_normalize import LeanVecNormalize
 
 import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
 from sb3_divmorph.algos.distillation import check_spaces
@@ -273,5 +274,5 @@ class TrainingRun:
         saved_space = data["observation_space"]
         check_spaces(f"checkpoint {folder}", saved_space, venv.observation_space)
         if (folder / NORMALIZER).is_file():
-            venv = VecNormalize.load(str(folder / NORMALIZER), venv)
+            venv = LeanVecNormalize.load(str(folder / NORMALIZER), venv)
         return self.algo.load(folder / MODEL, env=venv, device=self.device)
