@@ -2,6 +2,7 @@
 
     python benchmarks/cpu_training.py                         # the cpu100 teacher's settings -> results/cpu_training.md
     python benchmarks/cpu_training.py --iterations 1 --repeats 1 --n-envs 2 --n-steps 64 --batch 128 --output /tmp/x.md
+    python benchmarks/cpu_training.py --paths metamorph divmorph --vs-code /tmp/before   # against an earlier checkout
 
 **Paths**, each a PPO run built the way the pipeline builds it, timed in one process with one torch thread,
 interleaved repeat by repeat (so a busy machine slows all of them alike; the ratios are what carries over):
@@ -280,6 +281,7 @@ def measure(args: argparse.Namespace) -> str:
             physics = physics_rate(model, classes)
             flops = flops_per_sample(model, args)
             floors[name] = (physics, flops, 1 / (1 / physics + flops / sgemm))
+    args.rates = {name: list(values) for name, values in rates.items()}
     median = {name: statistics.median(values) for name, values in rates.items()}
     reference = "metamorph" if "metamorph" in median else next(iter(median))
     lines = [
@@ -307,7 +309,60 @@ def measure(args: argparse.Namespace) -> str:
     return "\n".join(lines) + "\n"
 
 
+def versus(args: argparse.Namespace) -> str:
+    """Today's code against ``--vs-code`` (a checkout of an earlier commit): one repeat of every path in a fresh
+    process per code and round, the two codes alternating round by round (``PYTHONPATH`` picks the code; this
+    script's measurement is the same for both), so a machine whose speed drifts slows both alike."""
+    import json
+    import subprocess
+    import sys
+
+    codes = {"today": ROOT, "before": Path(args.vs_code).resolve()}
+    rates: dict[str, dict[str, list[float]]] = {code: defaultdict(list) for code in codes}
+    with tempfile.TemporaryDirectory() as tmp:
+        for round_ in range(args.repeats):
+            for code, folder in codes.items():
+                out = Path(tmp) / f"{code}-{round_}.json"
+                line = [sys.executable, __file__, "--paths", *args.paths, "--repeats", "1", "--iterations", str(args.iterations)]
+                line += [
+                    "--n-envs",
+                    str(args.n_envs),
+                    "--n-steps",
+                    str(args.n_steps),
+                    "--batch",
+                    str(args.batch),
+                    "--epochs",
+                    str(args.epochs),
+                ]
+                line += ["--output", str(Path(tmp) / "ignored.md"), "--rates-json", str(out)]
+                subprocess.run(line, check=True, env={**os.environ, "PYTHONPATH": str(folder)}, stdout=subprocess.DEVNULL)
+                for name, values in json.loads(out.read_text()).items():
+                    rates[code][name] += values
+    commit = subprocess.run(
+        ["git", "-C", str(codes["before"]), "rev-parse", "--short", "HEAD"], capture_output=True, text=True
+    ).stdout.strip()
+    lines = [
+        f"# CPU training rate: today's code against {commit or codes['before']} (one torch thread per process)",
+        "",
+        f"{datetime.date.today()}, {platform.node()}, load average {os.getloadavg()[0]:.1f} at the end; {args.n_envs} envs x "
+        f"{args.n_steps} steps, minibatch {args.batch}, {args.epochs} epochs; {args.repeats} rounds, each code's repeat in a "
+        f"fresh process, alternating. Command: `python benchmarks/cpu_training.py {' '.join(args.argv)}`.",
+        "",
+        f"| path | today samples/s (each round) | {commit or 'before'} samples/s (each round) | today / before (median of the rounds' ratios) |",
+        "|---|---|---|---:|",
+    ]
+    for name in args.paths:
+        today, before = rates["today"][name], rates["before"][name]
+        ratio = statistics.median(a / b for a, b in zip(today, before))
+        lines.append(
+            f"| {name} | {statistics.median(today):,.0f} ({', '.join(f'{r:,.0f}' for r in today)}) | "
+            f"{statistics.median(before):,.0f} ({', '.join(f'{r:,.0f}' for r in before)}) | {ratio:.2f}x |"
+        )
+    return "\n".join(lines) + "\n"
+
+
 def main(argv: list[str] | None = None) -> None:
+    import json
     import sys
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -318,11 +373,20 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--epochs", type=int, default=4)
     parser.add_argument("--iterations", type=int, default=1, help="rollout+update cycles per path and repeat")
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--output", type=Path, default=ROOT / "results" / "cpu_training.md")
+    parser.add_argument("--output", type=Path, default=None, help="default: results/cpu_training.md (with --vs-code: cpu_training_vs.md)")
+    parser.add_argument("--vs-code", type=Path, default=None, help="a checkout of an earlier commit: today's code against it")
+    parser.add_argument("--rates-json", type=Path, default=None, help=argparse.SUPPRESS)  # one repeat's rates, for --vs-code
     args = parser.parse_args(argv)
     args.argv = sys.argv[1:] if argv is None else argv
-    text = measure(args)
-    args.output.write_text(text)
+    if args.vs_code is not None:
+        text = versus(args)
+        output = args.output or ROOT / "results" / "cpu_training_vs.md"
+    else:
+        text = measure(args)
+        output = args.output or ROOT / "results" / "cpu_training.md"
+        if args.rates_json is not None:
+            args.rates_json.write_text(json.dumps(args.rates))
+    output.write_text(text)
     print(text)
 
 
