@@ -1,8 +1,8 @@
 """``VecNormalize`` for dict observations without the deep copy of every observation.
 
 SB3's ``VecNormalize.normalize_obs`` deep-copies the observation dict before it writes the normalised keys
-(``copy.deepcopy``: a Python walk over every key and array, at every env step). For the UNIMAL dict of 16 envs
-that walk cost about a sixth of the VecEnv stack's step. The arrays a ``DummyVecEnv`` returns are already its
+(``copy.deepcopy``: a Python walk over every key and array, at every env step), a sizeable share of a cheap
+env's step (``benchmarks/cpu_training.py`` measures it). The arrays a ``DummyVecEnv`` returns are already its
 own copies; here each key's array is copied once with ``ndarray.copy`` and the normalised keys are written as
 SB3 writes them, so the result is the same arrays, values and dtypes, and the returned dict shares nothing with
 the original observation (``get_original_obs``) that a caller could change.
