@@ -56,6 +56,8 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.running_mean_std import RunningMeanStd
 from stable_baselines3.common.type_aliases import DictRolloutBufferSamples
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper, VecMonitor, VecNormalize
+
+from sb3_divmorph.algos.vec_normalize import LeanVecNormalize
 from torch.overrides import TorchFunctionMode
 
 __all__ = ["DevicePPO", "DeviceDictRolloutBuffer", "DeviceNormalizer", "HostTransferCounter", "TorchRunningMeanStd", "device_env_chain"]
@@ -83,7 +85,8 @@ def _mirrored_statistics(rms: Any) -> bool:
 
 def device_env_chain(env: VecEnv | None) -> tuple[Any, VecNormalize | None] | None:
     """``(batched env, VecNormalize or None)`` when ``env`` is a :class:`BatchedUnimalEnv` wrapped
-    only in ``VecMonitor`` and/or one ``VecNormalize`` (exactly those classes, with SB3's or frozen
+    only in ``VecMonitor`` and/or one ``VecNormalize`` (exactly those classes or :class:`LeanVecNormalize`, whose
+    arithmetic is SB3's, with SB3's or frozen
     statistics: the wrappers whose work :class:`DevicePPO` does on the device); ``None`` otherwise
     (any other env, wrapper or statistics class: SB3's own path, whose semantics are then kept).
 
@@ -93,7 +96,7 @@ def device_env_chain(env: VecEnv | None) -> tuple[Any, VecNormalize | None] | No
         return None
     normalizer = None
     while isinstance(env, VecEnvWrapper):
-        if type(env) is VecNormalize and normalizer is None:
+        if type(env) in (VecNormalize, LeanVecNormalize) and normalizer is None:
             statistics = list(env.obs_rms.values()) if isinstance(getattr(env, "obs_rms", None), dict) else []
             if not all(_mirrored_statistics(rms) for rms in [*statistics, env.ret_rms]):
                 return None
