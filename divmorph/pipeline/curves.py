@@ -25,8 +25,10 @@ import numpy as np
 from stable_baselines3 import PPO
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
-from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecMonitor
+from stable_baselines3.common.vec_env import VecEnv
 from sb3_divmorph.algos.vec_normalize import LeanVecNormalize
+
+from unimal_envs.vector import UnimalVecEnv
 
 from divmorph.pipeline.arms import ARMS
 from divmorph.pipeline.config import Profile
@@ -120,12 +122,13 @@ class EpisodeSeeds(gym.Wrapper):
 
 
 def robot_venv(env_name: str, robots: list[Path], max_steps: int, seed: int, **env_kwargs: Any) -> VecEnv:
-    """One monitored env per robot, its episodes seeded by :class:`EpisodeSeeds` (:func:`episode_seed`)."""
+    """One env per robot, its episodes seeded by :class:`EpisodeSeeds` (:func:`episode_seed`), in one
+    :class:`~unimal_envs.vector.UnimalVecEnv` (episode statistics as VecMonitor's)."""
 
     def one(robot: Path) -> Callable[[], gym.Env]:
-        return lambda: EpisodeSeeds(gym.make(env_name, morphologies=[robot], max_episode_steps=max_steps, **env_kwargs), seed, robot)
+        return lambda: EpisodeSeeds(gym.make(env_name, morphologies=[robot], disable_env_checker=True, **env_kwargs).unwrapped, seed, robot)
 
-    return VecMonitor(DummyVecEnv([one(robot) for robot in robots]))
+    return UnimalVecEnv([one(robot) for robot in robots], max_steps)
 
 
 def rewind(venv: VecEnv) -> None:

@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -11,13 +10,14 @@ import gymnasium as gym
 import numpy as np
 import torch as th
 from stable_baselines3.common.running_mean_std import RunningMeanStd
-from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecMonitor
+from stable_baselines3.common.vec_env import VecEnv, VecMonitor
 from sb3_divmorph.algos.vec_normalize import LeanVecNormalize
 
 import unimal_envs  # noqa: F401  (registers the Unimal-* ids)
 from sb3_divmorph.algos.finetune import freeze_observation_statistics
 from divmorph.pipeline.config import ConfigError, Profile
 from unimal_envs import env_id, task_of
+from unimal_envs.vector import make_unimal_vec_env
 
 from divmorph.pipeline.files import NORMALIZER
 
@@ -36,24 +36,21 @@ def make_vec_env(
     """The monitored training envs of a stage.
 
     ``backend="single"``: ``n_envs`` C-MuJoCo envs in one process (torch stays in this process),
-    seeded ``seed + i``. ``backend="batched"``: one MuJoCo Warp env with ``worlds_per_robot`` worlds
-    of every robot on ``device`` and a pool of ``terrain_variants`` terrains per terrain task
+    seeded ``seed + i``, stepped by one :class:`~unimal_envs.vector.UnimalVecEnv`.
+    ``backend="batched"``: one MuJoCo Warp env with ``worlds_per_robot`` worlds of every robot on
+    ``device`` and a pool of ``terrain_variants`` terrains per terrain task
     (:func:`unimal_envs.batched.make_batched_env`; ``n_envs`` unused).
     """
     if backend == "batched":
         return VecMonitor(batched_env(env_name, worlds_per_robot, device, seed, terrain_variants, max_episode_steps, **env_kwargs))
 
-    def factory(rank: int) -> Callable[[], gym.Env]:
-        def make() -> gym.Env:
-            env = gym.make(env_name, max_episode_steps=max_episode_steps, **env_kwargs)
-            env.reset(seed=seed + rank)
-            return env
+    # One UnimalVecEnv (the trajectories of VecMonitor(DummyVecEnv([gym.make(...)])), without their per-step
+    # copies); each env is also reset with its seed once when made, as the pipeline always did.
+    def first_reset(env: gym.Env, rank: int) -> gym.Env:
+        env.reset(seed=seed + rank)
+        return env
 
-        return make
-
-    venv = VecMonitor(DummyVecEnv([factory(i) for i in range(n_envs)]))
-    venv.seed(seed)
-    return venv
+    return make_unimal_vec_env(env_name, n_envs, seed, max_episode_steps, wrapper=first_reset, **env_kwargs)
 
 
 def batched_env(
