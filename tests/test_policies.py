@@ -241,6 +241,34 @@ def test_the_update_runs_on_real_tokens_only_and_equals_the_padded_pass(variant)
         assert th.allclose(a, b, rtol=1e-4, atol=1e-6)
 
 
+@pytest.mark.parametrize("variant", list(VARIANTS))
+def test_rollout_steps_act_as_the_recorded_pass_and_hand_out_ordinary_tensors(variant):
+    """A rollout step (``forward`` under no_grad, the policy in eval mode, run in inference mode) samples the same
+    actions for the same observations and seed as the pass autograd records, with the same values and
+    log-probabilities; what it returns is an ordinary tensor a loss may use, and the update after it (its Cayley
+    solve reading indices first made in the rollout) trains (broken twice: outputs not cloned out of inference
+    mode -> the loss fails; the index cache made inside it -> the update fails)."""
+    from sb3_divmorph.nn.layers import _upper_indices
+
+    _upper_indices.cache_clear()
+    policy = make_policy(variant)
+    obs = batch(policy)
+    policy.set_training_mode(False)
+    th.manual_seed(7)
+    with th.no_grad():
+        actions, values, log_prob = policy(obs)
+    th.manual_seed(7)
+    recorded = [t.detach() for t in policy(obs)]
+    for lean, reference in zip((actions, values, log_prob), recorded):
+        th.testing.assert_close(lean, reference, rtol=1e-5, atol=1e-6)
+        assert not lean.is_inference()
+    policy.set_training_mode(True)
+    new_values, new_log_prob, _ = policy.evaluate_actions(obs, actions)
+    loss = (new_values - values).pow(2).mean() - (new_log_prob - log_prob).exp().mean()
+    loss.backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in policy.parameters())
+
+
 def test_a_batch_of_padding_alone_runs_as_the_padded_pass_does():
     """Token packing has nothing to pack when every slot is padding (a minibatch of empty samples):
     the encoder under autograd then gives what the padded pass gives, and gradients flow (break:

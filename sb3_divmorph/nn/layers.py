@@ -42,7 +42,10 @@ class DenseLinear(nn.Linear):
 
 @functools.lru_cache(maxsize=64)
 def _upper_indices(size: int, device: th.device) -> th.Tensor:
-    return th.triu_indices(size, size, offset=1, device=device)
+    # made outside inference mode even when first asked for in a rollout: the cached index is read by
+    # training passes too, which may not save an inference tensor for backward
+    with th.inference_mode(False):
+        return th.triu_indices(size, size, offset=1, device=device)
 
 
 def cayley(skew_entries: th.Tensor, size: int) -> th.Tensor:
