@@ -245,7 +245,7 @@ def test_the_update_runs_on_real_tokens_only_and_equals_the_padded_pass(variant)
 def test_rollout_steps_act_as_the_recorded_pass_and_hand_out_ordinary_tensors(variant):
     """A rollout step (``forward`` under no_grad, the policy in eval mode, run in inference mode) samples the same
     actions for the same observations and seed as the pass autograd records, with the same values and
-    log-probabilities; what it returns is an ordinary tensor a loss may use, and the update after it (its Cayley
+    log-probabilities, and ``predict`` (also in inference mode) the same deterministic actions; what it returns is an ordinary tensor a loss may use, and the update after it (its Cayley
     solve reading indices first made in the rollout) trains (broken twice: outputs not cloned out of inference
     mode -> the loss fails; the index cache made inside it -> the update fails)."""
     from sb3_divmorph.nn.layers import _upper_indices
@@ -262,6 +262,9 @@ def test_rollout_steps_act_as_the_recorded_pass_and_hand_out_ordinary_tensors(va
     for lean, reference in zip((actions, values, log_prob), recorded):
         th.testing.assert_close(lean, reference, rtol=1e-5, atol=1e-6)
         assert not lean.is_inference()
+    th.manual_seed(7)
+    predicted = th.as_tensor(policy.predict({k: v.numpy() for k, v in obs.items()}, deterministic=True)[0])
+    th.testing.assert_close(predicted, policy.get_distribution(obs).get_actions(deterministic=True).detach().clamp(-1, 1))
     policy.set_training_mode(True)
     new_values, new_log_prob, _ = policy.evaluate_actions(obs, actions)
     loss = (new_values - values).pow(2).mean() - (new_log_prob - log_prob).exp().mean()

@@ -448,6 +448,14 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
             actions, values, log_prob = self._forward(obs, deterministic)
         return actions.clone(), values.clone(), log_prob.clone()
 
+    def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        # ``predict`` (evaluation, deployment) runs here under no_grad: inference mode, as in a rollout step
+        if th.is_grad_enabled() or th.is_inference_mode_enabled():
+            return super()._predict(observation, deterministic)
+        with th.inference_mode():
+            actions = super()._predict(observation, deterministic)
+        return actions.clone()
+
     def _forward(self, obs: PyTorchObs, deterministic: bool) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
         obs = self._preprocess(obs)
         with batched_square_factors(self), self._rollout_dropout():
