@@ -92,6 +92,8 @@ def zoo_hyperparams(env_id: str, overrides: dict[str, Any] | None = None, path: 
 
 
 # -- rl-zoo hyperparameter entries -----------------------------------------------------------
+#: The shipped entries' ``vec_env_wrapper``: rl-zoo steps their envs with a ``UnimalVecEnv``, as the pipeline does.
+LEAN_VEC_ENV = "unimal_envs.vector.lean_vec_env"
 #: Keys of an rl-zoo entry that are not PPO constructor arguments.
 _ZOO_ONLY = {"n_timesteps", "policy", "n_envs", "normalize", "env_wrapper", "frame_stack", "callback", "vec_env_wrapper"}
 _PPO_ARGS = set(inspect.signature(PPO.__init__).parameters) - {"self", "env", "policy"}
@@ -189,6 +191,9 @@ def load_zoo_entry(path: str | Path, env_id: str, overrides: dict[str, Any] | No
     check_ppo_keys(data[env_id], where)
     check_ppo_keys(overrides or {}, f"overrides of {where}")
     callbacks = _callbacks(entry.pop("callback"), where) if "callback" in entry else []
+    # the shipped entries' rl-zoo VecEnv is the pipeline's own (unimal_envs.vector): nothing to apply here
+    if entry.get("vec_env_wrapper") == LEAN_VEC_ENV:
+        del entry["vec_env_wrapper"]
     for key in ("env_wrapper", "frame_stack", "vec_env_wrapper"):
         if key in entry:
             raise ConfigError(f"{where}: {key!r} is not supported by the divmorph pipeline")

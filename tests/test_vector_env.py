@@ -85,3 +85,38 @@ def test_the_vec_env_api(train_files):
     env = gym.make(unimal_envs.env_id("FT"), morphologies=robots).unwrapped
     with pytest.raises(ValueError, match="same env"):
         UnimalVecEnv([lambda: env, lambda: env])
+
+
+def test_rl_zoo_runs_the_shipped_entries_through_it(train_files, tmp_path):
+    """rl-zoo builds a DummyVecEnv of Monitor-wrapped envs (SB3's make_vec_env with a monitor folder) and applies the
+    entries' ``vec_env_wrapper``: the wrapped env is a UnimalVecEnv with the DummyVecEnv's trajectories, and the
+    Monitors still write rl-zoo's logs (broken once: the seeds not carried over -> the first observations differ)."""
+    from rl_zoo3.utils import get_wrapper_class
+    from stable_baselines3.common.env_util import make_vec_env
+
+    import sb3_divmorph.zoo as zoo
+
+    entry = zoo.hyperparams["Unimal-Escape-v0"]
+    assert entry["vec_env_wrapper"] == zoo.LEAN_VEC_ENV
+    zoo.zoo_hyperparams("Unimal-Escape-v0")  # the pipeline reads the same entry (its envs are UnimalVecEnvs already)
+
+    def zoo_venv(folder):
+        kwargs = dict(morphologies=train_files[:2], max_episode_steps=15)
+        return make_vec_env(unimal_envs.env_id("Escape"), n_envs=2, seed=1, env_kwargs=kwargs, monitor_dir=str(folder))
+
+    reference = zoo_venv(tmp_path / "dummy")
+    lean = get_wrapper_class(entry, "vec_env_wrapper")(zoo_venv(tmp_path / "lean"))
+    assert isinstance(lean, UnimalVecEnv)
+    obs_a, obs_b = reference.reset(), lean.reset()
+    rng = np.random.default_rng(1)
+    for _ in range(40):
+        for key in obs_a:
+            np.testing.assert_array_equal(obs_a[key], obs_b[key], err_msg=key)
+        actions = rng.uniform(-1, 1, (2, *reference.action_space.shape)).astype(np.float32)
+        obs_a, reward_a, done_a, _ = reference.step(actions)
+        obs_b, reward_b, done_b, _ = lean.step(actions)
+        np.testing.assert_array_equal(reward_a, reward_b)
+        np.testing.assert_array_equal(done_a, done_b)
+    lean.close()
+    rows = [line for path in (tmp_path / "lean").glob("*.monitor.csv") for line in path.read_text().splitlines()[2:]]
+    assert len(rows) >= 4  # 40 steps of 15-step episodes, two envs

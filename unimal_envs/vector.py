@@ -11,6 +11,8 @@ trajectories are those of that stack for the same seeds, robots and actions, res
 
     from unimal_envs.vector import make_unimal_vec_env
     venv = make_unimal_vec_env("Unimal-FT-v0", n_envs=4, seed=0, max_episode_steps=1000)
+
+rl-zoo runs the shipped entries through it too (their ``vec_env_wrapper``: :func:`lean_vec_env`).
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 from stable_baselines3.common.monitor import Monitor
-from stable_baselines3.common.vec_env import VecEnv
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
 
@@ -95,7 +97,8 @@ class UnimalVecEnv(VecEnv):
             self._returns[i] += rewards[i]
             if done:
                 info["terminal_observation"] = obs
-                info["episode"] = {"r": self._returns[i], "l": np.int32(self._steps[i]), "t": round(time.time() - self._start, 6)}
+                # an env of its own Monitor (rl-zoo's) keeps Monitor's record, as it would under DummyVecEnv
+                info.setdefault("episode", {"r": self._returns[i], "l": np.int32(self._steps[i]), "t": round(time.time() - self._start, 6)})
                 self._returns[i] = 0.0
                 self._steps[i] = 0
                 obs, self.reset_infos[i] = env.reset()
@@ -162,3 +165,16 @@ def make_unimal_vec_env(
     if seed is not None:
         venv.seed(seed)
     return venv
+
+
+def lean_vec_env(venv: VecEnv) -> VecEnv:
+    """rl-zoo's ``vec_env_wrapper`` for the Unimal entries (``zoo_configs/ppo.yml``): the envs of the
+    ``DummyVecEnv`` rl-zoo made (each in its ``Monitor``, which keeps writing rl-zoo's logs), stepped by a
+    :class:`UnimalVecEnv` instead -- the same trajectories without the deep copies. Any other ``VecEnv``
+    (``--vec-env subproc``) is returned as it is.
+    """
+    if type(venv) is not DummyVecEnv:
+        return venv
+    lean = UnimalVecEnv([lambda env=env: env for env in venv.envs])
+    lean._seeds, lean._options = list(venv._seeds), list(venv._options)
+    return lean
