@@ -52,7 +52,9 @@ class UnimalVecEnv(VecEnv):
             raise TypeError(f"UnimalVecEnv takes envs with Dict observations; got {first.observation_space}")
         super().__init__(len(self.envs), first.observation_space, first.action_space)
         self.max_episode_steps = max_episode_steps
-        self._spaces = [(key, space.shape, space.dtype) for key, space in first.observation_space.spaces.items()]
+        self._spaces: list[tuple[str, tuple[int, ...], Any]] = [
+            (key, tuple(space.shape or ()), space.dtype) for key, space in first.observation_space.spaces.items()
+        ]
         self._steps = np.zeros(self.num_envs, dtype=np.int64)
         self._returns = np.zeros(self.num_envs, dtype=np.float32)
         self._start = time.time()
@@ -175,6 +177,10 @@ def lean_vec_env(venv: VecEnv) -> VecEnv:
     """
     if type(venv) is not DummyVecEnv:
         return venv
-    lean = UnimalVecEnv([lambda env=env: env for env in venv.envs])
+
+    def keep(env: gym.Env) -> Callable[[], gym.Env]:
+        return lambda: env
+
+    lean = UnimalVecEnv([keep(env) for env in venv.envs])
     lean._seeds, lean._options = list(venv._seeds), list(venv._options)
     return lean
