@@ -272,6 +272,46 @@ def test_rollout_steps_act_as_the_recorded_pass_and_hand_out_ordinary_tensors(va
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in policy.parameters())
 
 
+@pytest.mark.parametrize("net_arch", [dict(pi=[16], vf=[16]), dict(pi=[], vf=[])])
+@pytest.mark.parametrize("exteroception", [dict(hfield=[8], goal=[4], object=[4]), {}])
+def test_a_metamorph_rollout_step_runs_both_towers_as_one_pass_with_the_same_results(monkeypatch, net_arch, exteroception):
+    """MetaMorph's rollout step computes actor and critic in one stacked pass (FusedTowers): the same actions, values
+    and log-probabilities as the towers run one after the other, and after an update changes the weights it follows
+    them (broken twice: the towers' weights swapped in the stack -> values differ; the stack cached regardless of
+    the weights' versions -> the second comparison fails)."""
+    from sb3_divmorph.nn.fused import FusedTowers
+
+    policy = make_policy("metamorph", net_arch=net_arch, exteroception=exteroception)
+    obs = batch(policy)
+    calls = []
+    real = FusedTowers.latents
+    monkeypatch.setattr(FusedTowers, "latents", lambda self, o: calls.append(1) or real(self, o))
+    policy.set_training_mode(False)
+
+    def step(fuse: bool):
+        policy.fuse_rollout_towers = fuse
+        th.manual_seed(3)
+        with th.no_grad():
+            return policy(obs)
+
+    for _ in range(2):
+        for fused, separate in zip(step(True), step(False)):
+            th.testing.assert_close(fused, separate, rtol=1e-5, atol=1e-5)
+        with th.no_grad():  # what an optimiser step does to the weights between two rollouts
+            for p in policy.parameters():
+                p.add_(0.05 * th.randn_like(p))
+    assert len(calls) == 2
+
+
+def test_only_two_dense_towers_of_the_same_sizes_run_as_one():
+    from sb3_divmorph.nn.fused import FusedTowers
+
+    assert FusedTowers.of(make_policy("metamorph")) is not None
+    for variant in ("metamorph-shared", "divmorph", "divmorph-critic"):
+        assert FusedTowers.of(make_policy(variant)) is None, variant
+    assert FusedTowers.of(make_policy("metamorph", net_arch=dict(pi=[16], vf=[8]))) is None
+
+
 def test_a_batch_of_padding_alone_runs_as_the_padded_pass_does():
     """Token packing has nothing to pack when every slot is padding (a minibatch of empty samples):
     the encoder under autograd then gives what the padded pass gives, and gradients flow (break:

@@ -34,6 +34,7 @@ from torch import nn
 
 from sb3_divmorph.nn.decoders import TokenDecoder, small_uniform_init
 from sb3_divmorph.nn.distributions import MaskedDiagGaussianDistribution
+from sb3_divmorph.nn.fused import FusedTowers
 from sb3_divmorph.nn.extractors import (
     ACT_PADDING_MASK,
     CONTEXT,
@@ -184,6 +185,9 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
     """
 
     preset_table: dict[str, dict[str, Any]] = PRESETS
+    #: run a rollout step's actor and critic as one stacked pass where the towers allow it (two dense towers of
+    #: the same sizes: MetaMorph); ``False`` runs them one after the other (the same latents up to float rounding)
+    fuse_rollout_towers: bool = True
     #: whether ``mixed_precision=True`` is implemented for this policy's feature extractors
     supports_mixed_precision: bool = True
     #: observation keys the policy reads besides the per-token ones
@@ -364,6 +368,9 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
         # re-route the actor. With share_features_extractor=True the value loss reaches the router
         # (and every shared weight) through the shared features, as any shared SB3 extractor does.
         critic_gates = None if gates is None else gates.detach()
+        fused = self._fused_towers() if actor and critic and gates is None else None
+        if fused is not None:
+            return (*fused.latents(obs), gates)
         packing = self._packing(obs)
         if packing is not None:
             return (*self._packed_latents(obs, gates, critic_gates, packing, actor, critic), gates)
@@ -381,6 +388,19 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
         if critic:
             latent_vf = self.mlp_extractor.forward_critic(vf_features, critic_gates)
         return latent_pi, latent_vf, gates
+
+    def _fused_towers(self) -> FusedTowers | None:
+        """The one-pass actor and critic (:class:`~sb3_divmorph.nn.fused.FusedTowers`) for this pass: a rollout
+        step (no autograd, eval mode, no dropout in it) of a policy whose towers allow it, else ``None``."""
+        if th.is_grad_enabled() or self.training or not self.fuse_rollout_towers:
+            return None
+        if self.config["embedding_dropout_in_rollouts"] and self.config["embedding_dropout"] > 0:
+            return None
+        fused = self.__dict__.get("_fused")
+        current = (self.pi_features_extractor, self.vf_features_extractor, self.mlp_extractor.policy_net, self.mlp_extractor.value_net)
+        if fused is None or fused[0] != tuple(map(id, current)):  # first use, or a part replaced since (transfer)
+            fused = self.__dict__["_fused"] = (tuple(map(id, current)), FusedTowers.of(self))
+        return fused[1]
 
     def _packing(self, obs: Mapping[str, th.Tensor]) -> TokenPacking | None:
         """The real tokens of ``obs`` when the pass runs packed (autograd recording, packing on: the
