@@ -335,7 +335,8 @@ def versus(args: argparse.Namespace) -> str:
                     str(args.epochs),
                 ]
                 line += ["--output", str(Path(tmp) / "ignored.md"), "--rates-json", str(out)]
-                subprocess.run(line, check=True, env={**os.environ, "PYTHONPATH": str(folder)}, stdout=subprocess.DEVNULL)
+                # run in the checkout, so that its own zoo_configs/ (a profile's relative path) is the one read
+                subprocess.run(line, check=True, env={**os.environ, "PYTHONPATH": str(folder)}, cwd=folder, stdout=subprocess.DEVNULL)
                 for name, values in json.loads(out.read_text()).items():
                     rates[code][name] += values
     commit = subprocess.run(
