@@ -303,6 +303,23 @@ def test_a_metamorph_rollout_step_runs_both_towers_as_one_pass_with_the_same_res
     assert len(calls) == 2
 
 
+def test_a_diverged_policy_is_named_by_its_update_and_a_rollout_step_skips_the_checks():
+    """A rollout step skips the Gaussian's argument checks (a device sync each; the env refuses a non-finite action
+    and names it), the update keeps them: a NaN weight fails the update with torch's message (broken once: the
+    checks skipped everywhere -> the update gives NaN silently)."""
+    policy = make_policy("metamorph")
+    obs = batch(policy)
+    with th.no_grad():
+        policy.action_net.weight.fill_(float("nan"))
+    policy.set_training_mode(False)
+    with th.no_grad():
+        actions, _, _ = policy(obs)
+    assert th.isnan(actions).any()
+    policy.set_training_mode(True)
+    with pytest.raises(ValueError, match="constraint"):
+        policy.evaluate_actions(obs, th.zeros(20, 24))
+
+
 def test_only_two_dense_towers_of_the_same_sizes_run_as_one():
     from sb3_divmorph.nn.fused import FusedTowers
 

@@ -43,7 +43,10 @@ class MaskedDiagGaussianDistribution(DiagGaussianDistribution):
             self.real = ~padded
             zero = th.zeros((), dtype=mean_actions.dtype, device=mean_actions.device)
             mean_actions = th.where(self.real, mean_actions, zero)
-        self.distribution = Normal(mean_actions, th.ones_like(mean_actions) * log_std.exp())
+        # Argument checks (a finite mean, a positive std) cost a device sync each; a rollout step (no autograd)
+        # skips them -- a non-finite action is refused by the env, which names it -- and training passes keep them.
+        validate = None if th.is_grad_enabled() else False
+        self.distribution = Normal(mean_actions, th.ones_like(mean_actions) * log_std.exp(), validate_args=validate)
         return self
 
     def _masked_sum(self, values: th.Tensor) -> th.Tensor:
