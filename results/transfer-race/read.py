@@ -205,6 +205,7 @@ def main(argv: list[str] | None = None) -> str:
         f"Against scratch (Sec. 6.1): **{overall(verdicts['scratch'])}**.",
     ]
     text = "\n".join(lines)
+    out.mkdir(parents=True, exist_ok=True)
     (out / "reading.md").write_text(text + "\n")
     figure(tasks, out / "curves.png")
     print(text)
