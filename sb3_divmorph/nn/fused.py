@@ -23,7 +23,7 @@ from torch.nn import functional as F
 
 from sb3_divmorph.nn.decoders import TokenMLP
 from sb3_divmorph.nn.extractors import CONTEXT, PROPRIOCEPTIVE, MorphologyTransformerExtractor, token_padding
-from sb3_divmorph.nn.layers import DenseLinear
+from sb3_divmorph.nn.layers import DenseLinear, FactorizedLinear
 from sb3_divmorph.nn.transformer import TransformerEncoderLayer, attention_mask
 
 
@@ -33,7 +33,7 @@ def _dense_only(*modules: nn.Module) -> bool:
         for sub in module.modules():
             if isinstance(sub, nn.Linear) and type(sub) not in (DenseLinear, nn.Linear):
                 return False
-            if sub.__class__.__name__ == "FactorizedLinear":
+            if isinstance(sub, FactorizedLinear):
                 return False
     return True
 
