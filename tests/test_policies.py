@@ -272,35 +272,53 @@ def test_rollout_steps_act_as_the_recorded_pass_and_hand_out_ordinary_tensors(va
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in policy.parameters())
 
 
-@pytest.mark.parametrize("net_arch", [dict(pi=[16], vf=[16]), dict(pi=[], vf=[])])
-@pytest.mark.parametrize("exteroception", [dict(hfield=[8], goal=[4], object=[4]), {}])
-def test_a_metamorph_rollout_step_runs_both_towers_as_one_pass_with_the_same_results(monkeypatch, net_arch, exteroception):
-    """MetaMorph's rollout step computes actor and critic in one stacked pass (FusedTowers): the same actions, values
-    and log-probabilities as the towers run one after the other, and after an update changes the weights it follows
-    them (broken twice: the towers' weights swapped in the stack -> values differ; the stack cached regardless of
-    the weights' versions -> the second comparison fails)."""
+TOWER_CASES = {
+    "metamorph": ("metamorph", {}),
+    "metamorph-no-decoder-no-extero": ("metamorph", dict(net_arch=dict(pi=[], vf=[]), exteroception={})),
+    "divmorph": ("divmorph", {}),
+    "divmorph-lowrank-diverted-extero-adapter": ("divmorph", dict(n_learngenes=1, divert_exteroception=True, adapter_rank=2)),
+    "divmorph-no-decoder-no-extero": ("divmorph", dict(net_arch=dict(pi=[], vf=[]), exteroception={})),
+}
+
+
+@pytest.mark.parametrize("case", list(TOWER_CASES))
+def test_a_rollout_step_runs_both_towers_as_one_pass_with_the_same_results(monkeypatch, case):
+    """A rollout step computes actor and critic in one stacked pass (FusedTowers), a DivMorph actor's gated layers
+    as per-sample weights: the same actions, values and log-probabilities as the towers run one after the other;
+    after an update changes the weights, and when the batch's robots change (new gates), it follows them (broken
+    three times: the towers' weights swapped in the stack -> values differ; the stack cached regardless of the
+    weights' versions -> the second comparison fails; regardless of the gates -> the new robots' step fails)."""
     from sb3_divmorph.nn.fused import FusedTowers
 
-    policy = make_policy("metamorph", net_arch=net_arch, exteroception=exteroception)
-    obs = batch(policy)
+    variant, overrides = TOWER_CASES[case]
+    policy = make_policy(variant, **overrides)
+    if variant == "divmorph":
+        with th.no_grad():  # an adapter starts at zero: give it a value so that leaving it out would show
+            for layer in policy.modules():
+                if isinstance(layer, FactorizedLinear) and layer.adapter_rank:
+                    layer.adapter_up.normal_(0.0, 0.3)
     calls = []
     real = FusedTowers.latents
-    monkeypatch.setattr(FusedTowers, "latents", lambda self, o: calls.append(1) or real(self, o))
+    monkeypatch.setattr(FusedTowers, "latents", lambda self, o, g=None: calls.append(1) or real(self, o, g))
     policy.set_training_mode(False)
 
-    def step(fuse: bool):
+    def step(obs, fuse: bool):
         policy.fuse_rollout_towers = fuse
         th.manual_seed(3)
         with th.no_grad():
             return policy(obs)
 
-    for _ in range(2):
-        for fused, separate in zip(step(True), step(False)):
+    # the same robots before and after an update, then new robots (new gates) with the same weights
+    for robots, update_after in ((0, True), (0, False), (1, False)):
+        obs = batch(policy, seed=robots)
+        for fused, separate in zip(step(obs, True), step(obs, False)):
             th.testing.assert_close(fused, separate, rtol=1e-5, atol=1e-5)
-        with th.no_grad():  # what an optimiser step does to the weights between two rollouts
-            for p in policy.parameters():
-                p.add_(0.05 * th.randn_like(p))
-    assert len(calls) == 2
+        if update_after:
+            with th.no_grad():  # what an optimiser step does to the towers between two rollouts (gates kept)
+                for name, p in policy.named_parameters():
+                    if not name.startswith("router."):
+                        p.add_(0.05 * th.randn_like(p))
+    assert len(calls) == 3
 
 
 def test_a_diverged_policy_is_named_by_its_update_and_a_rollout_step_skips_the_checks():
@@ -320,11 +338,12 @@ def test_a_diverged_policy_is_named_by_its_update_and_a_rollout_step_skips_the_c
         policy.evaluate_actions(obs, th.zeros(20, 24))
 
 
-def test_only_two_dense_towers_of_the_same_sizes_run_as_one():
+def test_only_two_towers_of_the_same_sizes_with_a_dense_critic_run_as_one():
     from sb3_divmorph.nn.fused import FusedTowers
 
     assert FusedTowers.of(make_policy("metamorph")) is not None
-    for variant in ("metamorph-shared", "divmorph", "divmorph-critic"):
+    assert FusedTowers.of(make_policy("divmorph")) is not None
+    for variant in ("metamorph-shared", "divmorph-shared", "divmorph-critic"):
         assert FusedTowers.of(make_policy(variant)) is None, variant
     assert FusedTowers.of(make_policy("metamorph", net_arch=dict(pi=[16], vf=[8]))) is None
 

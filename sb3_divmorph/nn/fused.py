@@ -1,11 +1,16 @@
-"""Actor and critic in one pass: the rollout step of a MetaMorph policy as one stacked computation.
+"""Actor and critic in one pass: the rollout step of a two-tower policy as one stacked computation.
 
-A MetaMorph policy runs two Transformers of the same shape (actor and critic) one after the other. A
-rollout step feeds them a handful of samples, so each op costs mostly its fixed overhead, and two towers
-pay it twice. :class:`FusedTowers` runs both as one: the towers' weights stacked along a leading axis of
-2 (``bmm``), the shared input's projections as one matmul over the two weights side by side, one
-attention call over ``2B`` sequences. The stacked weights are built once per parameter version -- once per
-rollout, since the update changes them -- so the rollout's hundreds of steps pay the stacking once.
+A MetaMorph or DivMorph policy runs two Transformers of the same shape (actor and critic) one after the
+other. A rollout step feeds them a handful of samples, so each op costs mostly its fixed overhead, and two
+towers pay it twice. :class:`FusedTowers` runs both as one: the towers' weights stacked along a leading axis
+(``bmm``), the shared input's embeddings as one matmul over the two weights side by side, one attention call
+over ``2B`` sequences.
+
+A DivMorph actor's projections are factorized and gated per sample (``W_b = U diag(s g_b) V^T``). In a rollout
+the gates change only when an environment draws a new robot, so each sample's weight is built whole once and
+the actor's projection becomes one batched matmul over the ``B`` samples, stacked with the critic's dense weight
+repeated ``B`` times: the two towers again run as one ``bmm`` over ``2B`` weights. Stacked weights are built once
+per parameter version (once per rollout, since the update changes them) and per gate batch.
 
 The math is the separate pass's: the latents equal it up to float rounding (``tests/test_policies.py``).
 Training passes (autograd on) never take this path: there the stacking would be paid at every minibatch and
@@ -27,33 +32,83 @@ from sb3_divmorph.nn.layers import DenseLinear, FactorizedLinear
 from sb3_divmorph.nn.transformer import TransformerEncoderLayer, attention_mask
 
 
+def _projections(module: nn.Module) -> list[Any]:
+    return [m for m in module.modules() if isinstance(m, (nn.Linear, FactorizedLinear))]
+
+
 def _dense_only(*modules: nn.Module) -> bool:
     """Every projection inside is a dense layer (no factorized, gated or adapted unit)."""
-    for module in modules:
-        for sub in module.modules():
-            if isinstance(sub, nn.Linear) and type(sub) not in (DenseLinear, nn.Linear):
-                return False
-            if isinstance(sub, FactorizedLinear):
-                return False
-    return True
+    return all(type(m) in (DenseLinear, nn.Linear) for module in modules for m in _projections(module))
+
+
+def _signature(module: nn.Module) -> list[tuple]:
+    """What must match between the towers for one stacked pass: each projection's sizes and bias, each
+    norm's and the position embedding's shape, in the order the modules sit."""
+    signature: list[tuple] = []
+    for m in cast(Any, module).modules():  # typed loosely: each kind's attributes are read below
+        if isinstance(m, (nn.Linear, FactorizedLinear)):
+            signature.append(("linear", m.in_features, m.out_features, m.bias is not None))
+        elif isinstance(m, nn.LayerNorm):
+            signature.append(("norm", tuple(m.normalized_shape), m.eps))
+        elif hasattr(m, "position"):
+            signature.append(("position", tuple(m.position.shape)))
+        elif not isinstance(m, (nn.ReLU, nn.GELU, nn.Identity, nn.Dropout, nn.Tanh)) and any(True for _ in m.parameters(recurse=False)):
+            signature.append(("other", type(m).__name__))  # a part the stacked pass does not know: no fusing
+    return signature
 
 
 def _stack(*tensors: th.Tensor) -> th.Tensor:
     return th.stack([t.detach() for t in tensors])
 
 
-class FusedTowers:
-    """The actor's and the critic's per-token latents of a two-tower dense policy, computed as one.
+def _weight(layer: Any, gates: th.Tensor | None) -> tuple[th.Tensor, th.Tensor]:
+    """``(weight, bias)`` of one projection, the weight transposed for ``x @ weight``: (in, out) when every sample
+    shares it, (B, in, out) when the layer is gated (each sample's own ``U diag(s g_b) V^T``)."""
+    weight: th.Tensor
+    if not isinstance(layer, FactorizedLinear):
+        weight = layer.weight.detach().T
+    elif gates is None or layer.n_tailors == 0:
+        weight = layer.dense_weight(None).detach().T
+    else:
+        U, V = layer.factors()[:2]
+        weight = th.einsum("ir,br,or->bio", V, layer.unit_scales(gates), U)  # (B, in, out)
+        if layer.adapter_rank:
+            weight = weight + (layer.adapter_up @ layer.adapter_down).T
+    bias: th.Tensor = layer.bias if layer.bias is not None else weight.new_zeros(layer.out_features)
+    return weight.detach(), bias.detach()
 
-    It holds the parameters the towers had when it was made and restacks them whenever one changes in place (an
-    optimiser step, ``load_state_dict``). A part replaced by a new module makes the policy build a new one; a
-    parameter replaced by a new tensor inside a part is not seen (a walk over the modules at every step would
-    cost ~180 us, more than a tenth of the pass).
+
+def _pair(actor: tuple[th.Tensor, th.Tensor], critic: tuple[th.Tensor, th.Tensor]) -> tuple[th.Tensor, th.Tensor]:
+    """The two towers' ``(weight, bias)`` stacked: (2, in, out) and (2, 1, out) when both are shared, else the actor's
+    B per-sample weights then the critic's repeated B times, (2B, in, out) and (2B, 1, out)."""
+    (wa, ba), (wc, bc) = actor, critic
+    if wa.dim() == 2:
+        return th.stack([wa, wc]), th.stack([ba, bc])[:, None]
+    batch = wa.shape[0]
+    return th.cat([wa, wc.expand(batch, -1, -1)]), th.cat([ba.expand(batch, -1), bc.expand(batch, -1)])[:, None]
+
+
+def _project(x: th.Tensor, weight: th.Tensor, bias: th.Tensor) -> th.Tensor:
+    """(2, N, in) rows of both towers (N = B * rows per sample) -> (2, N, out) through :func:`_pair`'s weights."""
+    if weight.shape[0] == 2:
+        return th.baddbmm(bias, x, weight)
+    per_sample = x.reshape(weight.shape[0], -1, x.shape[-1])  # (2B, rows per sample, in): the same memory
+    return th.baddbmm(bias, per_sample, weight).view(2, x.shape[1], -1)
+
+
+class FusedTowers:
+    """The actor's and the critic's per-token latents of a two-tower policy, computed as one.
+
+    The critic is dense; the actor is dense (MetaMorph) or factorized and gated (DivMorph). It holds the parameters
+    the towers had when it was made and restacks them whenever one changes in place (an optimiser step,
+    ``load_state_dict``, a rebase of the square factors) or the gates change (an environment drew a new robot).
+    A part replaced by a new module makes the policy build a new one; a parameter replaced by a new tensor inside
+    a part is not seen (a walk over the modules at every step would cost ~180 us, more than a tenth of the pass).
 
     :param actor: the actor's extractor.
-    :param critic: the critic's extractor (same sizes as the actor's).
+    :param critic: the critic's extractor (same sizes as the actor's; dense).
     :param actor_decoder: the actor's per-token MLP (``mlp_extractor.policy_net``).
-    :param critic_decoder: the critic's per-token MLP (``mlp_extractor.value_net``).
+    :param critic_decoder: the critic's per-token MLP (``mlp_extractor.value_net``; dense).
     """
 
     def __init__(
@@ -65,35 +120,41 @@ class FusedTowers:
     ):
         self.towers = (actor, critic)
         self.decoders = (actor_decoder, critic_decoder)
-        self.parameters = [p for module in (*self.towers, *self.decoders) for p in module.parameters()]
+        modules = (*self.towers, *self.decoders)
+        self.tensors = [t for module in modules for t in (*module.parameters(), *module.buffers())]
         self._key: tuple | None = None
+        self._gates: th.Tensor | None = None
         self._weights: dict[str, Any] = {}
 
     @classmethod
     def of(cls, policy: Any) -> FusedTowers | None:
-        """The fused pass of ``policy`` when its towers allow one (two dense MetaMorph towers of the same sizes,
-        with the same decoder widths), else ``None``."""
+        """The fused pass of ``policy`` when its towers allow one (two MetaMorph-shaped towers of the same sizes, a
+        dense critic, the same decoder widths and activations), else ``None``."""
         if policy.share_features_extractor or policy.mixed_precision:
             return None
         actor, critic = policy.pi_features_extractor, policy.vf_features_extractor
         decoders = (policy.mlp_extractor.policy_net, policy.mlp_extractor.value_net)
         if not all(type(t) is MorphologyTransformerExtractor for t in (actor, critic)):
             return None
-        if not _dense_only(actor, critic, *decoders):
+        if not all(type(d) is TokenMLP for d in decoders) or not _dense_only(critic, decoders[1]):
             return None
         same = (
             actor.use_context == critic.use_context
             and list(actor.exteroception) == list(critic.exteroception)
-            and [p.shape for p in actor.parameters()] == [p.shape for p in critic.parameters()]
-            and [p.shape for p in decoders[0].parameters()] == [p.shape for p in decoders[1].parameters()]
+            and _signature(actor) == _signature(critic)
+            and _signature(decoders[0]) == _signature(decoders[1])
             and [type(a) for a in decoders[0].activations] == [type(a) for a in decoders[1].activations]
+            and all(("other",) != entry[:1] for entry in _signature(actor) + _signature(decoders[0]))
         )
         return cls(actor, critic, *decoders) if same else None
 
-    # -- the stacked weights, once per parameter version ----------------------------------------------
-    def _stacked(self) -> dict[str, Any]:
-        key = tuple((p.data_ptr(), p._version) for p in self.parameters)
-        if key == self._key:
+    # -- the stacked weights, once per parameter version and gate batch ---------------------------------
+    def _stacked(self, gates: th.Tensor | None) -> dict[str, Any]:
+        key = tuple((t.data_ptr(), t._version) for t in self.tensors)
+        same_gates = gates is self._gates or (
+            gates is not None and self._gates is not None and gates.shape == self._gates.shape and th.equal(gates, self._gates)
+        )
+        if key == self._key and same_gates:
             return self._weights
         actor, critic = self.towers
         w: dict[str, Any] = {
@@ -107,40 +168,37 @@ class FusedTowers:
         }
         for a, c in zip(actor.encoder.layers, critic.encoder.layers):
             a, c = cast(Any, a), cast(Any, c)  # their projections come from a builder: typed as modules
-            qkv = [th.cat([m.attention.q.weight, m.attention.k.weight, m.attention.v.weight]) for m in (a, c)]
-            qkv_b = [th.cat([m.attention.q.bias, m.attention.k.bias, m.attention.v.bias]) for m in (a, c)]
+            qkv = [[_weight(getattr(m.attention, name), g) for name in "qkv"] for m, g in ((a, gates), (c, None))]
+            qkv_pair = [(th.cat([w for w, _ in parts], dim=-1), th.cat([b for _, b in parts])) for parts in qkv]
             w["layers"].append(
                 {
                     "norm1": (_stack(a.norm1.weight, c.norm1.weight)[:, None], _stack(a.norm1.bias, c.norm1.bias)[:, None]),
                     "norm2": (_stack(a.norm2.weight, c.norm2.weight)[:, None], _stack(a.norm2.bias, c.norm2.bias)[:, None]),
-                    "qkv": (_stack(*qkv).transpose(1, 2), _stack(*qkv_b)[:, None]),
-                    "o": (
-                        _stack(a.attention.o.weight, c.attention.o.weight).transpose(1, 2),
-                        _stack(a.attention.o.bias, c.attention.o.bias)[:, None],
-                    ),
-                    "ff_in": (_stack(a.ff_in.weight, c.ff_in.weight).transpose(1, 2), _stack(a.ff_in.bias, c.ff_in.bias)[:, None]),
-                    "ff_out": (_stack(a.ff_out.weight, c.ff_out.weight).transpose(1, 2), _stack(a.ff_out.bias, c.ff_out.bias)[:, None]),
+                    "qkv": _pair(*qkv_pair),
+                    "o": _pair(_weight(a.attention.o, gates), _weight(c.attention.o, None)),
+                    "ff_in": _pair(_weight(a.ff_in, gates), _weight(c.ff_in, None)),
+                    "ff_out": _pair(_weight(a.ff_out, gates), _weight(c.ff_out, None)),
                 }
             )
         for key_name in actor.exteroception:
-            layers_a: list[Any] = [m for m in cast(Any, actor.exteroception[key_name]) if isinstance(m, nn.Linear)]
-            layers_c: list[Any] = [m for m in cast(Any, critic.exteroception[key_name]) if isinstance(m, nn.Linear)]
+            layers_a = _projections(actor.exteroception[key_name])
+            layers_c = _projections(critic.exteroception[key_name])
+            if not _dense_only(actor.exteroception[key_name]):
+                w["extero"][key_name] = None  # a diverted encoder: each tower runs its own (see ``latents``)
+                continue
             first = (th.cat([layers_a[0].weight, layers_c[0].weight]).detach(), th.cat([layers_a[0].bias, layers_c[0].bias]).detach())
-            rest = [
-                (_stack(la.weight, lc.weight).transpose(1, 2), _stack(la.bias, lc.bias)[:, None])
-                for la, lc in zip(layers_a[1:], layers_c[1:])
-            ]
+            rest = [_pair(_weight(la, None), _weight(lc, None)) for la, lc in zip(layers_a[1:], layers_c[1:])]
             w["extero"][key_name] = (first, rest)
-        for la, lc in zip(cast(Any, self.decoders[0].layers), cast(Any, self.decoders[1].layers)):
-            w["decoder"].append((_stack(la.weight, lc.weight).transpose(1, 2), _stack(la.bias, lc.bias)[:, None]))
-        self._key, self._weights = key, w
+        for la, lc in zip(self.decoders[0].layers, self.decoders[1].layers):
+            w["decoder"].append(_pair(_weight(la, gates), _weight(lc, None)))
+        self._key, self._gates, self._weights = key, gates, w
         return w
 
     # -- the pass ---------------------------------------------------------------------------------------
-    def latents(self, observations: Mapping[str, th.Tensor]) -> tuple[th.Tensor, th.Tensor]:
+    def latents(self, observations: Mapping[str, th.Tensor], tailor_gates: th.Tensor | None = None) -> tuple[th.Tensor, th.Tensor]:
         """``(actor latent, critic latent)``, each (B, L, decoder width): what the separate towers and
-        decoders give for ``observations`` (preprocessed), up to float rounding."""
-        w = self._stacked()
+        decoders give for ``observations`` (preprocessed) and the actor's ``tailor_gates``, up to float rounding."""
+        w = self._stacked(tailor_gates)
         actor = self.towers[0]
         padding = token_padding(observations)
         tokens = observations[PROPRIOCEPTIVE]
@@ -156,25 +214,31 @@ class FusedTowers:
             layer = cast(TransformerEncoderLayer, layer)
             heads, head_dim = layer.attention.n_heads, layer.attention.head_dim
             h = F.layer_norm(x, (d,), eps=layer.norm1.eps) * lw["norm1"][0] + lw["norm1"][1]
-            qkv = th.baddbmm(lw["qkv"][1], h, lw["qkv"][0]).view(2 * batch, length, 3, heads, head_dim)
+            qkv = _project(h, *lw["qkv"]).view(2 * batch, length, 3, heads, head_dim)
             q, k, v = qkv.permute(2, 0, 3, 1, 4).unbind(0)
             attended = F.scaled_dot_product_attention(q, k, v, attn_mask=mask).transpose(1, 2).reshape(2, batch * length, d)
-            x = x + th.baddbmm(lw["o"][1], attended, lw["o"][0])
+            x = x + _project(attended, *lw["o"])
             h = F.layer_norm(x, (d,), eps=layer.norm2.eps) * lw["norm2"][0] + lw["norm2"][1]
-            x = x + th.baddbmm(lw["ff_out"][1], layer.activation(th.baddbmm(lw["ff_in"][1], h, lw["ff_in"][0])), lw["ff_out"][0])
+            x = x + _project(layer.activation(_project(h, *lw["ff_in"])), *lw["ff_out"])
         features = x.view(2, batch, length, d)
         if len(actor.exteroception):
             encodings = []
-            for key_name, ((first_w, first_b), rest) in w["extero"].items():
-                e = F.relu(F.linear(observations[key_name].flatten(1), first_w, first_b))  # (B, 2 * width)
-                e = e.view(batch, 2, -1).transpose(0, 1)
-                for weight, bias in rest:
-                    e = F.relu(th.baddbmm(bias, e, weight))
+            for key_name, stacked in w["extero"].items():
+                flat = observations[key_name].flatten(1)
+                if stacked is None:
+                    critic = self.towers[1]
+                    e = th.stack([actor.exteroception[key_name](flat, tailor_gates), critic.exteroception[key_name](flat)])
+                else:
+                    (first_w, first_b), rest = stacked
+                    e = F.relu(F.linear(flat, first_w, first_b))  # (B, 2 * width)
+                    e = e.view(batch, 2, -1).transpose(0, 1)
+                    for weight, bias in rest:
+                        e = F.relu(th.baddbmm(bias, e, weight))
                 encodings.append(e)
             extero = th.cat(encodings, dim=-1)  # (2, B, E)
             features = th.cat([features, extero[:, :, None, :].expand(-1, -1, length, -1)], dim=-1)
         latent = features.reshape(2, batch * length, -1)
         for (weight, bias), activation in zip(w["decoder"], self.decoders[0].activations):
-            latent = activation(th.baddbmm(bias, latent, weight))
+            latent = activation(_project(latent, weight, bias))
         latent = latent.view(2, batch, length, -1)
         return latent[0], latent[1]

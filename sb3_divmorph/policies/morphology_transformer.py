@@ -185,8 +185,9 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
     """
 
     preset_table: dict[str, dict[str, Any]] = PRESETS
-    #: run a rollout step's actor and critic as one stacked pass where the towers allow it (two dense towers of
-    #: the same sizes: MetaMorph); ``False`` runs them one after the other (the same latents up to float rounding)
+    #: run a rollout step's actor and critic as one stacked pass where the towers allow it (towers of the same
+    #: sizes with a dense critic: MetaMorph, DivMorph); ``False`` runs them one after the other (the same latents
+    #: up to float rounding)
     fuse_rollout_towers: bool = True
     #: whether ``mixed_precision=True`` is implemented for this policy's feature extractors
     supports_mixed_precision: bool = True
@@ -368,9 +369,9 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
         # re-route the actor. With share_features_extractor=True the value loss reaches the router
         # (and every shared weight) through the shared features, as any shared SB3 extractor does.
         critic_gates = None if gates is None else gates.detach()
-        fused = self._fused_towers() if actor and critic and gates is None else None
+        fused = self._fused_towers() if actor and critic else None
         if fused is not None:
-            return (*fused.latents(obs), gates)
+            return (*fused.latents(obs, gates), gates)
         packing = self._packing(obs)
         if packing is not None:
             return (*self._packed_latents(obs, gates, critic_gates, packing, actor, critic), gates)
