@@ -284,10 +284,12 @@ TOWER_CASES = {
 @pytest.mark.parametrize("case", list(TOWER_CASES))
 def test_a_rollout_step_runs_both_towers_as_one_pass_with_the_same_results(monkeypatch, case):
     """A rollout step computes actor and critic in one stacked pass (FusedTowers), a DivMorph actor's gated layers
-    as per-sample weights: the same actions, values and log-probabilities as the towers run one after the other;
-    after an update changes the weights, and when the batch's robots change (new gates), it follows them (broken
-    three times: the towers' weights swapped in the stack -> values differ; the stack cached regardless of the
-    weights' versions -> the second comparison fails; regardless of the gates -> the new robots' step fails)."""
+    as per-sample weights, what the robots fix (padding, mask, the context's embedding) once per robot: the same
+    actions, values and log-probabilities as the towers run one after the other; after an update changes the
+    weights, and when the batch's robots change (new gates, new context), it follows them (broken five times: the
+    towers' weights swapped in the stack -> values differ; the stack cached regardless of the weights' versions,
+    or of the gates -> the later steps fail; the robots' constants kept regardless of the weights, or of the
+    context -> the later steps fail)."""
     from sb3_divmorph.nn.fused import FusedTowers
 
     variant, overrides = TOWER_CASES[case]
@@ -308,9 +310,12 @@ def test_a_rollout_step_runs_both_towers_as_one_pass_with_the_same_results(monke
         with th.no_grad():
             return policy(obs)
 
-    # the same robots before and after an update, then new robots (new gates) with the same weights
-    for robots, update_after in ((0, True), (0, False), (1, False)):
-        obs = batch(policy, seed=robots)
+    # the same robots before and after an update, then new robots (new gates) with the same weights, then robots
+    # that differ from those only in their context (the same padding)
+    for robots, update_after in ((0, True), (0, False), (1, False), ("context moved", False)):
+        obs = batch(policy, seed=1) if robots == "context moved" else batch(policy, seed=robots)
+        if robots == "context moved":
+            obs["context"] = obs["context"] + 0.3
         for fused, separate in zip(step(obs, True), step(obs, False)):
             th.testing.assert_close(fused, separate, rtol=1e-5, atol=1e-5)
         if update_after:
@@ -318,7 +323,7 @@ def test_a_rollout_step_runs_both_towers_as_one_pass_with_the_same_results(monke
                 for name, p in policy.named_parameters():
                     if not name.startswith("router."):
                         p.add_(0.05 * th.randn_like(p))
-    assert len(calls) == 3
+    assert len(calls) == 4
 
 
 def test_a_diverged_policy_is_named_by_its_update_and_a_rollout_step_skips_the_checks():

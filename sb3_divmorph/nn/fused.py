@@ -27,7 +27,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from sb3_divmorph.nn.decoders import TokenMLP
-from sb3_divmorph.nn.extractors import CONTEXT, PROPRIOCEPTIVE, MorphologyTransformerExtractor, token_padding
+from sb3_divmorph.nn.extractors import CONTEXT, OBS_PADDING_MASK, PROPRIOCEPTIVE, MorphologyTransformerExtractor, token_padding
 from sb3_divmorph.nn.layers import DenseLinear, FactorizedLinear
 from sb3_divmorph.nn.transformer import TransformerEncoderLayer, attention_mask
 
@@ -55,6 +55,12 @@ def _signature(module: nn.Module) -> list[tuple]:
         elif not isinstance(m, (nn.ReLU, nn.GELU, nn.Identity, nn.Dropout, nn.Tanh)) and any(True for _ in m.parameters(recurse=False)):
             signature.append(("other", type(m).__name__))  # a part the stacked pass does not know: no fusing
     return signature
+
+
+def _same(a: th.Tensor | None, b: th.Tensor | None) -> bool:
+    if a is None or b is None:
+        return a is b
+    return a.shape == b.shape and a.device == b.device and th.equal(a, b)
 
 
 def _stack(*tensors: th.Tensor) -> th.Tensor:
@@ -125,6 +131,7 @@ class FusedTowers:
         self._key: tuple | None = None
         self._gates: th.Tensor | None = None
         self._weights: dict[str, Any] = {}
+        self._robots: dict[str, Any] | None = None
 
     @classmethod
     def of(cls, policy: Any) -> FusedTowers | None:
@@ -157,9 +164,13 @@ class FusedTowers:
         if key == self._key and same_gates:
             return self._weights
         actor, critic = self.towers
+        # the shared input meets both towers' embeddings in one matmul: their weights side by side, the proprioceptive
+        # columns (read every step, the embedding's scale folded in) apart from the context's (read once per robot)
+        embed_w = th.cat([actor.embedding.linear.weight, critic.embedding.linear.weight]).detach()
+        n_proprio = self._n_proprio
         w: dict[str, Any] = {
-            # the shared input meets both towers' embeddings in one matmul: their weights side by side
-            "embed_w": th.cat([actor.embedding.linear.weight, critic.embedding.linear.weight]).detach(),
+            "embed_proprio": embed_w[:, :n_proprio] * actor.embedding.scale,
+            "embed_context": embed_w[:, n_proprio:],
             "embed_b": th.cat([actor.embedding.linear.bias, critic.embedding.linear.bias]).detach(),
             "position": _stack(actor.embedding.position, critic.embedding.position).transpose(0, 1),  # (L, 2, d)
             "layers": [],
@@ -194,22 +205,52 @@ class FusedTowers:
         self._key, self._gates, self._weights = key, gates, w
         return w
 
+    @property
+    def _n_proprio(self) -> int:
+        """Features of a token's proprioceptive part: the embedding's first input columns (the context's follow)."""
+        return int(cast(Any, self.towers[0])._observation_space[PROPRIOCEPTIVE].shape[-1])
+
+    def _robot_constants(self, observations: Mapping[str, th.Tensor], w: dict[str, Any]) -> dict[str, Any]:
+        """What the step's robots fix, kept while they (padding mask and context) and the weights stay the same:
+        the padded slots, the attention mask of the 2B sequences, and the embedding's constant part (the context's
+        columns, the bias, the scale and the position embedding)."""
+        padding_in = observations[OBS_PADDING_MASK]
+        context = observations[CONTEXT] if self.towers[0].use_context else None
+        cached = self._robots
+        if cached is not None and cached["weights"] is w and _same(padding_in, cached["padding_in"]) and _same(context, cached["context"]):
+            return cached
+        padding = token_padding(observations)
+        batch, length = padding.shape
+        constant = w["embed_b"].expand(batch, length, -1)
+        if context is not None:
+            zeroed = th.where(padding[..., None], th.zeros((), dtype=context.dtype, device=context.device), context)
+            constant = F.linear(zeroed, w["embed_context"], w["embed_b"])
+        embedding = constant.view(batch, length, 2, -1) * self.towers[0].embedding.scale + w["position"]
+        self._robots = {
+            "weights": w,
+            "padding_in": padding_in.clone(),
+            "context": None if context is None else context.clone(),
+            "padding": padding[..., None],
+            "mask": attention_mask(padding).repeat(2, 1, 1, 1),  # the 2B sequences: actor's then critic's
+            "embedding": embedding,  # (B, L, 2, d)
+        }
+        return self._robots
+
     # -- the pass ---------------------------------------------------------------------------------------
     def latents(self, observations: Mapping[str, th.Tensor], tailor_gates: th.Tensor | None = None) -> tuple[th.Tensor, th.Tensor]:
         """``(actor latent, critic latent)``, each (B, L, decoder width): what the separate towers and
         decoders give for ``observations`` (preprocessed) and the actor's ``tailor_gates``, up to float rounding."""
         w = self._stacked(tailor_gates)
+        robots = self._robot_constants(observations, w)
         actor = self.towers[0]
-        padding = token_padding(observations)
-        tokens = observations[PROPRIOCEPTIVE]
-        if actor.use_context:
-            tokens = th.cat([tokens, observations[CONTEXT]], dim=-1)
-        tokens = th.where(padding[..., None], th.zeros((), dtype=tokens.dtype, device=tokens.device), tokens)
+        tokens = th.where(
+            robots["padding"], th.zeros((), dtype=w["embed_b"].dtype, device=w["embed_b"].device), observations[PROPRIOCEPTIVE]
+        )
         batch, length, _ = tokens.shape
         d = actor.d_model
-        x = F.linear(tokens, w["embed_w"], w["embed_b"]).view(batch, length, 2, d) * actor.embedding.scale + w["position"]
+        x = F.linear(tokens, w["embed_proprio"]).view(batch, length, 2, d) + robots["embedding"]
         x = x.permute(2, 0, 1, 3).reshape(2, batch * length, d)  # (tower, B*L, d)
-        mask = attention_mask(padding).repeat(2, 1, 1, 1)  # the 2B sequences: actor's then critic's
+        mask = robots["mask"]
         for layer, lw in zip(actor.encoder.layers, w["layers"]):
             layer = cast(TransformerEncoderLayer, layer)
             heads, head_dim = layer.attention.n_heads, layer.attention.head_dim
