@@ -326,6 +326,35 @@ def test_a_rollout_step_runs_both_towers_as_one_pass_with_the_same_results(monke
     assert len(calls) == 4
 
 
+@pytest.mark.parametrize("variant", ["metamorph", "divmorph"])
+def test_the_update_keeps_the_towers_apart_and_its_gradients_do_not_depend_on_the_rollout_pass(monkeypatch, variant):
+    """Training passes never take the stacked path (per-tower learning rates and freezing need each tower's own
+    parameters): with the fused rollout pass on or off, the update's loss and every gradient are the same, and
+    the stacked pass is not called under autograd (broken once: ``_fused_towers`` allowed under autograd -> the
+    stacked weights are detached, the towers get no gradient and the call is counted)."""
+    from sb3_divmorph.nn.fused import FusedTowers
+
+    calls = []
+    real = FusedTowers.latents
+    monkeypatch.setattr(FusedTowers, "latents", lambda self, o, g=None: calls.append(1) or real(self, o, g))
+    gradients = []
+    for fuse in (True, False):
+        policy = make_policy(variant)
+        policy.fuse_rollout_towers = fuse
+        obs = batch(policy)
+        policy.set_training_mode(False)
+        with th.no_grad():
+            actions, _, _ = policy(obs)  # a rollout step first, as PPO does
+        policy.set_training_mode(True)
+        values, log_prob, _ = policy.evaluate_actions(obs, actions)
+        (values.square().mean() - log_prob.mean()).backward()
+        gradients.append({name: p.grad.clone() for name, p in policy.named_parameters() if p.grad is not None})
+    assert gradients[0].keys() == gradients[1].keys() and len(gradients[0]) > 10
+    for name, grad in gradients[0].items():
+        th.testing.assert_close(grad, gradients[1][name], msg=name)
+    assert len(calls) == 1  # the one fused rollout step
+
+
 def test_a_diverged_policy_is_named_by_its_update_and_a_rollout_step_skips_the_checks():
     """A rollout step skips the Gaussian's argument checks (a device sync each; the env refuses a non-finite action
     and names it), the update keeps them: a NaN weight fails the update with torch's message (broken once: the
