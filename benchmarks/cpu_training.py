@@ -248,9 +248,11 @@ def flops_per_sample(model: Any, args: argparse.Namespace) -> float:
         if isinstance(batch.observations, dict)
         else batch.observations[: args.n_envs]
     )
-    counter = FlopCounterMode(display=False)
-    with counter, th.no_grad():
-        policy(observations)
+    with th.no_grad():
+        policy(observations)  # a rollout builds its stacked weights once (per rollout and robot batch): count a step after
+        counter = FlopCounterMode(display=False)
+        with counter:
+            policy(observations)
     return update + counter.get_total_flops() / args.n_envs
 
 

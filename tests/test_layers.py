@@ -264,6 +264,16 @@ def test_router_inference_cache_follows_parameters_and_inputs():
     router.train()
     assert th.allclose(changed.morphology, router(context, padding, tasks).morphology, atol=1e-6)
     assert not th.allclose(changed.morphology, first.morphology)
+    # a part replaced by a new module (its parameters new tensors) is seen too (broken once: the parameter list
+    # kept from before -> the old gates come back)
+    router.eval()
+    with th.no_grad():
+        router(context, padding, tasks)
+        router.task_gate = TopKSoftGate(4, 4, 2, name="task gate")
+        replaced = router(context, padding, tasks)
+    router.train()
+    assert th.allclose(replaced.task, router(context, padding, tasks).task, atol=1e-6)
+    assert not th.allclose(replaced.task, changed.task)
 
 
 def test_project_many_equals_separate_projections():

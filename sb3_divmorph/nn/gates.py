@@ -8,7 +8,7 @@ morphology and task tailors, and :class:`DiversionRouter` bundles the three.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch as th
 from torch import nn
@@ -185,6 +185,16 @@ class DiversionRouter(nn.Module):
             task_embedding_dim, n_task_tailors, top_k_task, gate_hidden_dim, name="task gate (top_k_task, over n_task_tailors)"
         )
         self._last: tuple[tuple, tuple[th.Tensor, ...], GateActivations] | None = None
+        self._tensors: list[th.Tensor] | None = None  # the parameters, listed once (walking the modules costs ~40 us a step)
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        super().__setattr__(name, value)
+        if not name.startswith("_"):  # a part replaced: list the parameters again
+            self.__dict__["_tensors"] = None
+
+    def _apply(self, fn, recurse=True):  # .to(), .float(): tensors may be swapped
+        self.__dict__["_tensors"] = None
+        return super()._apply(fn, recurse)
 
     def forward(self, context: th.Tensor, padding_mask: th.Tensor, task_embedding: th.Tensor) -> GateActivations:
         """
@@ -197,7 +207,9 @@ class DiversionRouter(nn.Module):
             return self._route(context, padding_mask, task_embedding)
         # Rollouts feed the same robots and tasks step after step: reuse the last result while the
         # inputs and the parameters are unchanged.
-        key = tuple((p.data_ptr(), p._version) for p in self.parameters())
+        if self._tensors is None:
+            self._tensors = list(self.parameters())
+        key = tuple((p.data_ptr(), p._version) for p in self._tensors)
         inputs = (context, padding_mask, task_embedding)
         if (
             self._last is not None
