@@ -326,6 +326,34 @@ def test_a_rollout_step_runs_both_towers_as_one_pass_with_the_same_results(monke
     assert len(calls) == 4
 
 
+def test_a_large_gated_batch_runs_the_towers_one_after_the_other(monkeypatch):
+    """Per-sample weights of a gated actor grow with the batch (a GPU rollout of thousands of worlds would hold
+    gigabytes): above ``max_per_sample_batch`` samples the towers run one after the other, with the same results;
+    a dense actor's stacked weights do not grow, and MetaMorph keeps the one pass (broken once: the limit ignored
+    -> the stacked pass is called for the large DivMorph batch)."""
+    from sb3_divmorph.nn.fused import FusedTowers
+
+    calls = []
+    real = FusedTowers.latents
+    monkeypatch.setattr(FusedTowers, "latents", lambda self, o, g=None: calls.append(1) or real(self, o, g))
+    monkeypatch.setattr(FusedTowers, "max_per_sample_batch", 8)
+    for variant, expected_calls in (("divmorph", 0), ("metamorph", 1)):
+        calls.clear()
+        policy = make_policy(variant)
+        obs = batch(policy, size=20)
+        policy.set_training_mode(False)
+        th.manual_seed(3)
+        with th.no_grad():
+            first = policy(obs)
+        policy.fuse_rollout_towers = False
+        th.manual_seed(3)
+        with th.no_grad():
+            separate = policy(obs)
+        for a, b in zip(first, separate):
+            th.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
+        assert len(calls) == expected_calls, variant
+
+
 @pytest.mark.parametrize("variant", ["metamorph", "divmorph"])
 def test_the_update_keeps_the_towers_apart_and_its_gradients_do_not_depend_on_the_rollout_pass(monkeypatch, variant):
     """Training passes never take the stacked path (per-tower learning rates and freezing need each tower's own

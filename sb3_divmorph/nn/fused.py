@@ -117,6 +117,10 @@ class FusedTowers:
     :param critic_decoder: the critic's per-token MLP (``mlp_extractor.value_net``; dense).
     """
 
+    #: the most samples whose gated actor runs as per-sample weights (B x the layers' in x out floats; a GPU
+    #: rollout of thousands of worlds would hold gigabytes): larger gated batches run the towers one after the other
+    max_per_sample_batch: int = 256
+
     def __init__(
         self,
         actor: MorphologyTransformerExtractor,
@@ -154,6 +158,10 @@ class FusedTowers:
             and all(("other",) != entry[:1] for entry in _signature(actor) + _signature(decoders[0]))
         )
         return cls(actor, critic, *decoders) if same else None
+
+    def takes(self, tailor_gates: th.Tensor | None) -> bool:
+        """Whether this pass runs a batch with these gates (a gated batch only up to :attr:`max_per_sample_batch`)."""
+        return tailor_gates is None or tailor_gates.shape[0] <= self.max_per_sample_batch
 
     # -- the stacked weights, once per parameter version and gate batch ---------------------------------
     def _stacked(self, gates: th.Tensor | None) -> dict[str, Any]:

@@ -370,7 +370,7 @@ class MorphologyTransformerPolicy(ActorCriticPolicy):
         # (and every shared weight) through the shared features, as any shared SB3 extractor does.
         critic_gates = None if gates is None else gates.detach()
         fused = self._fused_towers() if actor and critic else None
-        if fused is not None:
+        if fused is not None and fused.takes(gates):
             return (*fused.latents(obs, gates), gates)
         packing = self._packing(obs)
         if packing is not None:
