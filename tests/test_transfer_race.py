@@ -101,18 +101,19 @@ def load_reader(monkeypatch):
     return module
 
 
-def made_up_race(keep: Path, task: str, curves: dict[str, object], seeds: int = 3, noise: float = 2.0) -> None:
-    """Kept runs of ``task`` whose 8 training robots follow ``curves[arm](step fraction)`` plus noise; the
-    fine-tuned arms' many-draw starts at their curves' step 0."""
+def made_up_race(keep: Path, task: str, curves: dict[str, object], seeds: int = 3, noise: float = 2.0, folder: str | None = None) -> None:
+    """Kept runs of ``task`` (in its own run folder, or ``folder``: a control's) whose 8 training robots follow
+    ``curves[arm](step fraction)`` plus noise; the fine-tuned arms' many-draw starts at their curves' step 0."""
     import numpy as np
     import pandas as pd
 
     rng = np.random.default_rng(1)
+    folder = folder or task
     steps = [i * 100_352 for i in range(7)]
     starts = {}
     for arm, curve in curves.items():
         for seed in range(seeds):
-            run = keep / task / "transfer" / task / arm / f"seed-{seed}"
+            run = keep / folder / "transfer" / task / arm / f"seed-{seed}"
             run.mkdir(parents=True)
             rows = [
                 dict(
@@ -124,9 +125,9 @@ def made_up_race(keep: Path, task: str, curves: dict[str, object], seeds: int = 
             ]
             pd.DataFrame(rows).to_csv(run / "eval.csv.gz", index=False)
             (run / "done.json").write_text("{}")
-        if arm != "scratch":
+        if arm not in ("scratch", "divmorph-finetuned"):
             starts[arm] = {str(e): {f"r{r}": curve(0.0) + rng.normal(0, noise) for r in range(8)} for e in range(5)}
-    (keep / task / "baseline.json").write_text(json.dumps(starts))
+    (keep / folder / "baseline.json").write_text(json.dumps(starts))
 
 
 def test_the_race_reading_holds_fails_or_has_no_reference_as_the_curves_say(monkeypatch, tmp_path):
@@ -163,3 +164,37 @@ def test_steps_to_a_level_is_the_first_crossing_linear_between_evaluations(monke
     assert reader.steps_to(steps, np.array([0.0, 10.0, 20.0]), 15.0) == 150.0
     assert reader.steps_to(steps, np.array([16.0, 10.0, 20.0]), 15.0) == 0.0
     assert reader.steps_to(steps, np.array([0.0, 10.0, 12.0]), 15.0) == float("inf")
+
+
+def test_the_controls_are_read_first_and_a_failed_one_names_our_setup(monkeypatch, tmp_path):
+    """Made-up controls on Escape: the fine-tuned arms flat at learning rate 0 (hold still), MetaMorph-> from the low
+    start rising (recovers), the freed student above the fixed gates -- no failure, the verdicts stand. Then a start
+    that moves at rate 0, and a low start that stays flat where scratch climbs: each fails, and both verdicts become
+    "not decided: our setup" naming it (broken once: the failures not carried into the verdict -> the second
+    reading still says "not decidable at this scale")."""
+    reader = load_reader(monkeypatch)
+    escape = {
+        "closest": lambda f: 100 + 100 * f,
+        "divmorph": lambda f: 100 + 50 * f,
+        "scratch": lambda f: 200 * f,
+        "distilled": lambda f: 100 + 50 * f,
+        "divmorph-finetuned": lambda f: 100 + 150 * f,
+    }
+    made_up_race(tmp_path, "Escape", escape)
+    made_up_race(tmp_path, "Escape", {arm: (lambda f: 100 + 0 * f) for arm in ("divmorph", "closest", "distilled")}, folder="Escape-lr0")
+    made_up_race(tmp_path, "Escape", {"closest": lambda f: 1 + 80 * f}, folder="Escape-lowstart")
+    rows = {(row["control"], row["arm"]): row for row in reader.read_controls(tmp_path)}
+    assert len(rows) == 5 and not any(row["failed"] for row in rows.values())
+    assert all(row["reading"] == "holds still" for (control, _), row in rows.items() if control == "learning rate 0")
+    assert next(row for (c, _), row in rows.items() if c == "the dense low start")["reading"] == "recovers from its low start"
+    assert "freed gains more" in next(row for (c, _), row in rows.items() if c == "the selection freed")["reading"]
+    text = reader.main(["--keep", str(tmp_path)])
+    assert "our setup" not in text.split("Against direct")[1]
+
+    made_up_race(tmp_path / "moving", "Escape", escape)
+    made_up_race(tmp_path / "moving", "Escape", {"divmorph": lambda f: 100 + 60 * f}, folder="Escape-lr0")
+    made_up_race(tmp_path / "moving", "Escape", {"closest": lambda f: 1 + 0 * f}, folder="Escape-lowstart")
+    failed = [row["control"] for row in reader.read_controls(tmp_path / "moving") if row["failed"]]
+    assert failed == ["learning rate 0", "the dense low start"]
+    text = reader.main(["--keep", str(tmp_path / "moving")])
+    assert "not decided: our setup (failed: learning rate 0, the dense low start)" in text.split("Against scratch")[1]

@@ -14,6 +14,11 @@ infinite when it never does within the budget).
 2. ``Rs = steps_to(scratch, Ls) / steps_to(DivMorph, Ls)``, ``Ls`` scratch's last value in the draw.
 
 A reading holds on a task when its 95% interval lies at or above 3, does not hold when below 3, else is undecided.
+
+The controls (``rule.md``, all on Escape) are read first: every fine-tuned arm at learning rate 0 must hold still
+(its change's interval holds 0); MetaMorph→ from the Incline teacher's low start must rise where scratch rises; the
+student with its selection freed is set beside the fixed gates (last against last, runs resampled per arm, robots
+paired). A failed control makes both verdicts "not decided: our setup", naming it.
 """
 
 from __future__ import annotations
@@ -37,10 +42,11 @@ ARMS = {
 FACTOR = 3.0
 
 
-def arm_runs(keep: Path, task: str, arm: str) -> dict[int, pd.DataFrame]:
-    """``{seed: (timesteps x robots) mean return over episodes}`` of an arm's finished runs, training robots."""
+def arm_runs(keep: Path, task: str, arm: str, folder: str | None = None) -> dict[int, pd.DataFrame]:
+    """``{seed: (timesteps x robots) mean return over episodes}`` of an arm's finished runs, training robots; ``folder``
+    the run folder when it is not the task's own (a control's, e.g. ``Escape-lr0``)."""
     found = {}
-    for done in sorted((keep / task / "transfer" / task / arm).glob("seed-*/done.json")):
+    for done in sorted((keep / (folder or task) / "transfer" / task / arm).glob("seed-*/done.json")):
         for name in ("eval.csv.gz", "eval.csv"):
             if (done.parent / name).is_file():
                 frame = pd.read_csv(done.parent / name)
@@ -108,6 +114,23 @@ def verdict_of(low: float, high: float) -> str:
     return "holds" if low >= FACTOR else ("does not hold" if high < FACTOR else "undecided")
 
 
+def starts_of(keep: Path, folder: str) -> dict[str, dict]:
+    """The fine-tuned arms' many-draw starts kept for a run folder (``baseline.json``), by arm; empty if none yet."""
+    path = keep / folder / "baseline.json"
+    return json.loads(path.read_text()) if path.is_file() else {}
+
+
+def gain(values: np.ndarray, start: dict | None, robots: list[str]) -> tuple[float, float, float, tuple[float, float]]:
+    """``(start, last, last - start, 95% interval)`` of an arm's (seeds, robots, steps) curves: against its many-draw
+    start when it has one (paired by robot), else each run's own step 0 (a random init)."""
+    last = values[:, :, -1]
+    if start is not None:
+        begin = pd.DataFrame(start).mean(axis=1).reindex(robots).to_numpy()[None]
+        return begin.mean(), last.mean(), last.mean() - begin.mean(), paired_run_interval(last, begin)
+    change = last - values[:, :, 0]
+    return values[:, :, 0].mean(), last.mean(), change.mean(), run_interval(change)
+
+
 def read_task(keep: Path, task: str) -> dict[str, object] | None:
     runs = {arm: arm_runs(keep, task, arm) for arm in ARMS}
     runs = {arm: found for arm, found in runs.items() if found}
@@ -118,15 +141,8 @@ def read_task(keep: Path, task: str) -> dict[str, object] | None:
     steps = np.unique(np.concatenate([t.index.to_numpy(float) for found in runs.values() for t in found.values()]))
     steps = steps[steps <= end]
     values = {arm: as_array(found, robots, steps) for arm, found in runs.items()}
-    starts = json.loads((keep / task / "baseline.json").read_text()) if (keep / task / "baseline.json").is_file() else {}
-    gains = {}
-    for arm, v in values.items():
-        if arm in starts:
-            start = pd.DataFrame(starts[arm]).mean(axis=1).reindex(robots).to_numpy()[None]
-            gains[arm] = (start.mean(), v[:, :, -1].mean(), v[:, :, -1].mean() - start.mean(), paired_run_interval(v[:, :, -1], start))
-        else:  # a random init: each run's own step 0
-            change = v[:, :, -1] - v[:, :, 0]
-            gains[arm] = (v[:, :, 0].mean(), v[:, :, -1].mean(), change.mean(), run_interval(change))
+    starts = starts_of(keep, task)
+    gains = {arm: gain(v, starts.get(arm), robots) for arm, v in values.items()}
     point = ratios({arm: v.mean(axis=(0, 1)) for arm, v in values.items()}, steps)
     samples = bootstrap_ratios(values, steps)
     readings = {}
@@ -149,6 +165,70 @@ def overall(readings: list[str]) -> str:
     if sum(r == "holds" for r in decided) >= 2 and "does not hold" not in decided:
         return "holds"
     return "not decidable at this scale"
+
+
+#: The rule's controls, all on Escape: the run folder and arm of each, and what its line reads.
+CONTROL_TASK = "Escape"
+FREED = "divmorph-finetuned"
+
+
+def _curves(keep: Path, arms: dict[str, tuple[str, str]]) -> tuple[dict[str, np.ndarray], list[str]] | None:
+    """``({name: (seeds, robots, steps)}, robots)`` of several (folder, arm) run sets on the robots and steps they all
+    have, or ``None`` when one has no finished run."""
+    runs = {name: arm_runs(keep, CONTROL_TASK, arm, folder) for name, (folder, arm) in arms.items()}
+    if not all(runs.values()):
+        return None
+    tables = [t for found in runs.values() for t in found.values()]
+    robots = sorted(set.intersection(*(set(t.columns) for t in tables)))
+    end = min(t.index.max() for t in tables)
+    steps = np.unique(np.concatenate([t.index.to_numpy(float) for t in tables]))
+    steps = steps[steps <= end]
+    return {name: as_array(found, robots, steps) for name, found in runs.items()}, robots
+
+
+def read_controls(keep: Path) -> list[dict[str, object]]:
+    """The rule's controls, one row per control and arm: ``control``, ``arm``, ``seeds``, ``gain`` (as :func:`gain`),
+    ``reading`` and ``failed`` (a failure of our setup: a start that moves at rate 0, or a low start that does not
+    recover where scratch climbs). Controls with no finished run yet are left out."""
+    rows: list[dict[str, object]] = []
+    race_starts = starts_of(keep, CONTROL_TASK)
+    for arm in ("divmorph", "closest", "distilled"):
+        found = _curves(keep, {arm: (f"{CONTROL_TASK}-lr0", arm)})
+        if found is None:
+            continue
+        (values,), robots = list(found[0].values()), found[1]
+        g = gain(values, starts_of(keep, f"{CONTROL_TASK}-lr0").get(arm), robots)
+        still = g[3][0] <= 0 <= g[3][1]
+        reading = "holds still" if still else "moves at learning rate 0: our setup"
+        rows.append(dict(control="learning rate 0", arm=ARMS[arm], seeds=len(values), gain=g, reading=reading, failed=not still))
+    found = _curves(keep, {"low": (f"{CONTROL_TASK}-lowstart", "closest"), "scratch": (CONTROL_TASK, "scratch")})
+    if found is not None:
+        values, robots = found
+        g = gain(values["low"], starts_of(keep, f"{CONTROL_TASK}-lowstart").get("closest"), robots)
+        scratch = gain(values["scratch"], None, robots)
+        if g[3][0] > 0:
+            reading, failed = "recovers from its low start", False
+        elif scratch[3][0] > 0:
+            reading, failed = (
+                f"does not recover where scratch climbs ({scratch[2]:+.1f} [{scratch[3][0]:+.1f}, {scratch[3][1]:+.1f}]): our setup",
+                True,
+            )
+        else:
+            reading, failed = "neither it nor scratch rises: says nothing", False
+        label = "MetaMorph→ from the Incline teacher (told Incline's instruction)"
+        rows.append(dict(control="the dense low start", arm=label, seeds=len(values["low"]), gain=g, reading=reading, failed=failed))
+    found = _curves(keep, {"freed": (CONTROL_TASK, FREED), "fixed": (CONTROL_TASK, "divmorph")})
+    if found is not None:
+        values, robots = found
+        start = race_starts.get("divmorph")  # the freed arm starts from the same student
+        g = gain(values["freed"], start, robots)
+        low, high = paired_run_interval(values["freed"][:, :, -1], values["fixed"][:, :, -1])
+        difference = values["freed"][:, :, -1].mean() - values["fixed"][:, :, -1].mean()
+        side = "freed gains more" if low > 0 else ("fixed gates gain more" if high < 0 else "within noise of fixed gates")
+        reading = f"last minus fixed gates' last {difference:+.1f} [{low:+.1f}, {high:+.1f}]: {side}"
+        label = "DivMorph with its selection freed (router and every weight)"
+        rows.append(dict(control="the selection freed", arm=label, seeds=len(values["freed"]), gain=g, reading=reading, failed=False))
+    return rows
 
 
 def figure(tasks: list[dict[str, object]], out: Path) -> None:
@@ -199,10 +279,24 @@ def main(argv: list[str] | None = None) -> str:
         for name, (value, low, high, verdict) in found["readings"].items():  # type: ignore[attr-defined]
             lines.append(f"| {found['task']} | {names[name]} | {value:.2f} [{low:.2f}, {high:.2f}] | {verdict} |")
             verdicts[name].append(verdict)
+    controls = read_controls(args.keep)
+    failed = [str(row["control"]) for row in controls if row["failed"]]
+    lines += ["", f"Controls ({CONTROL_TASK}; read first: a failure names our setup):", ""]
+    lines += ["| control | arm | seeds | start | last | change [95% CI] | reading |", "|---|---|---:|---:|---:|---|---|"]
+    for row in controls:
+        start, last, change, (low, high) = row["gain"]  # type: ignore[misc]
+        lines.append(
+            f"| {row['control']} | {row['arm']} | {row['seeds']} | {start:.1f} | {last:.1f} | {change:+.1f} [{low:+.1f}, {high:+.1f}] | {row['reading']} |"
+        )
+    if not controls:
+        lines.append("| (no control finished yet) | | | | | | |")
+    verdict = {name: overall(found) for name, found in verdicts.items()}
+    if failed:
+        verdict = {name: f"not decided: our setup (failed: {', '.join(failed)})" for name in verdict}
     lines += [
         "",
-        f"Against direct fine-tuning (the abstract's 3x): **{overall(verdicts['direct'])}**.",
-        f"Against scratch (Sec. 6.1): **{overall(verdicts['scratch'])}**.",
+        f"Against direct fine-tuning (the abstract's 3x): **{verdict['direct']}**.",
+        f"Against scratch (Sec. 6.1): **{verdict['scratch']}**.",
     ]
     text = "\n".join(lines)
     out.mkdir(parents=True, exist_ok=True)
