@@ -143,7 +143,11 @@ def read_task(keep: Path, task: str) -> dict[str, object] | None:
     values = {arm: as_array(found, robots, steps) for arm, found in runs.items()}
     starts = starts_of(keep, task)
     gains = {arm: gain(v, starts.get(arm), robots) for arm, v in values.items()}
-    point = ratios({arm: v.mean(axis=(0, 1)) for arm, v in values.items()}, steps)
+    means = {arm: v.mean(axis=(0, 1)) for arm, v in values.items()}
+    point = ratios(means, steps)
+    # each arm's steps to the two levels of the readings (mean curves): the table's last columns
+    levels = {name: means[arm][-1] for name, arm in (("direct", "closest"), ("scratch", "scratch")) if arm in means}
+    reach = {arm: {name: steps_to(steps, curve, level) for name, level in levels.items()} for arm, curve in means.items()}
     samples = bootstrap_ratios(values, steps)
     readings = {}
     for name in point:
@@ -153,7 +157,15 @@ def read_task(keep: Path, task: str) -> dict[str, object] | None:
     if "direct" in readings and not closest_rises:
         readings["direct"] = (*readings["direct"][:3], "no reference (MetaMorph→ does not rise)")
     seeds = {arm: len(found) for arm, found in runs.items()}
-    return dict(task=task, steps=steps, values=values, gains=gains, readings=readings, seeds=seeds, robots=len(robots))
+    return dict(task=task, steps=steps, values=values, gains=gains, readings=readings, seeds=seeds, robots=len(robots), reach=reach)
+
+
+def _steps(value: float | None) -> str:
+    if value is None:
+        return "--"
+    if value == 0:
+        return "0 (its start)"
+    return "never" if np.isinf(value) else f"{value / 1e3:,.0f}k"
 
 
 def overall(readings: list[str]) -> str:
@@ -266,11 +278,16 @@ def main(argv: list[str] | None = None) -> str:
     tasks = [found for task in TASKS if (found := read_task(args.keep, task)) is not None]
     if not tasks:
         raise SystemExit(f"no finished DivMorph run under {args.keep}")
-    lines = ["| task | arm | seeds | start | last | gain [95% CI, runs and robots] |", "|---|---|---:|---:|---:|---|"]
+    lines = [
+        "| task | arm | seeds | start | last | gain [95% CI, runs and robots] | steps to MetaMorph→'s last | steps to scratch's last |",
+        "|---|---|---:|---:|---:|---|---:|---:|",
+    ]
     for found in tasks:
-        for arm, (start, last, gain, (low, high)) in found["gains"].items():  # type: ignore[attr-defined]
+        for arm, (start, last, change, (low, high)) in found["gains"].items():  # type: ignore[attr-defined]
+            reach = found["reach"][arm]  # type: ignore[index]
             lines.append(
-                f"| {found['task']} | {ARMS[arm]} | {found['seeds'][arm]} | {start:.1f} | {last:.1f} | {gain:+.1f} [{low:+.1f}, {high:+.1f}] |"
+                f"| {found['task']} | {ARMS[arm]} | {found['seeds'][arm]} | {start:.1f} | {last:.1f} | {change:+.1f} [{low:+.1f}, {high:+.1f}] "
+                f"| {_steps(reach.get('direct'))} | {_steps(reach.get('scratch'))} |"
             )  # type: ignore[index]
     lines += ["", "| task | reading | ratio of steps [95% CI] | verdict (line: 3x) |", "|---|---|---|---|"]
     names = {"direct": "1: MetaMorph→'s final return", "scratch": "2: scratch's final return"}
