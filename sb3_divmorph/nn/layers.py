@@ -9,7 +9,8 @@ units ``(u_i, s_i, v_i)`` are split, in singular-value order (largest first), in
 * ``[r - N_t, r)``: task tailors, scaled by the task gate,
 
 following DivMorph (the paper indexes the units the same way). Gates are per sample, so one batch
-may mix morphologies and tasks; no per-sample weight matrix is ever built.
+may mix morphologies and tasks; the layer never builds a per-sample weight matrix (a rollout step
+builds them once per robot batch in :mod:`sb3_divmorph.nn.fused`, where they pay).
 
 Both layer kinds share the call signature ``layer(x, tailor_gates=None)`` so that networks can be
 written once and built dense (MetaMorph) or factorized (DivMorph).
