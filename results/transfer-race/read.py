@@ -151,7 +151,7 @@ def read_task(keep: Path, task: str) -> dict[str, object] | None:
     samples = bootstrap_ratios(values, steps)
     readings = {}
     for name in point:
-        low, high = interval(np.nan_to_num(samples[name], nan=1.0))  # neither arm needing a step: as fast, ratio 1
+        low, high = interval(np.nan_to_num(samples[name], nan=1.0, posinf=np.inf, neginf=-np.inf))  # neither arm needing a step: as fast, ratio 1
         readings[name] = (point[name], low, high, verdict_of(low, high))
     closest_rises = "closest" in gains and gains["closest"][3][0] > 0
     if "direct" in readings and not closest_rises:
