@@ -65,6 +65,17 @@ def as_array(runs: dict[int, pd.DataFrame], robots: list[str], steps: np.ndarray
     return np.array(out)
 
 
+def on_common_grid(runs: dict[str, dict[int, pd.DataFrame]]) -> tuple[dict[str, np.ndarray], list[str], np.ndarray]:
+    """``({name: (seeds, robots, steps)}, robots, steps)``: several arms' runs on the robots they all have, at every
+    evaluation step up to the shortest run's last."""
+    tables = [t for found in runs.values() for t in found.values()]
+    robots = sorted(set.intersection(*(set(t.columns) for t in tables)))
+    end = min(t.index.max() for t in tables)
+    steps = np.unique(np.concatenate([t.index.to_numpy(float) for t in tables]))
+    steps = steps[steps <= end]
+    return {name: as_array(found, robots, steps) for name, found in runs.items()}, robots, steps
+
+
 def steps_to(steps: np.ndarray, curve: np.ndarray, level: float) -> float:
     """First step the curve (linear between evaluations) reaches ``level``; 0 at the start, inf if never."""
     if curve[0] >= level:
@@ -136,11 +147,7 @@ def read_task(keep: Path, task: str) -> dict[str, object] | None:
     runs = {arm: found for arm, found in runs.items() if found}
     if "divmorph" not in runs:
         return None
-    robots = sorted(set.intersection(*(set(t.columns) for found in runs.values() for t in found.values())))
-    end = min(t.index.max() for found in runs.values() for t in found.values())
-    steps = np.unique(np.concatenate([t.index.to_numpy(float) for found in runs.values() for t in found.values()]))
-    steps = steps[steps <= end]
-    values = {arm: as_array(found, robots, steps) for arm, found in runs.items()}
+    values, robots, steps = on_common_grid(runs)
     starts = starts_of(keep, task)
     gains = {arm: gain(v, starts.get(arm), robots) for arm, v in values.items()}
     means = {arm: v.mean(axis=(0, 1)) for arm, v in values.items()}
@@ -151,7 +158,9 @@ def read_task(keep: Path, task: str) -> dict[str, object] | None:
     samples = bootstrap_ratios(values, steps)
     readings = {}
     for name in point:
-        low, high = interval(np.nan_to_num(samples[name], nan=1.0, posinf=np.inf, neginf=-np.inf))  # neither arm needing a step: as fast, ratio 1
+        low, high = interval(
+            np.nan_to_num(samples[name], nan=1.0, posinf=np.inf, neginf=-np.inf)
+        )  # neither arm needing a step: as fast, ratio 1
         readings[name] = (point[name], low, high, verdict_of(low, high))
     closest_rises = "closest" in gains and gains["closest"][3][0] > 0
     if "direct" in readings and not closest_rises:
@@ -190,12 +199,8 @@ def _curves(keep: Path, arms: dict[str, tuple[str, str]]) -> tuple[dict[str, np.
     runs = {name: arm_runs(keep, CONTROL_TASK, arm, folder) for name, (folder, arm) in arms.items()}
     if not all(runs.values()):
         return None
-    tables = [t for found in runs.values() for t in found.values()]
-    robots = sorted(set.intersection(*(set(t.columns) for t in tables)))
-    end = min(t.index.max() for t in tables)
-    steps = np.unique(np.concatenate([t.index.to_numpy(float) for t in tables]))
-    steps = steps[steps <= end]
-    return {name: as_array(found, robots, steps) for name, found in runs.items()}, robots
+    values, robots, _ = on_common_grid(runs)
+    return values, robots
 
 
 def read_controls(keep: Path) -> list[dict[str, object]]:
