@@ -101,9 +101,12 @@ def load_reader(monkeypatch):
     return module
 
 
-def made_up_race(keep: Path, task: str, curves: dict[str, object], seeds: int = 3, noise: float = 2.0, folder: str | None = None) -> None:
+def made_up_race(
+    keep: Path, task: str, curves: dict[str, object], seeds: int = 3, noise: float = 2.0, folder: str | None = None, held_out: float = 0.0
+) -> None:
     """Kept runs of ``task`` (in its own run folder, or ``folder``: a control's) whose 8 training robots follow
-    ``curves[arm](step fraction)`` plus noise; the fine-tuned arms' many-draw starts at their curves' step 0."""
+    ``curves[arm](step fraction)`` plus noise, the held-out robots the same shifted by ``held_out``; the fine-tuned
+    arms' many-draw starts at their curves' step 0."""
     import numpy as np
     import pandas as pd
 
@@ -117,7 +120,12 @@ def made_up_race(keep: Path, task: str, curves: dict[str, object], seeds: int = 
             run.mkdir(parents=True)
             rows = [
                 dict(
-                    timesteps=s, split=split, robot=f"r{r}", episode=0, **{"return": curve(s / steps[-1]) + rng.normal(0, noise)}, length=1
+                    timesteps=s,
+                    split=split,
+                    robot=f"r{r}",
+                    episode=0,
+                    **{"return": curve(s / steps[-1]) + rng.normal(0, noise) + (held_out if split == "novel" else 0.0)},
+                    length=1,
                 )
                 for s in steps
                 for split in ("train", "novel")
@@ -154,6 +162,22 @@ def test_the_race_reading_holds_fails_or_has_no_reference_as_the_curves_say(monk
     text = reader.main(["--keep", str(tmp_path)])
     assert "not decidable at this scale" in text.split("Against direct fine-tuning")[1].splitlines()[0]
     assert (tmp_path / "curves.png").stat().st_size > 0
+
+
+def test_held_out_robots_are_reported_beside_and_decide_nothing(monkeypatch, tmp_path):
+    """The same made-up race with its held-out robots 1000 higher: the same ratios and verdicts, and a held-out table
+    whose starts carry the shift. Broken once: the reading's curves taken from the held-out split -> MetaMorph->'s
+    level moves with it and the table's starts do not differ, fails."""
+    reader = load_reader(monkeypatch)
+    curves = {"closest": lambda f: 100 + 100 * f, "divmorph": lambda f: 100 + 700 * min(f, 1 / 6), "scratch": lambda f: 200 * f}
+    made_up_race(tmp_path / "plain", "Escape", curves)
+    made_up_race(tmp_path / "shifted", "Escape", curves, held_out=1000.0)
+    plain, shifted = (reader.read_task(tmp_path / name, "Escape") for name in ("plain", "shifted"))
+    assert plain["readings"] == shifted["readings"]
+    text = reader.main(["--keep", str(tmp_path / "shifted")])
+    held_out = text.split("Held-out robots")[1].split("Controls")[0]
+    row = next(line for line in held_out.splitlines() if "MetaMorph→" in line)
+    assert 1050 < float(row.split("|")[4]) < 1150  # MetaMorph->'s own step 0 on the held-out robots: 100 + 1000
 
 
 def test_steps_to_a_level_is_the_first_crossing_linear_between_evaluations(monkeypatch):

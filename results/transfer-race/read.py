@@ -42,15 +42,18 @@ ARMS = {
 FACTOR = 3.0
 
 
-def arm_runs(keep: Path, task: str, arm: str, folder: str | None = None) -> dict[int, pd.DataFrame]:
-    """``{seed: (timesteps x robots) mean return over episodes}`` of an arm's finished runs, training robots; ``folder``
-    the run folder when it is not the task's own (a control's, e.g. ``Escape-lr0``)."""
+def arm_runs(keep: Path, task: str, arm: str, folder: str | None = None, split: str = "train") -> dict[int, pd.DataFrame]:
+    """``{seed: (timesteps x robots) mean return over episodes}`` of an arm's finished runs on one robot split
+    (``train`` decides, ``novel`` is reported beside); ``folder`` the run folder when it is not the task's own (a
+    control's, e.g. ``Escape-lr0``)."""
     found = {}
     for done in sorted((keep / (folder or task) / "transfer" / task / arm).glob("seed-*/done.json")):
         for name in ("eval.csv.gz", "eval.csv"):
             if (done.parent / name).is_file():
                 frame = pd.read_csv(done.parent / name)
-                frame = frame[frame.split == "train"]
+                frame = frame[frame.split == split]
+                if frame.empty:
+                    break
                 found[int(done.parent.name.removeprefix("seed-"))] = frame.groupby(["timesteps", "robot"])["return"].mean().unstack("robot")
                 break
     return found
@@ -169,6 +172,18 @@ def read_task(keep: Path, task: str) -> dict[str, object] | None:
     return dict(task=task, steps=steps, values=values, gains=gains, readings=readings, seeds=seeds, robots=len(robots), reach=reach)
 
 
+def read_held_out(keep: Path, task: str) -> dict[str, object] | None:
+    """The held-out robots' curves and each arm's gain over its own runs' step 0 (the many-draw starts are measured
+    on the training robots only): reported beside the reading, deciding nothing."""
+    runs = {arm: arm_runs(keep, task, arm, split="novel") for arm in ARMS}
+    runs = {arm: found for arm, found in runs.items() if found}
+    if "divmorph" not in runs:
+        return None
+    values, robots, steps = on_common_grid(runs)
+    gains = {arm: gain(v, None, robots) for arm, v in values.items()}
+    return dict(task=task, steps=steps, values=values, gains=gains, seeds={arm: len(f) for arm, f in runs.items()}, robots=len(robots))
+
+
 def _steps(value: float | None) -> str:
     if value is None:
         return "--"
@@ -248,7 +263,8 @@ def read_controls(keep: Path) -> list[dict[str, object]]:
     return rows
 
 
-def figure(tasks: list[dict[str, object]], out: Path) -> None:
+def figure(tasks: list[dict[str, object]], held_out: list[dict[str, object]], out: Path) -> None:
+    """Mean curves with 95% bands (runs and robots resampled): training robots above, held-out robots below."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -256,21 +272,28 @@ def figure(tasks: list[dict[str, object]], out: Path) -> None:
 
     from divmorph.pipeline.metrics import bootstrap_curves
 
-    fig, axes = plt.subplots(1, len(tasks), figsize=(5 * len(tasks), 3.8), squeeze=False)
-    for ax, found in zip(axes[0], tasks):
-        steps = found["steps"] / 1e6  # type: ignore[operator]
-        for (arm, label), colour in zip(ARMS.items(), ("tab:green", "tab:blue", "tab:purple", "tab:orange")):
-            if arm not in found["values"]:  # type: ignore[operator]
+    rows = [("training robots", tasks)] + ([("held-out robots", held_out)] if held_out else [])
+    fig, axes = plt.subplots(len(rows), len(tasks), figsize=(5 * len(tasks), 3.4 * len(rows) + 0.6), squeeze=False)
+    colours = dict(zip(ARMS, ("tab:green", "tab:blue", "tab:purple", "tab:orange")))
+    seeds = {arm: max(found["seeds"].get(arm, 0) for found in tasks) for arm in ARMS}  # type: ignore[attr-defined]
+    for row, (split, readings) in zip(axes, rows):
+        by_task = {found["task"]: found for found in readings}
+        for ax, task in zip(row, (found["task"] for found in tasks)):
+            ax.set_title(f"{task}: {split}")
+            ax.set_xlabel("env steps (millions)")
+            ax.set_ylabel("mean return (deterministic)")
+            found = by_task.get(task)
+            if found is None:
                 continue
-            v = found["values"][arm]  # type: ignore[index]
-            low, high = np.percentile(bootstrap_curves(v), [2.5, 97.5], axis=0)
-            ax.plot(steps, v.mean(axis=(0, 1)), color=colour, label=f"{label} ({len(v)} seeds)")
-            ax.fill_between(steps, low, high, color=colour, alpha=0.2)
-        ax.set_title(f"{found['task']}: training robots")
-        ax.set_xlabel("env steps (millions)")
-        ax.set_ylabel("mean return (deterministic)")
-        ax.legend(fontsize=7)
-    fig.tight_layout()
+            steps = found["steps"] / 1e6  # type: ignore[operator]
+            for arm, v in found["values"].items():  # type: ignore[attr-defined]
+                low, high = np.percentile(bootstrap_curves(v), [2.5, 97.5], axis=0)
+                ax.plot(steps, v.mean(axis=(0, 1)), color=colours[arm])
+                ax.fill_between(steps, low, high, color=colours[arm], alpha=0.2)
+    handles = [plt.Line2D([], [], color=colours[arm]) for arm in ARMS if seeds[arm]]
+    labels = [f"{ARMS[arm]} ({seeds[arm]} seed{'s' if seeds[arm] > 1 else ''})" for arm in ARMS if seeds[arm]]
+    fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=8, frameon=False)
+    fig.tight_layout(rect=(0, 0.06, 1, 1))
     fig.savefig(out, dpi=110)
 
 
@@ -301,6 +324,14 @@ def main(argv: list[str] | None = None) -> str:
         for name, (value, low, high, verdict) in found["readings"].items():  # type: ignore[attr-defined]
             lines.append(f"| {found['task']} | {names[name]} | {value:.2f} [{low:.2f}, {high:.2f}] | {verdict} |")
             verdicts[name].append(verdict)
+    held_out = [found for task in TASKS if (found := read_held_out(args.keep, task)) is not None]
+    lines += ["", "Held-out robots (reported beside, deciding nothing; start: each run's own step 0):", ""]
+    lines += ["| task | arm | seeds | start | last | gain [95% CI, runs and robots] |", "|---|---|---:|---:|---:|---|"]
+    for found in held_out:
+        for arm, (start, last, change, (low, high)) in found["gains"].items():  # type: ignore[attr-defined]
+            lines.append(
+                f"| {found['task']} | {ARMS[arm]} | {found['seeds'][arm]} | {start:.1f} | {last:.1f} | {change:+.1f} [{low:+.1f}, {high:+.1f}] |"
+            )  # type: ignore[index]
     controls = read_controls(args.keep)
     failed = [str(row["control"]) for row in controls if row["failed"]]
     lines += ["", f"Controls ({CONTROL_TASK}; read first: a failure names our setup):", ""]
@@ -323,7 +354,7 @@ def main(argv: list[str] | None = None) -> str:
     text = "\n".join(lines)
     out.mkdir(parents=True, exist_ok=True)
     (out / "reading.md").write_text(text + "\n")
-    figure(tasks, out / "curves.png")
+    figure(tasks, held_out, out / "curves.png")
     print(text)
     return text
 
