@@ -64,6 +64,8 @@ def test_a_worker_runs_every_job_once_in_the_rules_order(race, tmp_path):
     assert order == expected and len(set(order)) == len(order)
     assert order[: len(module.TASKS) * len(module.ARMS)] == [f"{t}-{a}-seed-0" for t in module.TASKS for a in module.ARMS]
     assert "Escape-lowstart-closest-seed-0" in order and "Escape-lr0-divmorph-seed-0" in order
+    low_start = [order.index(f"Escape-lowstart-closest-seed-{seed}") for seed in module.SEEDS]
+    assert max(low_start) < order.index("Escape-divmorph-start")  # the control that alone turns the verdict, early
     kept = {path.relative_to(keep).parts[0] for path in keep.glob("*/transfer/*/*/seed-*/done.json")}
     assert kept == {*module.TASKS, "Escape-lowstart", "Escape-lr0"}  # the freed student races in Escape's own folder
     module.work(module.SETTINGS["S2"], runs, keep, poll=0.01)  # everything done or held: nothing runs again
