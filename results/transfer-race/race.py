@@ -5,9 +5,9 @@
 
 The setting's terms (steps per run, robots per run, rollout) are the setting ladder's (``SETTINGS``, as in
 ``../transfer-setting/rule.md``). Each task has its run folder ``RUNS/<task>`` branched from ``RUNS/source`` (PointNav
-with its goal bounded at 10 m). The jobs are a list in order (seed 0 of every arm and task first, then each fine-tuned
-arm's many-draw start, then seeds 1 and 2); a worker claims the first job nobody holds (``RUNS/claims/<job>``, made
-atomically) whose prerequisite is done -- a start waits for its first run to have begun -- and runs it in a process of
+with its goal bounded at 10 m). The jobs are a list in order (``jobs()``: seed 0 of every arm and task first, the
+controls, each fine-tuned arm's many-draw start, then seeds 1 and 2); a worker claims the first job nobody holds
+(``RUNS/claims/<job>``, made atomically) whose prerequisite is done -- a start waits for its first run to have begun -- and runs it in a process of
 its own. A finished run is packed into ``--keep`` (``tools/pack_transfer_runs.py``: evaluations and the table of its
 updates, no model), and a start's ``baseline.json`` copied there, so a restart of the machine loses at most the runs
 in flight, which resume from their checkpoints if their folders survive. Ctrl-C or SIGTERM stops the worker and its
@@ -86,13 +86,17 @@ class Job:
 
 
 def jobs() -> list[Job]:
-    """Seed 0 of the race, the controls' first seeds and every start, then the race's other seeds, then the controls'."""
+    """Seed 0 of the race; every seed of the dense low start (its failure alone turns both verdicts, so it is known
+    early); the other controls' first seeds; every start; the race's other seeds; the other controls' other seeds."""
     first = [Job(task, arm, SEEDS[0]) for task in TASKS for arm in ARMS]
-    controls_first = [Job("Escape", arm, seeds[0], name) for name, (_, arms, seeds) in CONTROLS.items() for arm in arms]
+    _, arms, seeds = CONTROLS["lowstart"]
+    low_start = [Job("Escape", arm, seed, "lowstart") for seed in seeds for arm in arms]
+    others = {name: control for name, control in CONTROLS.items() if name != "lowstart"}
+    controls_first = [Job("Escape", arm, seeds[0], name) for name, (_, arms, seeds) in others.items() for arm in arms]
     starts = [Job(task, arm, None) for task in TASKS for arm in FINE_TUNED] + [Job("Escape", "closest", None, "lowstart")]
     rest = [Job(task, arm, seed) for seed in SEEDS[1:] for task in TASKS for arm in ARMS]
-    controls_rest = [Job("Escape", arm, seed, name) for name, (_, arms, seeds) in CONTROLS.items() for seed in seeds[1:] for arm in arms]
-    return first + controls_first + starts + rest + controls_rest
+    controls_rest = [Job("Escape", arm, seed, name) for name, (_, arms, seeds) in others.items() for seed in seeds[1:] for arm in arms]
+    return first + low_start + controls_first + starts + rest + controls_rest
 
 
 def command(job: Job, setting: Setting, runs: Path) -> list[str]:
