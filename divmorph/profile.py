@@ -230,6 +230,10 @@ class TransferConfig(SimulationSettings):
     #: task's values to learn, as scratch's does at the teachers' rate; e.g. 10 with lin_1e-4 gives
     #: the critic lin_1e-3 (choose it on a training task, never on the novel ones)
     critic_lr_scale: float = 1.0
+    #: keep the observation statistics a fine-tuned arm inherits exactly as they were (its weights were trained
+    #: on inputs normalised by them); ``false`` lets them go on learning the novel task's states, as a model
+    #: trained from scratch does (a diagnostic: the inputs then drift under the inherited weights)
+    freeze_statistics: bool = True
     #: env steps between checkpoints of each run
     checkpoint_every: int = 50_000
     #: the arms to race (see :data:`divmorph.pipeline.arms.ARMS`); default: ``divmorph`` and ``scratch``

@@ -1249,6 +1249,27 @@ def test_with_learning_rate_zero_a_transfer_run_leaves_every_fine_tuned_arms_act
         np.testing.assert_array_equal(after, before, err_msg=f"{arm}: actions moved with learning rate 0")
 
 
+def test_transfer_statistics_left_to_learn_move_a_fine_tuned_arms_actions_at_learning_rate_zero(finished_run, tmp_path):
+    """``transfer.freeze_statistics: false`` (a diagnostic) lets the inherited observation statistics learn the novel
+    task's states: with no weight update the inputs drift under the weights and the actions move. Broken once: the
+    key ignored (statistics frozen) -> the actions hold, fails."""
+    from sb3_divmorph.algos.finetune import observation_statistics_frozen
+    from divmorph.pipeline.robots import profile_robots
+    from divmorph.pipeline.transfer import transfer_run
+
+    out, profiles = copied_run(finished_run, tmp_path)
+    overrides = {"transfer.finetune_overrides": {"learning_rate": 0.0}, "transfer.eval_every": 0, "transfer.freeze_statistics": False}
+    profile = load_profile("tiny", profiles, overrides=overrides)
+    raw = fixed_states("Escape", profile_robots(profile, "train"))
+    run = transfer_run(profile, out, "Escape", "closest", 1, progress_bar=False)
+    start = run.make_model()
+    before = start.predict(start.get_vec_normalize_env().normalize_obs(raw), deterministic=True)[0]
+    trained = run.run()
+    normalizer = trained.get_vec_normalize_env()
+    assert not observation_statistics_frozen(normalizer)
+    assert not np.array_equal(trained.predict(normalizer.normalize_obs(raw), deterministic=True)[0], before)
+
+
 def test_transfer_action_std_changes_what_a_fine_tuned_arm_samples_and_not_its_mean(finished_run, tmp_path):
     """``transfer.action_std: 0.3``: every arm that starts from trained weights samples its actions
     with std 0.3 for the whole run (the checkpoint it saves and resumes from included), while its

@@ -500,10 +500,10 @@ def transfer_run(
         task_policy_kwargs = {**entry.policy_kwargs, **profile.teachers.policy_kwargs}
 
         def make_model():
-            # the source's weights and observation statistics (frozen); reward statistics start afresh for the
-            # new task; an encoder for a task input the source never had (a teacher of another task) is added
+            # the source's weights and observation statistics (frozen unless told otherwise); reward statistics
+            # start afresh for the new task; an encoder for a task input the source never had is added
             saved = PPO.load(stage_model(source), device=device)
-            venv = inherited_normalizer(source, make_env(), gamma, freeze_observations=True)
+            venv = inherited_normalizer(source, make_env(), gamma, freeze_observations=cfg.freeze_statistics)
             adapter_rank = cfg.adapter_rank if spec.divmorph_transfer and cfg.recipe == "adapter" else 0
             return finetuned_model(
                 saved, venv, task, task_policy_kwargs, run_seed, device, entry.ppo_kwargs, algo, cfg.action_std, adapter_rank
