@@ -89,9 +89,26 @@ def test_every_settings_profile_keys_are_the_profiles(monkeypatch):
 
     module = load_race(monkeypatch)
     for setting in module.SETTINGS.values():
-        for sets in (setting.sets + module.EVAL, *module.TASKS.values(), *(sets for sets, _, _ in module.CONTROLS.values())):
+        for sets in (setting.sets + module.EVAL, *module.TASKS.values(), *module.SETS.values()):
             overrides = {key: yaml.safe_load(value) for key, value in (item.split("=", 1) for item in sets)}
             load_profile("cpu100", overrides=overrides)  # a key or value the profile refuses raises ConfigError
+
+
+def test_the_low_start_diagnosis_changes_one_knob_of_the_low_start_per_run_folder(monkeypatch, tmp_path):
+    """Every variant runs MetaMorph-> told Incline's instruction, with the low start's settings and one more, in a run
+    folder of its own, seeds 0-2 of every variant in turn."""
+    module = load_race(monkeypatch)
+    found = module.jobs("lowstart-diagnosis")
+    assert [job.seed for job in found] == [seed for seed in module.SEEDS for _ in module.DIAGNOSIS]
+    low_start = module.CONTROLS["lowstart"][0]
+    folders = set()
+    for job in found:
+        line = module.command(job, module.SETTINGS["S2"], tmp_path)
+        sets = [line[i + 1] for i, item in enumerate(line) if item == "--set"]
+        extra = [item for item in sets if item not in (*module.SETTINGS["S2"].sets, *module.EVAL, *low_start)]
+        assert job.arm == "closest" and all(item in sets for item in low_start) and len(extra) == 1, sets
+        folders.add(job.folder)
+    assert folders == {f"Escape-{name}" for name in module.DIAGNOSIS}
 
 
 def load_reader(monkeypatch):
@@ -224,3 +241,18 @@ def test_the_controls_are_read_first_and_a_failed_one_names_our_setup(monkeypatc
     assert failed == ["learning rate 0", "the dense low start"]
     text = reader.main(["--keep", str(tmp_path / "moving")])
     assert "not decided: our setup (failed: learning rate 0, the dense low start)" in text.split("Against scratch")[1]
+
+
+def test_the_low_start_diagnosis_names_the_first_variant_that_recovers(monkeypatch, tmp_path):
+    """Made-up variants: statistics learning (L) and scratch's rate (S) climb, the critic first (W) stays flat -> L,
+    the first in the rule's order that recovers, is named; with every variant flat none is. Broken once: the order
+    ignored (the last recovering variant named) -> names S, fails."""
+    reader = load_reader(monkeypatch)
+    climbs, flat = (lambda f: 1 + 2 * f), (lambda f: 1 + 0 * f)
+    for name, curve in (("lowstart-W", flat), ("lowstart-L", climbs), ("lowstart-S", climbs)):
+        made_up_race(tmp_path / "some", "Escape", {"closest": curve}, noise=0.2, folder=f"Escape-{name}")
+        made_up_race(tmp_path / "none", "Escape", {"closest": flat}, noise=0.2, folder=f"Escape-{name}")
+    rows, block = reader.read_diagnosis(tmp_path / "some")
+    assert [row["reading"] for row in rows] == ["does not recover", "recovers", "recovers"]
+    assert block == reader.DIAGNOSIS["lowstart-L"]
+    assert reader.read_diagnosis(tmp_path / "none")[1] is None

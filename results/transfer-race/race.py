@@ -65,6 +65,16 @@ CONTROLS = {
     "lr0": (["transfer.finetune_overrides.learning_rate=0"], FINE_TUNED, SEEDS[:1]),
     "freed": ([], ["divmorph-finetuned"], SEEDS),
 }
+#: ``lowstart-rule.md``: if the dense low start fails, which part of the setup blocks it -- the low start again with one
+#: knob changed each (``--study lowstart-diagnosis``, a run folder per variant, seeds 0-2 of every variant in turn).
+DIAGNOSIS = {
+    "lowstart-W": [*CONTROLS["lowstart"][0], "transfer.critic_warmup=100352"],
+    "lowstart-L": [*CONTROLS["lowstart"][0], "transfer.freeze_statistics=false"],
+    "lowstart-S": [*CONTROLS["lowstart"][0], "transfer.finetune_overrides.learning_rate=lin_1e-3"],
+}
+#: every run folder's settings beyond the race's own, by control or variant name
+SETS = {**{name: sets for name, (sets, _, _) in CONTROLS.items()}, **DIAGNOSIS}
+STUDIES = ["race", "lowstart-diagnosis"]
 
 
 @dataclass(frozen=True)
@@ -77,7 +87,7 @@ class Job:
     @property
     def folder(self) -> str:
         """The run folder's name: the task's, or ``<task>-<control>`` for a control with settings of its own."""
-        return f"{self.task}-{self.control}" if self.control and CONTROLS[self.control][0] else self.task
+        return f"{self.task}-{self.control}" if self.control and SETS[self.control] else self.task
 
     @property
     def name(self) -> str:
@@ -85,9 +95,11 @@ class Job:
         return f"{self.task}-{self.control + '-' if self.control else ''}{self.arm}-{kind}"
 
 
-def jobs() -> list[Job]:
-    """Seed 0 of the race; every seed of the dense low start (its failure alone turns both verdicts, so it is known
+def jobs(study: str = "race") -> list[Job]:
+    """The race's jobs in order, or the low-start diagnosis's (``study``). The race: seed 0 of the race; every seed of the dense low start (its failure alone turns both verdicts, so it is known
     early); the other controls' first seeds; every start; the race's other seeds; the other controls' other seeds."""
+    if study == "lowstart-diagnosis":
+        return [Job("Escape", "closest", seed, name) for seed in SEEDS for name in DIAGNOSIS]
     first = [Job(task, arm, SEEDS[0]) for task in TASKS for arm in ARMS]
     _, arms, seeds = CONTROLS["lowstart"]
     low_start = [Job("Escape", arm, seed, "lowstart") for seed in seeds for arm in arms]
@@ -100,7 +112,7 @@ def jobs() -> list[Job]:
 
 
 def command(job: Job, setting: Setting, runs: Path) -> list[str]:
-    sets = [*setting.sets, *EVAL, *TASKS[job.task], *(CONTROLS[job.control][0] if job.control else [])]
+    sets = [*setting.sets, *EVAL, *TASKS[job.task], *(SETS[job.control] if job.control else [])]
     line = [sys.executable, str(SCRIPT), "--source", str(runs / "source"), "--out", str(runs / job.folder), "--task", job.task]
     line += ["--steps", str(setting.steps), "--eval-every", str(EVAL_EVERY), "--arms", job.arm]
     for item in sets:
@@ -139,13 +151,13 @@ def keep_finished(job: Job, runs: Path, keep: Path) -> None:
             subprocess.run(pack, check=True)
 
 
-def work(setting: Setting, runs: Path, keep: Path, poll: float) -> None:
+def work(setting: Setting, runs: Path, keep: Path, poll: float, study: str = "race") -> None:
     claims = runs / "claims"
     claims.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "PYTHONPATH": str(ROOT), "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
     while True:
         waiting = False
-        for job in jobs():
+        for job in jobs(study):
             if done(job, runs, keep) or (claims / job.name).exists():
                 continue
             if not ready(job, runs):
@@ -177,17 +189,18 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--fresh-claims", action="store_true", help="forget the claims of stopped workers first")
     parser.add_argument("--poll", type=float, default=60.0, help="seconds between looks for a job that cannot start yet")
     parser.add_argument("--list", action="store_true", help="print the jobs' commands and stop")
+    parser.add_argument("--study", choices=STUDIES, default="race", help="the race, or the low start's diagnosis (lowstart-rule.md)")
     args = parser.parse_args(argv)
     setting = SETTINGS[args.setting]
     if args.list:
-        for job in jobs():
+        for job in jobs(args.study):
             print(job.name, "done" if done(job, args.runs, args.keep) else "", " ".join(command(job, setting, args.runs)))
         return
     if not (args.runs / "source" / "run.json").is_file():
         raise SystemExit(f"no race source in {args.runs}: run python results/transfer-race/make_source.py {args.runs / 'source'} first")
     if args.fresh_claims:
         shutil.rmtree(args.runs / "claims", ignore_errors=True)
-    work(setting, args.runs.resolve(), args.keep.resolve(), args.poll)
+    work(setting, args.runs.resolve(), args.keep.resolve(), args.poll, args.study)
 
 
 if __name__ == "__main__":

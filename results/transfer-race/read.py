@@ -263,6 +263,32 @@ def read_controls(keep: Path) -> list[dict[str, object]]:
     return rows
 
 
+#: ``lowstart-rule.md``'s variants of the low start, in the order the rule reads them
+DIAGNOSIS = {
+    "lowstart-W": "W: critic first (100,352 critic-only steps)",
+    "lowstart-L": "L: observation statistics learning",
+    "lowstart-S": "S: scratch's rate (lin_1e-3)",
+}
+
+
+def read_diagnosis(keep: Path) -> tuple[list[dict[str, object]], str | None]:
+    """The low start's diagnosis (``lowstart-rule.md``): each variant's gain against the low start's many-draw start
+    (its own step 0 until that is measured), and the block the first recovering variant names (``None`` while none
+    has recovered). Variants with no finished run are left out."""
+    rows: list[dict[str, object]] = []
+    start = starts_of(keep, f"{CONTROL_TASK}-lowstart").get("closest")
+    for name, label in DIAGNOSIS.items():
+        found = _curves(keep, {name: (f"{CONTROL_TASK}-{name}", "closest")})
+        if found is None:
+            continue
+        (values,), robots = list(found[0].values()), found[1]
+        g = gain(values, start, robots)
+        reading = "recovers" if g[3][0] > 0 else "does not recover"
+        rows.append(dict(control="low-start diagnosis", arm=label, seeds=len(values), gain=g, reading=reading, failed=False))
+    block = next((str(row["arm"]) for row in rows if row["reading"] == "recovers"), None)
+    return rows, block
+
+
 def figure(tasks: list[dict[str, object]], held_out: list[dict[str, object]], out: Path) -> None:
     """Mean curves with 95% bands (runs and robots resampled): training robots above, held-out robots below."""
     import matplotlib
@@ -343,6 +369,17 @@ def main(argv: list[str] | None = None) -> str:
         )
     if not controls:
         lines.append("| (no control finished yet) | | | | | | |")
+    diagnosis, block = read_diagnosis(args.keep)
+    if diagnosis:
+        lines += ["", "The low start's diagnosis (`lowstart-rule.md`; beside the verdict, naming the block):", ""]
+        lines += ["| variant | seeds | start | last | gain [95% CI] | reading |", "|---|---:|---:|---:|---|---|"]
+        for row in diagnosis:
+            start, last, change, (low, high) = row["gain"]  # type: ignore[misc]
+            lines.append(
+                f"| {row['arm']} | {row['seeds']} | {start:.1f} | {last:.1f} | {change:+.1f} [{low:+.1f}, {high:+.1f}] | {row['reading']} |"
+            )
+        lines.append("")
+        lines.append(f"Block named: {block}." if block else "No variant recovers (yet): the block is not named.")
     verdict = {name: overall(found) for name, found in verdicts.items()}
     if failed:
         verdict = {name: f"not decided: our setup (failed: {', '.join(failed)})" for name in verdict}

@@ -3,13 +3,14 @@
 # their runs resume from the last checkpoint). The claims of dead workers are cleared first, then the second worker
 # starts only once the first holds its job, so the two never run the same one.
 #
-#   bash results/transfer-race/workers.sh WORKTREE RUNS KEEP [SETTING] [WORKERS]
+#   bash results/transfer-race/workers.sh WORKTREE RUNS KEEP [SETTING] [WORKERS] [STUDY]
 #   e.g. bash results/transfer-race/workers.sh /work/wt-race /work/race "$PWD/results/transfer-race/S2" S2 2
 #
 # WORKTREE is a checkout at the race's commit (README.md names it), RUNS the run folders, KEEP where finished runs
-# are packed (an absolute path: the workers run in WORKTREE). Logs: RUNS/worker-<n>.log.
+# are packed (an absolute path: the workers run in WORKTREE), STUDY `race` (default) or `lowstart-diagnosis`.
+# Logs: RUNS/worker-<n>.log.
 set -euo pipefail
-worktree=$(realpath "$1") runs=$(realpath "$2") keep=$3 setting=${4:-S2} workers=${5:-2}
+worktree=$(realpath "$1") runs=$(realpath "$2") keep=$3 setting=${4:-S2} workers=${5:-2} study=${6:-race}
 python=${PYTHON:-$(command -v python)}
 
 if pgrep -f "race.py --setting $setting --runs $runs" >/dev/null; then
@@ -21,6 +22,7 @@ for n in $(seq 1 "$workers"); do
     before=$(find "$runs/claims" -mindepth 1 -maxdepth 1 | wc -l)
     (cd "$worktree" && nohup nice -n 19 env PYTHONPATH="$worktree" MUJOCO_GL="${MUJOCO_GL:-egl}" \
         "$python" results/transfer-race/race.py --setting "$setting" --runs "$runs" --keep "$keep" \
+        $([ "$study" = race ] || echo --study "$study") \
         >>"$runs/worker-$n.log" 2>&1 &)
     [ "$n" -lt "$workers" ] || break
     for _ in $(seq 1 120); do  # the worker's claim, before the next worker looks for a free job
