@@ -184,6 +184,12 @@ def read_held_out(keep: Path, task: str) -> dict[str, object] | None:
     return dict(task=task, steps=steps, values=values, gains=gains, seeds={arm: len(f) for arm, f in runs.items()}, robots=len(robots))
 
 
+def _gain_cells(g: tuple[float, float, float, tuple[float, float]]) -> str:
+    """``start | last | gain [low, high]`` of a :func:`gain` for a table row."""
+    start, last, change, (low, high) = g
+    return f"{start:.1f} | {last:.1f} | {change:+.1f} [{low:+.1f}, {high:+.1f}]"
+
+
 def _steps(value: float | None) -> str:
     if value is None:
         return "--"
@@ -337,12 +343,12 @@ def main(argv: list[str] | None = None) -> str:
         "|---|---|---:|---:|---:|---|---:|---:|",
     ]
     for found in tasks:
-        for arm, (start, last, change, (low, high)) in found["gains"].items():  # type: ignore[attr-defined]
+        for arm, g in found["gains"].items():  # type: ignore[attr-defined]
             reach = found["reach"][arm]  # type: ignore[index]
             lines.append(
-                f"| {found['task']} | {ARMS[arm]} | {found['seeds'][arm]} | {start:.1f} | {last:.1f} | {change:+.1f} [{low:+.1f}, {high:+.1f}] "
+                f"| {found['task']} | {ARMS[arm]} | {found['seeds'][arm]} | {_gain_cells(g)} "  # type: ignore[index]
                 f"| {_steps(reach.get('direct'))} | {_steps(reach.get('scratch'))} |"
-            )  # type: ignore[index]
+            )
     lines += ["", "| task | reading | ratio of steps [95% CI] | verdict (line: 3x) |", "|---|---|---|---|"]
     names = {"direct": "1: MetaMorph→'s final return", "scratch": "2: scratch's final return"}
     verdicts: dict[str, list[str]] = {"direct": [], "scratch": []}
@@ -354,19 +360,14 @@ def main(argv: list[str] | None = None) -> str:
     lines += ["", "Held-out robots (reported beside, deciding nothing; start: each run's own step 0):", ""]
     lines += ["| task | arm | seeds | start | last | gain [95% CI, runs and robots] |", "|---|---|---:|---:|---:|---|"]
     for found in held_out:
-        for arm, (start, last, change, (low, high)) in found["gains"].items():  # type: ignore[attr-defined]
-            lines.append(
-                f"| {found['task']} | {ARMS[arm]} | {found['seeds'][arm]} | {start:.1f} | {last:.1f} | {change:+.1f} [{low:+.1f}, {high:+.1f}] |"
-            )  # type: ignore[index]
+        for arm, g in found["gains"].items():  # type: ignore[attr-defined]
+            lines.append(f"| {found['task']} | {ARMS[arm]} | {found['seeds'][arm]} | {_gain_cells(g)} |")  # type: ignore[index]
     controls = read_controls(args.keep)
     failed = [str(row["control"]) for row in controls if row["failed"]]
     lines += ["", f"Controls ({CONTROL_TASK}; read first: a failure names our setup):", ""]
     lines += ["| control | arm | seeds | start | last | change [95% CI] | reading |", "|---|---|---:|---:|---:|---|---|"]
     for row in controls:
-        start, last, change, (low, high) = row["gain"]  # type: ignore[misc]
-        lines.append(
-            f"| {row['control']} | {row['arm']} | {row['seeds']} | {start:.1f} | {last:.1f} | {change:+.1f} [{low:+.1f}, {high:+.1f}] | {row['reading']} |"
-        )
+        lines.append(f"| {row['control']} | {row['arm']} | {row['seeds']} | {_gain_cells(row['gain'])} | {row['reading']} |")  # type: ignore[arg-type]
     if not controls:
         lines.append("| (no control finished yet) | | | | | | |")
     diagnosis, block = read_diagnosis(args.keep)
@@ -374,10 +375,7 @@ def main(argv: list[str] | None = None) -> str:
         lines += ["", "The low start's diagnosis (`lowstart-rule.md`; beside the verdict, naming the block):", ""]
         lines += ["| variant | seeds | start | last | gain [95% CI] | reading |", "|---|---:|---:|---:|---|---|"]
         for row in diagnosis:
-            start, last, change, (low, high) = row["gain"]  # type: ignore[misc]
-            lines.append(
-                f"| {row['arm']} | {row['seeds']} | {start:.1f} | {last:.1f} | {change:+.1f} [{low:+.1f}, {high:+.1f}] | {row['reading']} |"
-            )
+            lines.append(f"| {row['arm']} | {row['seeds']} | {_gain_cells(row['gain'])} | {row['reading']} |")  # type: ignore[arg-type]
         lines.append("")
         lines.append(f"Block named: {block}." if block else "No variant recovers (yet): the block is not named.")
     verdict = {name: overall(found) for name, found in verdicts.items()}
