@@ -256,3 +256,17 @@ def test_the_low_start_diagnosis_names_the_first_variant_that_recovers(monkeypat
     assert [row["reading"] for row in rows] == ["does not recover", "recovers", "recovers"]
     assert block == reader.DIAGNOSIS["lowstart-L"]
     assert reader.read_diagnosis(tmp_path / "none")[1] is None
+
+
+def test_a_variant_is_read_against_the_low_starts_step_0_not_its_own(monkeypatch, tmp_path):
+    """Made-up runs: the low start and a variant both sit at 1, but the variant's first evaluation reads 0 (statistics
+    learning changes a model during its first rollout) -> it does not recover against the low start's step 0. Broken
+    once: each variant read against its own first evaluation -> "recovers", fails."""
+    reader = load_reader(monkeypatch)
+    flat, dips_first = (lambda f: 1 + 0 * f), (lambda f: 0.0 if f == 0 else 1.0)
+    made_up_race(tmp_path, "Escape", {"closest": flat}, noise=0.05, folder="Escape-lowstart")
+    (tmp_path / "Escape-lowstart" / "baseline.json").unlink()  # its many-draw start not measured yet
+    made_up_race(tmp_path, "Escape", {"closest": dips_first}, noise=0.05, folder="Escape-lowstart-L")
+    rows, block = reader.read_diagnosis(tmp_path)
+    assert [row["reading"] for row in rows] == ["does not recover"] and block is None
+    assert abs(rows[0]["gain"][0] - 1.0) < 0.1  # the start: the low start's step 0

@@ -277,12 +277,23 @@ DIAGNOSIS = {
 }
 
 
+def low_start_step_0(keep: Path) -> dict[str, dict[str, float]] | None:
+    """The low start's step-0 evaluations, ``{seed: {robot: return}}``, as the variants' start until its many-draw
+    start is measured (``None`` without low-start runs). The same model on the same robots before any update: a
+    variant's own first evaluation can come after it has changed something (statistics learning updates the
+    statistics during its first rollout)."""
+    runs = arm_runs(keep, CONTROL_TASK, "closest", f"{CONTROL_TASK}-lowstart")
+    if not runs:
+        return None
+    return {str(seed): frame.sort_index().iloc[0].to_dict() for seed, frame in runs.items()}  # rows: timesteps
+
+
 def read_diagnosis(keep: Path) -> tuple[list[dict[str, object]], str | None]:
     """The low start's diagnosis (``lowstart-rule.md``): each variant's gain against the low start's many-draw start
-    (its own step 0 until that is measured), and the block the first recovering variant names (``None`` while none
+    (the low start's step-0 evaluations until that is measured), and the block the first recovering variant names (``None`` while none
     has recovered). Variants with no finished run are left out."""
     rows: list[dict[str, object]] = []
-    start = starts_of(keep, f"{CONTROL_TASK}-lowstart").get("closest")
+    start = starts_of(keep, f"{CONTROL_TASK}-lowstart").get("closest") or low_start_step_0(keep)
     for name, label in DIAGNOSIS.items():
         found = _curves(keep, {name: (f"{CONTROL_TASK}-{name}", "closest")})
         if found is None:
