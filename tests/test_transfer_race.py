@@ -82,6 +82,36 @@ def test_a_start_waits_for_its_arms_first_run(race, tmp_path):
     assert module.ready(start, tmp_path)
 
 
+def test_a_new_machine_gets_the_finished_first_runs_sources_back_and_no_progress(race, monkeypatch, tmp_path):
+    """On a new machine RUNS lacks the finished seed-0 runs the starts read: restore_runs puts each packed run's
+    source.json back in a task folder branched from the source, writes no done.json, and the start can run
+    (break: skip the copy -> the start waits for ever and this fails)."""
+    from divmorph.pipeline.retired import RECORD_FORMAT
+
+    module, _ = race
+    spec = importlib.util.spec_from_file_location("restore_runs", ROOT / "results" / "transfer-race" / "restore_runs.py")
+    assert spec is not None and spec.loader is not None
+    restore_runs = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(restore_runs)
+    runs, keep = tmp_path / "runs", tmp_path / "keep"
+    (runs / "source" / "teachers" / "FT").mkdir(parents=True)
+    (runs / "source" / "teachers" / "FT" / "done.json").write_text("{}")
+    (runs / "source" / "run.json").write_text(json.dumps({"format": RECORD_FORMAT, "history": []}))
+    packed = keep / "Escape" / "transfer" / "Escape" / "closest" / "seed-0"
+    packed.mkdir(parents=True)
+    (packed / "source.json").write_text(json.dumps({"arm": "closest", "seed": 0, "source": "teachers/FT"}))
+    (packed / "done.json").write_text("{}")
+    start = module.Job("Escape", "closest", None)
+    assert not module.ready(start, runs)
+    assert restore_runs.restore(runs, keep) == [runs / packed.relative_to(keep) / "source.json"]
+    assert module.ready(start, runs)
+    folder = module.run_folder(runs, start, 0)
+    assert json.loads((folder / "source.json").read_text())["source"] == "teachers/FT"
+    assert (runs / "Escape" / "teachers" / "FT" / "done.json").is_file()  # the model the start evaluates
+    assert not (folder / "done.json").exists() and module.done(start, runs, keep) is False
+    assert restore_runs.restore(runs, keep) == []  # a folder RUNS already has is left alone
+
+
 def test_every_settings_profile_keys_are_the_profiles(monkeypatch):
     import yaml
 

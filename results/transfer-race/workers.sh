@@ -10,6 +10,7 @@
 # are packed (an absolute path: the workers run in WORKTREE), STUDY `race` (default) or `lowstart-diagnosis`.
 # Logs: RUNS/worker-<n>.log.
 set -euo pipefail
+mkdir -p "$2"
 worktree=$(realpath "$1") runs=$(realpath "$2") keep=$3 setting=${4:-S2} workers=${5:-2} study=${6:-race}
 python=${PYTHON:-$(command -v python)}
 
@@ -17,6 +18,13 @@ if pgrep -f "race.py --setting $setting --runs $runs" >/dev/null; then
     echo "workers for $runs are still running (pgrep -af race.py); stop them first or leave them be" >&2
     exit 1
 fi
+# A new machine: the race's source, the official robots and the finished first runs' sources (which the starts
+# read) are made or checked here, so that a worker does not stop on them in the background.
+if [ ! -f "$runs/source/run.json" ]; then
+    (cd "$worktree" && PYTHONPATH="$worktree" "$python" results/transfer-race/make_source.py "$runs/source")
+fi
+PYTHONPATH="$worktree" "$python" -c "from unimal_envs.morphology.cache import official_set_dir as d; d('unimals100-train'); d('unimals100-test')"
+PYTHONPATH="$worktree" "$python" "$(dirname "$(realpath "$0")")/restore_runs.py" "$runs" "$keep"
 rm -rf "$runs/claims" && mkdir -p "$runs/claims"
 for n in $(seq 1 "$workers"); do
     before=$(find "$runs/claims" -mindepth 1 -maxdepth 1 | wc -l)

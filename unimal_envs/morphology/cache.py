@@ -143,6 +143,7 @@ def official_set_dir(name: str, cache: str | Path | None = None) -> Path:
     if not (folder / MANIFEST).is_file():
         raise MorphologyError(
             f"the official robot set '{name}' is not in the cache {cache_root(cache)}; fetch it once with: "
-            f"{fetch_command([name])}  (set UNIMAL_DATA to use another cache folder)"
+            f"{fetch_command([name])}  (without a network, from a copy of the robots: "
+            f"python -m unimal_envs.morphology fetch --source PATH; set UNIMAL_DATA to use another cache folder)"
         )
     return folder
