@@ -300,3 +300,25 @@ def test_a_variant_is_read_against_the_low_starts_step_0_not_its_own(monkeypatch
     rows, block = reader.read_diagnosis(tmp_path)
     assert [row["reading"] for row in rows] == ["does not recover"] and block is None
     assert abs(rows[0]["gain"][0] - 1.0) < 0.1  # the start: the low start's step 0
+
+
+def test_a_complete_diagnosis_where_nothing_recovers_reads_not_decidable_at_this_scale(monkeypatch, tmp_path):
+    """The low start fails (flat where scratch climbs) and the rate-0 control holds. With every variant flat on 2 seeds
+    the verdict stays "not decided: our setup"; on its 3 seeds it becomes lowstart-rule.md's last branch, "not
+    decidable at this scale", naming the low start; a variant that recovers names the block instead. Broken once:
+    the variants' seeds not counted -> 2 seeds already read "not decidable", fails."""
+    reader = load_reader(monkeypatch)
+    escape = {arm: (lambda f: 100 + 0 * f) for arm in ("divmorph", "closest", "distilled")} | {"scratch": lambda f: 200 * f}
+    flat, climbs = (lambda f: 1 + 0 * f), (lambda f: 1 + 2 * f)
+    for case, seeds, l_curve in (("two", 2, flat), ("three", 3, flat), ("block", 3, climbs)):
+        keep = tmp_path / case
+        made_up_race(keep, "Escape", escape)
+        made_up_race(keep, "Escape", {arm: (lambda f: 100 + 0 * f) for arm in ("divmorph", "closest", "distilled")}, folder="Escape-lr0")
+        made_up_race(keep, "Escape", {"closest": flat}, noise=0.2, folder="Escape-lowstart")
+        for name in reader.DIAGNOSIS:
+            curve = l_curve if name == "lowstart-L" else flat
+            made_up_race(keep, "Escape", {"closest": curve}, seeds=seeds, noise=0.2, folder=f"Escape-{name}")
+    verdicts = {case: reader.main(["--keep", str(tmp_path / case)]).split("Against direct")[1] for case in ("two", "three", "block")}
+    assert "not decided: our setup (failed: the dense low start)" in verdicts["two"]
+    assert "not decidable at this scale (the control that stops it: the dense low start)" in verdicts["three"]
+    assert "not decided: our setup" in verdicts["block"] and "not decidable" not in verdicts["block"]
