@@ -82,7 +82,7 @@ def test_a_start_waits_for_its_arms_first_run(race, tmp_path):
     assert module.ready(start, tmp_path)
 
 
-def test_a_new_machine_gets_the_finished_first_runs_sources_back_and_no_progress(race, monkeypatch, tmp_path):
+def test_a_new_machine_gets_the_finished_first_runs_sources_back_and_no_progress(race, tmp_path):
     """On a new machine RUNS lacks the finished seed-0 runs the starts read: restore_runs puts each packed run's
     source.json back in a task folder branched from the source, writes no done.json, and the start can run
     (break: skip the copy -> the start waits for ever and this fails)."""
